@@ -1,0 +1,241 @@
+"""Benchmark systems: specs, batched torch dynamics, Drake plants and LQR.
+
+>>> from hybridctl import systems
+>>> acrobot = systems.load("acrobot")
+>>> K, S = acrobot.lqr()                     # Drake's LinearQuadraticRegulator
+>>> xdot = acrobot.derivatives(x, u)         # torch, batched (B, n), (B, m) -> (B, n)
+>>> x_next = acrobot.step(x, u)              # one step of the spec's integrator
+
+A system's parameters live in its spec (``systems/NAME.toml``) only; everything
+here derives from it.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+
+from .dynamics import ChainDynamics, ChainParams
+from .spec import SpecError, Spec, known_systems, read_spec
+from . import plants as _plants
+
+__all__ = ["System", "load", "known_systems", "SpecError", "Spec", "check_array"]
+
+
+def check_array(name: str, value, width: int, dtype_float: bool = True) -> None:
+    """Raise ValueError naming ``name`` if ``value`` is not (width,) or (B, width) and finite."""
+    shape = tuple(value.shape)
+    if len(shape) not in (1, 2) or shape[-1] != width:
+        raise ValueError(f"{name} must have shape ({width},) or (batch, {width}), got {shape}")
+    finite = torch.isfinite(value).all() if isinstance(value, torch.Tensor) else np.isfinite(value).all()
+    if not bool(finite):
+        raise ValueError(f"{name} contains NaN or Inf")
+
+
+class System:
+    """One benchmark system, built from its spec.
+
+    Attributes: ``name``, ``spec``, ``state_names``, ``action_names``, ``goal``,
+    ``params`` (the physical parameters by name), ``n_states``, ``n_actions``,
+    ``dt``, ``integrator``, ``control_period``, ``swingup_period``,
+    ``episode_duration``, ``action_limit``, ``angle_indices``, ``Q``, ``R``,
+    ``success_eps``, ``success_lookback``, ``chain`` (ChainParams), ``dynamics``.
+    """
+
+    def __init__(self, spec: Spec):
+        self.spec = spec
+        self.name: str = spec.name
+        self.state_names: list[str] = list(spec.get("state.names"))
+        self.action_names: list[str] = list(spec.get("action.names"))
+        self.n_states = len(self.state_names)
+        self.n_actions = len(self.action_names)
+        self.goal: np.ndarray = np.asarray(spec.get("state.goal"), dtype=float)
+        self.params: dict[str, Any] = {k.split(".", 1)[1]: v for k, v in spec.values.items()
+                                       if k.startswith("params.")}
+        self.dt = float(spec.get("integrator.dt"))
+        self.integrator: str = spec.get("integrator.method")
+        self.control_period = float(spec.get("control.period"))
+        self.swingup_period = float(spec.get("control.swingup_period"))
+        self.episode_duration = float(spec.get("episode.duration"))
+        self.action_limit = float(spec.get("action.limit"))
+        self.angle_indices: list[int] = list(spec.get("state.angles"))
+        self.Q = np.atleast_2d(spec.get("lqr.Q"))
+        self.R = np.atleast_2d(spec.get("lqr.R"))
+        self.success_eps = float(spec.get("success.eps"))
+        self.success_lookback = int(spec.get("success.lookback"))
+        self.reward_kind: str = spec.get("reward.kind")
+        self.chain = self._chain_params()
+        self.dynamics = ChainDynamics(self.chain)
+        self._lqr_cache: dict = {}
+
+    def __repr__(self) -> str:
+        return f"System({self.name!r}, n_states={self.n_states}, dt={self.dt}, integrator={self.integrator!r})"
+
+    # ----------------------------------------------------------------- parameters
+    def _chain_params(self) -> ChainParams:
+        s = self.spec
+        has_cart = s.get("model.base") == "cart"
+        n_q = self.n_states // 2
+        actuation = np.zeros((n_q, self.n_actions))
+        for col, joint in enumerate(s.get("model.actuated_joints")):
+            actuation[joint, col] = 1.0
+        return ChainParams(
+            has_cart=has_cart,
+            cart_mass=float(s.get("params.cart_mass", 0.0)),
+            link_mass=np.atleast_1d(s.get("params.link_mass")).astype(float),
+            link_length=np.atleast_1d(s.get("params.link_length")).astype(float),
+            link_com=np.atleast_1d(s.get("params.link_com")).astype(float),
+            link_inertia=np.atleast_1d(s.get("params.link_inertia")).astype(float),
+            joint_damping=np.atleast_1d(s.get("params.joint_damping")).astype(float),
+            gravity=float(s.get("params.gravity")),
+            angle_offset=float(s.get("model.angle_offset", 0.0)),
+            actuation=actuation,
+        )
+
+    # ------------------------------------------------------------------ dynamics
+    def _check(self, x, u) -> None:
+        if not isinstance(x, torch.Tensor) or not isinstance(u, torch.Tensor):
+            raise ValueError("x and u must be torch tensors (use torch.as_tensor)")
+        check_array("x", x, self.n_states)
+        check_array("u", u, self.n_actions)
+        if x.dim() == 2 and u.dim() == 2 and x.shape[0] != u.shape[0]:
+            raise ValueError(f"x and u batch sizes differ: {x.shape[0]} vs {u.shape[0]}")
+
+    def derivatives(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """dx/dt for states (B, n) and inputs (B, m); differentiable, float32 or float64."""
+        self._check(x, u)
+        return self.dynamics.derivatives(x, u)
+
+    def step(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """One step of length ``dt`` with the spec's integrator (input held over the step).
+
+        ``euler``: x + dt f(x, u). ``runge_kutta2``: Heun's method, as Drake's
+        RungeKutta2Integrator. No saturation is applied here.
+        """
+        self._check(x, u)
+        return self.step_unchecked(x, u)
+
+    def step_unchecked(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """``step`` without input validation, for inner loops that validated once."""
+        f = self.dynamics.derivatives
+        k1 = f(x, u)
+        if self.integrator == "euler":
+            return x + self.dt * k1
+        k2 = f(x + self.dt * k1, u)
+        return x + 0.5 * self.dt * (k1 + k2)
+
+    def rollout(self, x0: torch.Tensor, controls: torch.Tensor) -> torch.Tensor:
+        """States (B, T+1, n) from x0 (B, n) under controls (B, T, m), differentiable."""
+        self._check(x0, controls[:, 0])
+        states = [x0]
+        for t in range(controls.shape[1]):
+            states.append(self.step_unchecked(states[-1], controls[:, t]))
+        return torch.stack(states, dim=1)
+
+    def energy(self, x):
+        """Total mechanical energy of states x (numpy or torch, batched)."""
+        return self.dynamics.energy(x)
+
+    # ------------------------------------------------------- goal, reward, errors
+    def state_error(self, x):
+        """x - goal with angle coordinates wrapped to [-pi, pi) (numpy or torch)."""
+        goal = self.goal if not isinstance(x, torch.Tensor) else torch.as_tensor(self.goal, dtype=x.dtype)
+        err = x - goal
+        idx = self.angle_indices
+        err[..., idx] = (err[..., idx] + np.pi) % (2 * np.pi) - np.pi
+        return err
+
+    def reward(self, x):
+        """Per-decision reward of states x: tip height (thesis eq. 3.1) or the quadratic variant.
+
+        ``quadratic`` is the author's SSAC script: -0.1 * |x - goal|^2 over positions.
+        """
+        if self.reward_kind == "tip_height":
+            return self.dynamics.tip_height(x)
+        err = self.state_error(x)[..., : self.n_states // 2]
+        return -0.1 * (err * err).sum(-1)
+
+    def sample_initial_states(self, n: int, generator: np.random.Generator | None = None) -> np.ndarray:
+        """n initial states from the spec's uniform distribution (nominal + U(low, high))."""
+        if n < 1:
+            raise ValueError(f"n must be >= 1, got {n}")
+        rng = generator if generator is not None else np.random.default_rng()
+        low, high = self.spec.get("initial_state.low"), self.spec.get("initial_state.high")
+        return self.spec.get("initial_state.nominal") + rng.uniform(low, high, size=(n, self.n_states))
+
+    # --------------------------------------------------------------------- Drake
+    def drake_plant(self):
+        """A fresh Drake plant (AcrobotPlant, PendulumPlant or continuous MultibodyPlant).
+
+        AcrobotPlant and PendulumPlant keep parameters in the Context: create contexts
+        with :meth:`drake_context`, which writes the spec's parameters.
+        """
+        plant, _ = _plants.make_plant(self)
+        return plant
+
+    def drake_context(self, plant):
+        """A Context of ``plant`` (from :meth:`drake_plant`) holding the spec's parameters."""
+        context = plant.CreateDefaultContext()
+        _plants.make_plant_parameter_setter(self, plant)(context)
+        return context
+
+    def to_drake_state(self, x: np.ndarray) -> np.ndarray:
+        """Our state convention -> the Drake plant's (differs only in the acrobot's th1)."""
+        return np.asarray(x, dtype=float) + _plants.drake_state_offset(self)
+
+    def from_drake_state(self, x_drake: np.ndarray) -> np.ndarray:
+        """The Drake plant's state convention -> ours."""
+        return np.asarray(x_drake, dtype=float) - _plants.drake_state_offset(self)
+
+    def drake_derivatives(self, plant, context, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """Time derivatives from the Drake plant at one state (our convention) and input."""
+        context.SetContinuousState(self.to_drake_state(x))
+        _plants.actuation_port(plant).FixValue(context, np.asarray(u, dtype=float))
+        return plant.EvalTimeDerivatives(context).CopyToVector()
+
+    def lqr(self, Q: np.ndarray | None = None, R: np.ndarray | None = None):
+        """(K, S) of the continuous-time LQR about the goal, u = -K (x - goal).
+
+        Linearises the Drake plant with ``Linearize`` and calls Drake's
+        ``LinearQuadraticRegulator``. Defaults: the spec's Q and R.
+        """
+        from pydrake.systems.controllers import LinearQuadraticRegulator
+        from pydrake.systems.primitives import Linearize
+
+        Q = self.Q if Q is None else np.atleast_2d(np.asarray(Q, dtype=float))
+        R = self.R if R is None else np.atleast_2d(np.asarray(R, dtype=float))
+        if Q.shape != (self.n_states,) * 2:
+            raise ValueError(f"Q must be {self.n_states}x{self.n_states}, got {Q.shape}")
+        if R.shape != (self.n_actions,) * 2:
+            raise ValueError(f"R must be {self.n_actions}x{self.n_actions}, got {R.shape}")
+        key = (Q.tobytes(), R.tobytes())
+        if key not in self._lqr_cache:
+            plant = self.drake_plant()
+            context = self.drake_context(plant)
+            context.SetContinuousState(self.to_drake_state(self.goal))
+            u0 = np.zeros(self.n_actions)
+            port = _plants.actuation_port(plant)
+            port.FixValue(context, u0)
+            xdot = plant.EvalTimeDerivatives(context).CopyToVector()
+            if np.abs(xdot).max() > 1e-8:
+                raise ValueError(f"{self.name}: the goal is not an equilibrium with u = 0 (xdot = {xdot})")
+            from pydrake.systems.framework import OutputPortSelection
+            linear = Linearize(plant, context, input_port_index=port.get_index(),
+                               output_port_index=OutputPortSelection.kNoOutput)
+            K, S = LinearQuadraticRegulator(linear.A(), linear.B(), Q, R)
+            self._lqr_cache[key] = (np.asarray(K), np.asarray(S))
+        K, S = self._lqr_cache[key]
+        return K.copy(), S.copy()
+
+
+def load(name: str, **overrides: Any) -> System:
+    """Load a system by name (``systems/NAME.toml``) or path, with optional overrides.
+
+    Overrides are given by key, bare (``dt=0.005``) when unique across the spec or
+    as ``section__key`` (``integrator__dt=0.005``). Unknown names raise KeyError
+    listing the known systems; out-of-range values raise SpecError naming the key
+    and the file.
+    """
+    return System(read_spec(name, **overrides))

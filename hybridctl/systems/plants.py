@@ -1,0 +1,162 @@
+"""Drake plants for the benchmark systems: the reference dynamics and the viewer.
+
+``acrobot`` -> ``pydrake.examples.AcrobotPlant`` (parameters live in the Context),
+``pendulum`` -> ``pydrake.examples.PendulumPlant``, ``multibody:FILE.sdf`` -> a
+continuous-time ``MultibodyPlant`` parsed from the template in ``models/`` filled
+with the spec's parameters.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from string import Template
+from typing import TYPE_CHECKING, Callable
+
+import numpy as np
+from pydrake.examples import AcrobotGeometry, AcrobotPlant, PendulumGeometry, PendulumPlant
+from pydrake.multibody.parsing import Parser
+from pydrake.multibody.plant import AddMultibodyPlantSceneGraph, MultibodyPlant
+from pydrake.systems.framework import Context, DiagramBuilder, InputPort, OutputPort, System
+
+from .spec import MODELS_DIR
+
+if TYPE_CHECKING:
+    from . import System as HybridSystem
+
+# sdformat rejects exactly-zero inertias; 1e-20 kg m^2 stands in for a point mass.
+_POINT_MASS_INERTIA = 1e-20
+
+
+@dataclass
+class PlantHandle:
+    """A plant added to a builder: its ports and how to put the spec's parameters in a Context."""
+
+    plant: System
+    state_output: OutputPort
+    actuation_input: InputPort
+    apply_parameters: Callable[[Context], None]
+
+
+def render_model(system: "HybridSystem") -> str:
+    """The SDF text of a multibody system, with the spec's parameters filled in."""
+    kind = system.spec.get("model.drake")
+    filename = kind.split(":", 1)[1]
+    p = system.chain
+    fields = {"cart_mass": repr(float(p.cart_mass))}
+    for i in range(p.n_links):
+        fields[f"link_mass_{i}"] = repr(float(p.link_mass[i]))
+        fields[f"link_length_{i}"] = repr(float(p.link_length[i]))
+        fields[f"half_length_{i}"] = repr(float(p.link_length[i]) / 2)
+        fields[f"link_com_{i}"] = repr(float(p.link_com[i]))
+        fields[f"link_inertia_{i}"] = repr(max(float(p.link_inertia[i]), _POINT_MASS_INERTIA))
+    try:
+        return Template((MODELS_DIR / filename).read_text()).substitute(fields)
+    except KeyError as exc:
+        raise ValueError(f"models/{filename} uses field {exc} that the spec {system.spec.path} does not provide") from exc
+
+
+def _acrobot_parameter_setter(system: "HybridSystem", plant: AcrobotPlant) -> Callable[[Context], None]:
+    def apply(context: Context) -> None:
+        _set_acrobot_params_object(system, plant.get_mutable_parameters(context))
+    return apply
+
+
+def _pendulum_parameter_setter(system: "HybridSystem", plant: PendulumPlant) -> Callable[[Context], None]:
+    p = system.chain
+    if p.link_inertia[0] != 0.0 or p.link_com[0] != p.link_length[0]:
+        raise ValueError(f"{system.spec.path}: Drake's PendulumPlant is a point mass: "
+                         "params.link_com must equal params.link_length and params.link_inertia be 0")
+
+    def apply(context: Context) -> None:
+        params = plant.get_mutable_parameters(context)
+        params.set_mass(p.link_mass[0]); params.set_length(p.link_length[0])
+        params.set_damping(p.joint_damping[0]); params.set_gravity(p.gravity)
+    return apply
+
+
+def make_plant(system: "HybridSystem"):
+    """A fresh, unowned Drake plant and the function that writes the spec's parameters into a Context."""
+    kind = system.spec.get("model.drake")
+    if kind == "acrobot":
+        plant = AcrobotPlant()
+        return plant, _acrobot_parameter_setter(system, plant)
+    if kind == "pendulum":
+        plant = PendulumPlant()
+        return plant, _pendulum_parameter_setter(system, plant)
+    if kind.startswith("multibody:"):
+        plant = MultibodyPlant(0.0)
+        _parse_model(system, plant)
+        return plant, (lambda context: None)
+    raise ValueError(f"{system.spec.path}: 'model.drake' must be 'acrobot', 'pendulum' or "
+                     f"'multibody:FILE.sdf', got {kind!r}")
+
+
+def _parse_model(system: "HybridSystem", plant: MultibodyPlant) -> None:
+    Parser(plant).AddModelsFromString(render_model(system), "sdf")
+    plant.Finalize()
+
+
+def _ports(plant) -> tuple[OutputPort, InputPort]:
+    if isinstance(plant, MultibodyPlant):
+        return plant.get_state_output_port(), plant.get_actuation_input_port()
+    return plant.get_output_port(0), plant.get_input_port(0)
+
+
+def add_plant(system: "HybridSystem", builder: DiagramBuilder, with_geometry: bool = False):
+    """Add the system's Drake plant to ``builder``; returns (PlantHandle, scene_graph or None).
+
+    With ``with_geometry`` a SceneGraph is added and the plant's geometry registered,
+    ready for a MeshcatVisualizer.
+    """
+    scene_graph = None
+    if system.spec.get("model.drake").startswith("multibody:") and with_geometry:
+        plant, scene_graph = AddMultibodyPlantSceneGraph(builder, 0.0)
+        _parse_model(system, plant)
+        setter = lambda context: None  # noqa: E731 - parameters are baked into the model
+    else:
+        plant, setter = make_plant(system)
+        builder.AddSystem(plant)
+    state_output, actuation_input = _ports(plant)
+    if with_geometry and scene_graph is None:
+        from pydrake.geometry import SceneGraph
+        scene_graph = builder.AddSystem(SceneGraph())
+        if isinstance(plant, AcrobotPlant):
+            params = plant.get_parameters(plant.CreateDefaultContext()).Clone()
+            _set_acrobot_params_object(system, params)
+            AcrobotGeometry.AddToBuilder(builder, state_output, params, scene_graph)
+        else:
+            PendulumGeometry.AddToBuilder(builder, state_output, scene_graph)
+    plant.set_name("plant")
+    return PlantHandle(plant, state_output, actuation_input, setter), scene_graph
+
+
+def _set_acrobot_params_object(system: "HybridSystem", params) -> None:
+    p = system.chain
+    params.set_m1(p.link_mass[0]); params.set_m2(p.link_mass[1])
+    params.set_l1(p.link_length[0])
+    params.set_lc1(p.link_com[0]); params.set_lc2(p.link_com[1])
+    params.set_Ic1(p.link_inertia[0]); params.set_Ic2(p.link_inertia[1])
+    params.set_b1(p.joint_damping[0]); params.set_b2(p.joint_damping[1])
+    params.set_gravity(p.gravity)
+
+
+def drake_state_offset(system: "HybridSystem") -> np.ndarray:
+    """x_drake - x: the plant measures the first link angle from hanging down."""
+    offset = np.zeros(system.n_states)
+    c = int(system.chain.has_cart)
+    offset[c] = system.chain.angle_offset
+    return offset
+
+
+def make_plant_parameter_setter(system: "HybridSystem", plant) -> Callable[[Context], None]:
+    """The function that writes the spec's parameters into a Context of ``plant``."""
+    if isinstance(plant, AcrobotPlant):
+        return _acrobot_parameter_setter(system, plant)
+    if isinstance(plant, PendulumPlant):
+        return _pendulum_parameter_setter(system, plant)
+    return lambda context: None
+
+
+def actuation_port(plant) -> InputPort:
+    """The plant's actuation input port."""
+    return _ports(plant)[1]

@@ -1,0 +1,248 @@
+"""Loading and validating the declarative system specs in ``systems/*.toml``.
+
+A spec value is either a plain TOML value or a table ``{ value = ..., source = ... }``
+(optionally with ``units``). Angles may be written as strings of pi, e.g. ``"pi/2"``,
+``"-pi"`` or ``"2*pi"``. Every value is validated here, and an error names the key
+and the file, so a typo in a spec never reaches the dynamics.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+SPEC_DIR = Path(__file__).resolve().parents[2] / "systems"
+MODELS_DIR = Path(__file__).resolve().parents[2] / "models"
+
+INTEGRATORS = ("euler", "runge_kutta2")
+REWARD_KINDS = ("tip_height", "quadratic")
+
+_PI_EXPR = re.compile(r"^\s*(-)?\s*(?:(\d+(?:\.\d*)?)\s*\*\s*)?pi\s*(?:/\s*(\d+(?:\.\d*)?))?\s*$")
+
+
+class SpecError(ValueError):
+    """A system spec is missing a key or holds a value out of range."""
+
+
+def known_systems() -> list[str]:
+    """Names of the systems with a spec file in ``systems/``."""
+    return sorted(p.stem for p in SPEC_DIR.glob("*.toml"))
+
+
+def parse_number(raw: Any, where: str) -> float:
+    """Parse a number or a pi expression such as ``"-pi/2"``; ``where`` names the key."""
+    if isinstance(raw, bool):
+        raise SpecError(f"{where}: expected a number, got {raw!r}")
+    if isinstance(raw, (int, float)):
+        return float(raw)
+    if isinstance(raw, str):
+        match = _PI_EXPR.match(raw)
+        if match:
+            sign = -1.0 if match.group(1) else 1.0
+            factor = float(match.group(2)) if match.group(2) else 1.0
+            divisor = float(match.group(3)) if match.group(3) else 1.0
+            return sign * factor * math.pi / divisor
+    raise SpecError(f"{where}: expected a number or a multiple of pi like 'pi/2', got {raw!r}")
+
+
+def _parse_tree(raw: Any, where: str) -> Any:
+    """Numbers, pi expressions and (nested) lists of them -> floats / float arrays."""
+    if isinstance(raw, list):
+        return np.array([_parse_tree(item, f"{where}[{i}]") for i, item in enumerate(raw)], dtype=float)
+    return parse_number(raw, where)
+
+
+@dataclass
+class Spec:
+    """A parsed spec: ``values`` maps 'section.key' to a parsed value, ``sources`` to its source."""
+
+    name: str
+    path: Path
+    values: dict[str, Any]
+    sources: dict[str, str] = field(default_factory=dict)
+    units: dict[str, str] = field(default_factory=dict)
+
+    def get(self, key: str, default: Any = ...) -> Any:
+        """Value of 'section.key'; raises SpecError naming the file when missing."""
+        if key in self.values:
+            return self.values[key]
+        if default is not ...:
+            return default
+        raise SpecError(f"{self.path}: missing required key '{key}'")
+
+    def has(self, key: str) -> bool:
+        """Whether 'section.key' is present."""
+        return key in self.values
+
+    def error(self, key: str, message: str) -> SpecError:
+        """An error that names the key and the spec file."""
+        return SpecError(f"{self.path}: '{key}' {message}")
+
+
+_STRING_KEYS = {
+    "system.name", "system.description", "system.source", "model.family", "model.base",
+    "model.drake", "integrator.method", "reward.kind", "initial_state.distribution",
+    "swingup.controller",
+}
+_LIST_OF_STRING_KEYS = {"state.names", "action.names"}
+_INT_LIST_KEYS = {"model.actuated_joints", "state.angles"}
+_INT_KEYS = {"success.lookback"}
+
+
+def _flatten(doc: dict, path: Path) -> Spec:
+    values: dict[str, Any] = {}
+    sources: dict[str, str] = {}
+    units: dict[str, str] = {}
+    for section, table in doc.items():
+        if not isinstance(table, dict):
+            raise SpecError(f"{path}: top-level key '{section}' must be a [table]")
+        for key, entry in table.items():
+            full = f"{section}.{key}"
+            if isinstance(entry, dict):
+                if "value" not in entry:
+                    raise SpecError(f"{path}: '{full}' is a table without 'value'")
+                if "source" in entry:
+                    sources[full] = str(entry["source"])
+                if "units" in entry:
+                    units[full] = str(entry["units"])
+                entry = entry["value"]
+            if full in _STRING_KEYS:
+                if not isinstance(entry, str):
+                    raise SpecError(f"{path}: '{full}' must be a string, got {entry!r}")
+                values[full] = entry
+            elif full in _LIST_OF_STRING_KEYS:
+                if not (isinstance(entry, list) and all(isinstance(s, str) for s in entry)):
+                    raise SpecError(f"{path}: '{full}' must be a list of strings")
+                values[full] = list(entry)
+            elif full in _INT_LIST_KEYS:
+                if not (isinstance(entry, list) and all(isinstance(i, int) for i in entry)):
+                    raise SpecError(f"{path}: '{full}' must be a list of integers")
+                values[full] = list(entry)
+            elif full in _INT_KEYS:
+                if not isinstance(entry, int) or isinstance(entry, bool):
+                    raise SpecError(f"{path}: '{full}' must be an integer, got {entry!r}")
+                values[full] = entry
+            else:
+                values[full] = _parse_tree(entry, f"{path}: '{full}'")
+    return Spec(name=str(values.get("system.name", path.stem)), path=path, values=values,
+                sources=sources, units=units)
+
+
+def _apply_overrides(spec: Spec, overrides: dict[str, Any]) -> None:
+    """Override values by 'section.key' or by a bare key that is unique across sections."""
+    for key, value in overrides.items():
+        full = key.replace("__", ".")
+        if full not in spec.values:
+            matches = [k for k in spec.values if k.split(".", 1)[1] == full]
+            if len(matches) != 1:
+                known = ", ".join(sorted(k for k in spec.values))
+                what = "is ambiguous" if matches else "is not a key of this spec"
+                raise SpecError(f"{spec.path}: override '{key}' {what}; keys: {known}")
+            full = matches[0]
+        old = spec.values[full]
+        if isinstance(old, np.ndarray):
+            spec.values[full] = _parse_tree(list(np.asarray(value).tolist()) if not isinstance(value, list) else value,
+                                            f"override '{key}'")
+        elif isinstance(old, float):
+            spec.values[full] = parse_number(value, f"override '{key}'")
+        else:
+            spec.values[full] = value
+        spec.sources[full] = "user override"
+
+
+def read_spec(name_or_path: str | Path, **overrides: Any) -> Spec:
+    """Read, override and validate a spec by system name or by path to a TOML file."""
+    path = Path(name_or_path)
+    if path.suffix != ".toml":
+        path = SPEC_DIR / f"{name_or_path}.toml"
+        if not path.exists():
+            raise KeyError(
+                f"unknown system '{name_or_path}'; known systems: {', '.join(known_systems())}")
+    try:
+        doc = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise SpecError(f"{path}: not valid TOML: {exc}") from exc
+    spec = _flatten(doc, path)
+    _apply_overrides(spec, overrides)
+    validate(spec)
+    return spec
+
+
+def _require_positive(spec: Spec, key: str, allow_zero: bool = False) -> None:
+    value = np.asarray(spec.get(key), dtype=float)
+    bad = (value < 0) if allow_zero else (value <= 0)
+    if not np.all(np.isfinite(value)) or np.any(bad):
+        rule = ">= 0" if allow_zero else "> 0"
+        raise spec.error(key, f"must be finite and {rule}, got {spec.get(key)!r}")
+
+
+def validate(spec: Spec) -> None:
+    """Check every value's range and every shape; raise SpecError naming the key and file."""
+    if spec.get("model.family") != "chain":
+        raise spec.error("model.family", f"must be 'chain', got {spec.get('model.family')!r}")
+    base = spec.get("model.base")
+    if base not in ("fixed", "cart"):
+        raise spec.error("model.base", f"must be 'fixed' or 'cart', got {base!r}")
+    n_links = len(np.atleast_1d(spec.get("params.link_mass")))
+    for key in ("params.link_mass", "params.link_length"):
+        _require_positive(spec, key)
+    for key in ("params.link_com", "params.link_inertia", "params.joint_damping", "params.gravity"):
+        _require_positive(spec, key, allow_zero=True)
+    for key in ("params.link_length", "params.link_com", "params.link_inertia"):
+        if len(np.atleast_1d(spec.get(key))) != n_links:
+            raise spec.error(key, f"must have one entry per link ({n_links})")
+    n_q = n_links + (1 if base == "cart" else 0)
+    if base == "cart":
+        _require_positive(spec, "params.cart_mass")
+    if len(np.atleast_1d(spec.get("params.joint_damping"))) != n_q:
+        raise spec.error("params.joint_damping", f"must have one entry per joint ({n_q})")
+    n = 2 * n_q
+    names = spec.get("state.names")
+    if len(names) != n:
+        raise spec.error("state.names", f"must name {n} states, got {len(names)}")
+    for key in ("state.goal", "initial_state.nominal", "initial_state.low", "initial_state.high"):
+        value = np.asarray(spec.get(key))
+        if value.shape != (n,) or not np.all(np.isfinite(value)):
+            raise spec.error(key, f"must be {n} finite numbers, got {spec.get(key)!r}")
+    if np.any(spec.get("initial_state.low") > spec.get("initial_state.high")):
+        raise spec.error("initial_state.low", "must be <= initial_state.high elementwise")
+    for idx in spec.get("state.angles"):
+        if not 0 <= idx < n_q:
+            raise spec.error("state.angles", f"index {idx} is not a position index (0..{n_q - 1})")
+    actuated = spec.get("model.actuated_joints")
+    if not actuated or any(not 0 <= j < n_q for j in actuated):
+        raise spec.error("model.actuated_joints", f"must list joint indices in 0..{n_q - 1}")
+    if len(spec.get("action.names")) != len(actuated):
+        raise spec.error("action.names", f"must name {len(actuated)} actions")
+    _require_positive(spec, "action.limit")
+    if spec.get("integrator.method") not in INTEGRATORS:
+        raise spec.error("integrator.method", f"must be one of {INTEGRATORS}")
+    for key in ("integrator.dt", "control.period", "control.swingup_period", "episode.duration"):
+        _require_positive(spec, key)
+    dt = spec.get("integrator.dt")
+    for key in ("control.period", "control.swingup_period", "episode.duration"):
+        ratio = spec.get(key) / dt
+        if abs(ratio - round(ratio)) > 1e-9:
+            raise spec.error(key, f"must be a whole multiple of integrator.dt ({dt}), got {spec.get(key)}")
+    if spec.get("reward.kind") not in REWARD_KINDS:
+        raise spec.error("reward.kind", f"must be one of {REWARD_KINDS}")
+    Q = np.atleast_2d(spec.get("lqr.Q"))
+    R = np.atleast_2d(spec.get("lqr.R"))
+    if Q.shape != (n, n) or not np.allclose(Q, Q.T) or np.linalg.eigvalsh(Q).min() < -1e-12:
+        raise spec.error("lqr.Q", f"must be a symmetric positive semidefinite {n}x{n} matrix")
+    m = len(actuated)
+    if R.shape != (m, m) or not np.allclose(R, R.T) or np.linalg.eigvalsh(R).min() <= 0:
+        raise spec.error("lqr.R", f"must be a symmetric positive definite {m}x{m} matrix")
+    _require_positive(spec, "success.eps")
+    if spec.get("success.lookback") < 1:
+        raise spec.error("success.lookback", "must be >= 1")
+    on, off = spec.get("gate.on"), spec.get("gate.off")
+    if not 0.0 < off < on < 1.0:
+        raise spec.error("gate.on", f"needs 0 < gate.off < gate.on < 1, got off={off}, on={on}")
+    _require_positive(spec, "gate.cost_scale")

@@ -1,0 +1,174 @@
+"""Specs, torch dynamics against the Drake plants, LQR against the thesis, bad input."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from hybridctl import systems
+from hybridctl.systems import SpecError
+
+ALL = systems.known_systems()
+
+
+def test_known_systems():
+    assert ALL == ["acrobot", "cartpole", "double_cartpole", "pendulum"]
+
+
+def test_acrobot_lqr_reproduces_thesis_gain():
+    K, S = systems.load("acrobot").lqr()
+    thesis = np.array([-1649.8, -460.2, -716.1, -278.2])  # thesis Sec. 3.3
+
+    def four_significant(v):
+        return np.array([float(f"{x:.4g}") for x in v])
+
+    np.testing.assert_array_equal(four_significant(K.ravel()), four_significant(thesis))
+    # The implementation notes give two decimals: [-1649.87, -460.16, -716.07, -278.15].
+    np.testing.assert_allclose(K.ravel(), [-1649.87, -460.16, -716.07, -278.15], atol=0.006)
+    assert np.all(np.linalg.eigvalsh(S) > 0)
+
+
+@pytest.mark.parametrize("name", ALL)
+def test_derivatives_match_drake(name, rng):
+    system = systems.load(name)
+    plant = system.drake_plant()
+    context = system.drake_context(plant)
+    n = 1000
+    X = rng.uniform(-np.pi, np.pi, size=(n, system.n_states)) * 2
+    U = rng.uniform(-1, 1, size=(n, system.n_actions)) * system.action_limit
+    ours = system.derivatives(torch.tensor(X), torch.tensor(U)).numpy()
+    drake = np.stack([system.drake_derivatives(plant, context, X[i], U[i]) for i in range(n)])
+    np.testing.assert_allclose(ours, drake, rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("name", ALL)
+def test_lqr_closed_loop_is_stable(name):
+    system = systems.load(name)
+    K, _ = system.lqr()
+    plant = system.drake_plant()
+    from pydrake.systems.primitives import Linearize
+    from pydrake.systems.framework import OutputPortSelection
+    from hybridctl.systems.plants import actuation_port
+    context = system.drake_context(plant)
+    context.SetContinuousState(system.to_drake_state(system.goal))
+    actuation_port(plant).FixValue(context, np.zeros(system.n_actions))
+    lin = Linearize(plant, context, input_port_index=actuation_port(plant).get_index(),
+                    output_port_index=OutputPortSelection.kNoOutput)
+    closed = lin.A() - lin.B() @ K
+    assert np.max(np.linalg.eigvals(closed).real) < 0
+
+
+@pytest.mark.parametrize("name", ALL)
+def test_step_matches_drake_simulator(name, rng):
+    """System.step equals Drake's fixed-step integrator of the same name on the plant."""
+    from pydrake.systems.analysis import ResetIntegratorFromFlags, Simulator
+    from hybridctl.systems.plants import actuation_port
+    system = systems.load(name)
+    plant = system.drake_plant()
+    context = system.drake_context(plant)
+    x0 = system.sample_initial_states(1, rng)[0]
+    u = rng.uniform(-0.2, 0.2, size=system.n_actions) * system.action_limit
+    actuation_port(plant).FixValue(context, u)
+    context.SetContinuousState(system.to_drake_state(x0))
+    simulator = Simulator(plant, context)
+    flag = {"euler": "explicit_euler", "runge_kutta2": "runge_kutta2"}[system.integrator]
+    integrator = ResetIntegratorFromFlags(simulator, flag, system.dt)
+    integrator.set_fixed_step_mode(True)
+    simulator.Initialize()
+    steps = 50
+    simulator.AdvanceTo(steps * system.dt)
+    drake_x = system.from_drake_state(context.get_continuous_state_vector().CopyToVector())
+    x = torch.tensor(x0[None])
+    ut = torch.tensor(u[None])
+    for _ in range(steps):
+        x = system.step(x, ut)
+    np.testing.assert_allclose(x[0].numpy(), drake_x, rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("name", ALL)
+def test_derivatives_float32_batched_differentiable(name):
+    system = systems.load(name)
+    x = torch.tensor(system.sample_initial_states(64, np.random.default_rng(0)), dtype=torch.float32)
+    u = torch.zeros(64, system.n_actions, requires_grad=True)
+    xdot = system.derivatives(x, u)
+    assert xdot.shape == (64, system.n_states) and xdot.dtype == torch.float32
+    xdot.pow(2).sum().backward()
+    assert u.grad is not None and torch.isfinite(u.grad).all() and u.grad.abs().sum() > 0
+    single = system.derivatives(x[0], u[0].detach())
+    torch.testing.assert_close(single, xdot[0].detach())
+
+
+def test_energy_is_conserved_without_input_or_damping():
+    system = systems.load("acrobot", integrator__dt=0.0005)
+    x = torch.tensor([[0.3, 1.0, 0.0, 0.0]], dtype=torch.float64)
+    e0 = system.energy(x)
+    u = torch.zeros(1, 1, dtype=torch.float64)
+    # Heun's method on 1 s: energy drift is O(dt^2).
+    system.integrator = "runge_kutta2"
+    for _ in range(2000):
+        x = system.step(x, u)
+    assert abs(float(system.energy(x) - e0)) < 1e-4 * (1 + abs(float(e0)))
+
+
+def test_reward_is_thesis_tip_height():
+    system = systems.load("acrobot")
+    x = np.array([[0.4, -1.1, 0.0, 0.0]])
+    expected = np.sin(0.4) + np.sin(0.4 - 1.1)
+    np.testing.assert_allclose(system.reward(x), [expected], rtol=1e-12)
+    np.testing.assert_allclose(system.reward(system.goal[None]), [2.0])
+
+
+def test_state_error_wraps_angles():
+    system = systems.load("acrobot")
+    x = system.goal + np.array([2 * np.pi + 0.1, -2 * np.pi, 0.5, 0.0])
+    np.testing.assert_allclose(system.state_error(x), [0.1, 0.0, 0.5, 0.0], atol=1e-12)
+
+
+def test_overrides_and_sources():
+    system = systems.load("acrobot", dt=0.005, link_mass=[2.0, 1.0])
+    assert system.dt == 0.005 and system.chain.link_mass[0] == 2.0
+    assert system.spec.sources["integrator.dt"] == "user override"
+    assert "thesis" in systems.load("acrobot").spec.sources["params.link_mass"]
+
+
+# ----------------------------------------------------------------- bad input
+def test_unknown_system_lists_known():
+    with pytest.raises(KeyError, match="acrobot.*cartpole"):
+        systems.load("acrobott")
+
+
+@pytest.mark.parametrize("override, key", [
+    ({"link_mass": [-1.0, 1.0]}, "params.link_mass"),
+    ({"dt": 0.0}, "integrator.dt"),
+    ({"dt": -0.01}, "integrator.dt"),
+    ({"control__period": 0.015}, "control.period"),
+    ({"gate__on": 0.4}, "gate.on"),
+])
+def test_out_of_range_spec_value_names_key_and_file(override, key):
+    with pytest.raises(SpecError) as info:
+        systems.load("acrobot", **override)
+    assert key in str(info.value) and "acrobot.toml" in str(info.value)
+
+
+def test_bad_spec_file_names_key_and_file(tmp_path: Path):
+    text = (systems.spec.SPEC_DIR / "cartpole.toml").read_text()
+    bad = tmp_path / "bad.toml"
+    bad.write_text(text.replace('cart_mass    = { value = 10.0', 'cart_mass    = { value = -3.0'))
+    with pytest.raises(SpecError, match=r"bad\.toml.*params\.cart_mass"):
+        systems.load(str(bad))
+
+
+@pytest.mark.parametrize("x, u, message", [
+    (torch.full((2, 4), float("nan")), torch.zeros(2, 1), "x contains NaN"),
+    (torch.zeros(2, 4), torch.tensor([[float("inf")], [0.0]]), "u contains NaN or Inf"),
+    (torch.zeros(2, 3), torch.zeros(2, 1), r"x must have shape"),
+    (torch.zeros(2, 4), torch.zeros(2, 2), r"u must have shape"),
+    (torch.zeros(2, 4), torch.zeros(3, 1), "batch sizes differ"),
+])
+def test_bad_states_and_actions_raise_value_error(x, u, message):
+    system = systems.load("acrobot")
+    with pytest.raises(ValueError, match=message):
+        system.step(x, u)
+    with pytest.raises(ValueError, match=message):
+        system.derivatives(x, u)
