@@ -8,12 +8,14 @@ with the spec's parameters.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from string import Template
 from typing import TYPE_CHECKING, Callable
 
 import numpy as np
-from pydrake.examples import AcrobotGeometry, AcrobotPlant, PendulumGeometry, PendulumPlant
+from pydrake.examples import (AcrobotGeometry, AcrobotParams, AcrobotPlant, PendulumGeometry, PendulumParams,
+                              PendulumPlant)
 from pydrake.multibody.parsing import Parser
 from pydrake.multibody.plant import AddMultibodyPlantSceneGraph, MultibodyPlant
 from pydrake.systems.framework import Context, DiagramBuilder, InputPort, OutputPort, System
@@ -25,6 +27,8 @@ if TYPE_CHECKING:
 
 # sdformat rejects exactly-zero inertias; 1e-20 kg m^2 stands in for a point mass.
 _POINT_MASS_INERTIA = 1e-20
+# Position of l2 in AcrobotParams (m1, m2, l1, l2, lc1, lc2, Ic1, Ic2, b1, b2, gravity).
+_ACROBOT_L2_INDEX = 3
 
 
 @dataclass
@@ -121,10 +125,13 @@ def add_plant(system: "HybridSystem", builder: DiagramBuilder, with_geometry: bo
         from pydrake.geometry import SceneGraph
         scene_graph = builder.AddSystem(SceneGraph())
         if isinstance(plant, AcrobotPlant):
-            params = plant.get_parameters(plant.CreateDefaultContext()).Clone()
+            params = AcrobotParams()
             _set_acrobot_params_object(system, params)
             AcrobotGeometry.AddToBuilder(builder, state_output, params, scene_graph)
         else:
+            if system.chain.link_length[0] != PendulumParams().length():
+                warnings.warn(f"{system.name}: Drake's PendulumGeometry draws its default length "
+                              f"{PendulumParams().length()} m, not {system.chain.link_length[0]} m", stacklevel=2)
             PendulumGeometry.AddToBuilder(builder, state_output, scene_graph)
     plant.set_name("plant")
     return PlantHandle(plant, state_output, actuation_input, setter), scene_graph
@@ -138,6 +145,8 @@ def _set_acrobot_params_object(system: "HybridSystem", params) -> None:
     params.set_Ic1(p.link_inertia[0]); params.set_Ic2(p.link_inertia[1])
     params.set_b1(p.joint_damping[0]); params.set_b2(p.joint_damping[1])
     params.set_gravity(p.gravity)
+    # l2 only sets the drawn length of link 2 (AcrobotParams has no setter for it).
+    params.SetAtIndex(_ACROBOT_L2_INDEX, p.link_length[1])
 
 
 def drake_state_offset(system: "HybridSystem") -> np.ndarray:

@@ -1,0 +1,20 @@
+"""Drake blocks and diagrams of the switched controller (thesis Ch. 3).
+
+>>> from hybridctl import systems, drake
+>>> acrobot = systems.load("acrobot")
+>>> diagram = drake.build_hybrid_diagram(acrobot)       # energy swing-up + cost-to-go gate + LQR
+>>> traj = drake.simulate(diagram, x0=[-1.5708, 0, 0, 0], duration=10.0)
+>>> traj.balanced, traj.episode_return
+"""
+
+from .blocks import Gate, HeldController, ModeSwitch, TorchPolicy
+from .controllers import (AcrobotEnergySwingup, CartpoleEnergySwingup, CostToGoGate, LQRController,
+                          PendulumEnergySwingup, energy_swingup)
+from .diagram import HybridDiagram, build_hybrid_diagram
+from .simulate import Trajectory, simulate
+
+__all__ = [
+    "Gate", "HeldController", "ModeSwitch", "TorchPolicy",
+    "AcrobotEnergySwingup", "CartpoleEnergySwingup", "PendulumEnergySwingup", "CostToGoGate",
+    "LQRController", "energy_swingup", "HybridDiagram", "build_hybrid_diagram", "Trajectory", "simulate",
+]

@@ -1,0 +1,155 @@
+"""Drake LeafSystems of the switched controller (thesis Fig. 3.1).
+
+All learned or Python-side blocks are evaluated in a *periodic discrete update*
+and hold their result in discrete state (a zero-order hold). Their outputs are
+not feedthrough, so Drake does not call Python at every derivative evaluation
+(implementation notes: about 5 us per call otherwise), and the mode of the gate
+lives in the Context, so it resets with the Context.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+import torch
+from pydrake.systems.framework import BasicVector, Context, DiscreteValues, LeafSystem
+
+ArrayFn = Callable[[np.ndarray], np.ndarray]
+
+
+def _as_numpy_fn(fn, name: str) -> ArrayFn:
+    """Wrap a torch module (or any callable) as numpy (n,) -> numpy (k,), without autograd."""
+    if isinstance(fn, torch.nn.Module):
+        fn.eval()
+        try:
+            dtype = next(fn.parameters()).dtype
+        except StopIteration:
+            dtype = torch.float64
+
+        def call(x: np.ndarray) -> np.ndarray:
+            with torch.no_grad():
+                out = fn(torch.as_tensor(x, dtype=dtype).unsqueeze(0))
+            return np.asarray(out.squeeze(0).double().numpy(), dtype=float).reshape(-1)
+        return call
+    if callable(fn):
+        return lambda x: np.asarray(fn(x), dtype=float).reshape(-1)
+    raise TypeError(f"{name} must be a torch.nn.Module or a callable, got {type(fn).__name__}")
+
+
+def _check_period(period: float, name: str = "period") -> float:
+    period = float(period)
+    if not np.isfinite(period) or period <= 0:
+        raise ValueError(f"{name} must be a finite number > 0, got {period}")
+    return period
+
+
+class HeldController(LeafSystem):
+    """u = f(x) evaluated every ``period`` seconds and held in between (zero-order hold).
+
+    Ports: input ``state`` (n_states), output ``command`` (n_outputs). ``f`` is a
+    numpy callable or a torch module; ``limit`` (optional) clips the command to
+    [-limit, limit]. The held value starts at ``initial`` (default zeros) and is
+    replaced at t = 0 by the first update.
+    """
+
+    def __init__(self, fn, n_states: int, n_outputs: int, period: float,
+                 limit: float | None = None, initial: np.ndarray | None = None, name: str = "controller"):
+        super().__init__()
+        self._fn = _as_numpy_fn(fn, "fn")
+        self._limit = None if limit is None else float(limit)
+        self.period = _check_period(period)
+        self.n_outputs = int(n_outputs)
+        self.DeclareVectorInputPort("state", n_states)
+        init = np.zeros(n_outputs) if initial is None else np.asarray(initial, dtype=float)
+        self._held = self.DeclareDiscreteState(init)
+        self.DeclarePeriodicDiscreteUpdateEvent(self.period, 0.0, self._update)
+        self.DeclareStateOutputPort("command", self._held)
+        self.set_name(name)
+
+    def compute(self, x: np.ndarray) -> np.ndarray:
+        """The command for one state (clipped), as used by the discrete update."""
+        u = self._fn(x)
+        if u.shape != (self.n_outputs,):
+            raise ValueError(f"{self.get_name()}: fn returned shape {u.shape}, expected ({self.n_outputs},)")
+        if self._limit is not None:
+            u = np.clip(u, -self._limit, self._limit)
+        return u
+
+    def _update(self, context: Context, discrete_state: DiscreteValues) -> None:
+        x = self.get_input_port(0).Eval(context)
+        discrete_state.set_value(0, self.compute(x))
+
+
+class TorchPolicy(HeldController):
+    """A torch policy as a Drake block: ``action = module(state)``, held for ``period``.
+
+    ``module`` maps a batch of states (1, n) to actions (1, m); it is called under
+    ``torch.no_grad`` in a periodic discrete update, never as feedthrough.
+    """
+
+    def __init__(self, module: torch.nn.Module, n_states: int, n_actions: int, period: float,
+                 limit: float | None = None, name: str = "swingup"):
+        if not isinstance(module, torch.nn.Module):
+            raise TypeError(f"module must be a torch.nn.Module, got {type(module).__name__}")
+        super().__init__(module, n_states, n_actions, period, limit=limit, name=name)
+        self.module = module
+
+
+class Gate(LeafSystem):
+    """Classifier gate with hysteresis (thesis Sec. 3.3).
+
+    Every ``period`` seconds: p = classifier(state); the mode switches to the
+    balancing controller (1) when p > ``on`` and back to swing-up (0) when
+    p < ``off``; in between it keeps its mode. Mode and p are discrete state, so a
+    new Context starts in swing-up (thesis: reset to swing-up at episode start).
+
+    Ports: input ``state``; outputs ``mode`` (1) and ``probability`` (1).
+    """
+
+    def __init__(self, classifier, n_states: int, period: float, on: float = 0.9, off: float = 0.5,
+                 name: str = "gate"):
+        super().__init__()
+        if not 0.0 < off < on < 1.0:
+            raise ValueError(f"gate thresholds need 0 < off < on < 1, got off={off}, on={on}")
+        self._classify = _as_numpy_fn(classifier, "classifier")
+        self.on, self.off = float(on), float(off)
+        self.period = _check_period(period)
+        self.DeclareVectorInputPort("state", n_states)
+        self._mode = self.DeclareDiscreteState(1)
+        self._probability = self.DeclareDiscreteState(1)
+        self.DeclarePeriodicDiscreteUpdateEvent(self.period, 0.0, self._update)
+        self.DeclareStateOutputPort("mode", self._mode)
+        self.DeclareStateOutputPort("probability", self._probability)
+        self.set_name(name)
+
+    def next_mode(self, mode: float, probability: float) -> float:
+        """Hysteresis: on above ``on``, off below ``off``, otherwise unchanged."""
+        if probability > self.on:
+            return 1.0
+        if probability < self.off:
+            return 0.0
+        return mode
+
+    def _update(self, context: Context, discrete_state: DiscreteValues) -> None:
+        x = self.get_input_port(0).Eval(context)
+        p = float(self._classify(x)[0])
+        mode = context.get_discrete_state(self._mode).GetAtIndex(0)
+        discrete_state.get_mutable_vector(self._mode).SetAtIndex(0, self.next_mode(mode, p))
+        discrete_state.get_mutable_vector(self._probability).SetAtIndex(0, p)
+
+
+class ModeSwitch(LeafSystem):
+    """Passes ``balance`` when ``mode`` > 0.5, else ``swingup`` (output ``command``)."""
+
+    def __init__(self, n_actions: int, name: str = "switch"):
+        super().__init__()
+        self._mode = self.DeclareVectorInputPort("mode", 1)
+        self._swingup = self.DeclareVectorInputPort("swingup", n_actions)
+        self._balance = self.DeclareVectorInputPort("balance", n_actions)
+        self.DeclareVectorOutputPort("command", n_actions, self._select)
+        self.set_name(name)
+
+    def _select(self, context: Context, output: BasicVector) -> None:
+        port = self._balance if self._mode.Eval(context)[0] > 0.5 else self._swingup
+        output.SetFromVector(port.Eval(context))

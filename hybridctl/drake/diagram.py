@@ -1,0 +1,164 @@
+"""The hybrid (switched) controller as a Drake Diagram (thesis Fig. 3.1).
+
+    plant --state--> [swing-up] --\\
+          --state--> [LQR]     ----> [switch] -> [saturation] -> plant
+          --state--> [gate] --mode--/
+
+Exported ports (by name): outputs ``state`` (spec convention), ``command``
+(saturated input applied to the plant), ``mode`` (0 swing-up, 1 LQR),
+``probability`` (gate output), ``swingup_command`` and ``balance_command``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from pydrake.systems.framework import Diagram, DiagramBuilder
+from pydrake.systems.primitives import AffineSystem, LogVectorOutput, Saturation
+
+from ..systems import System
+from ..systems import plants as _plants
+from .blocks import Gate, HeldController, ModeSwitch, TorchPolicy
+from .controllers import CostToGoGate, LQRController, energy_swingup
+
+
+class HybridDiagram(Diagram):
+    """A Drake Diagram of plant + LQR + swing-up + gate that remembers its System.
+
+    ``CreateDefaultContext`` writes the spec's parameters into the plant's
+    context (AcrobotPlant/PendulumPlant keep them in the Context). Attributes:
+    ``system``, ``plant``, ``swingup``, ``balance``, ``gate``, ``switch`` and
+    ``loggers`` (dict of VectorLogSink by signal name, or empty).
+    """
+
+    def __init__(self, builder: DiagramBuilder, system: System, parts: dict):
+        super().__init__()
+        builder.BuildInto(self)
+        self.system = system
+        self.plant = parts["plant"].plant
+        self._apply_parameters = parts["plant"].apply_parameters
+        self.swingup = parts["swingup"]
+        self.balance = parts["balance"]
+        self.gate = parts["gate"]
+        self.switch = parts["switch"]
+        self.loggers = parts["loggers"]
+        self.scene_graph = parts["scene_graph"]
+        self.set_name(f"{system.name}_hybrid")
+
+    def CreateDefaultContext(self):  # noqa: N802 - Drake's name
+        """A default Context with the spec's plant parameters applied."""
+        context = super().CreateDefaultContext()
+        self._apply_parameters(self.plant.GetMyMutableContextFromRoot(context))
+        return context
+
+    def set_state(self, context, x: np.ndarray) -> None:
+        """Set the plant's state from ``x`` in the spec's convention."""
+        plant_context = self.plant.GetMyMutableContextFromRoot(context)
+        plant_context.SetContinuousState(self.system.to_drake_state(x))
+
+
+def _swingup_block(system: System, swingup, period: float | None):
+    if swingup is None or isinstance(swingup, str):
+        if swingup not in (None, "energy"):
+            raise ValueError(f"swingup must be None/'energy', a torch module or a callable, got {swingup!r}")
+        fn = energy_swingup(system)
+        return HeldController(fn, system.n_states, system.n_actions, period or system.control_period,
+                              limit=system.action_limit, name="swingup")
+    if isinstance(swingup, HeldController):
+        return swingup
+    if isinstance(swingup, torch.nn.Module):
+        return TorchPolicy(swingup, system.n_states, system.n_actions, period or system.swingup_period,
+                           limit=system.action_limit, name="swingup")
+    return HeldController(swingup, system.n_states, system.n_actions, period or system.control_period,
+                          limit=system.action_limit, name="swingup")
+
+
+def _gate_block(system: System, gate, on: float | None, off: float | None):
+    on = float(system.spec.get("gate.on") if on is None else on)
+    off = float(system.spec.get("gate.off") if off is None else off)
+    if isinstance(gate, Gate):
+        return gate
+    if gate is None or gate == "cost":
+        gate = CostToGoGate(system)
+    elif isinstance(gate, str):
+        raise ValueError(f"gate must be None/'cost', a classifier module or callable, got {gate!r}")
+    return Gate(gate, system.n_states, system.control_period, on=on, off=off, name="gate")
+
+
+def build_hybrid_diagram(system: System, swingup=None, gate=None, *, balance=None,
+                         swingup_period: float | None = None, gate_on: float | None = None,
+                         gate_off: float | None = None, meshcat=None, log: bool = True) -> HybridDiagram:
+    """Build plant + swing-up + LQR + gate + switch + saturation as a Drake Diagram.
+
+    Args:
+        system: a ``hybridctl.systems.System``.
+        swingup: None or "energy" (the spec's energy-shaping swing-up, updated every
+            ``control.period``), a torch module (a learned policy as ``TorchPolicy``
+            held for ``control.swingup_period``), a numpy callable, or a ready block.
+        gate: None or "cost" (cost-to-go gate ``CostToGoGate``), a torch classifier
+            returning a probability, a callable, or a ready ``Gate``.
+        balance: the balancing controller (default: Drake LQR from the spec's Q, R),
+            a callable or block; updated every ``control.period``.
+        swingup_period: override the swing-up hold period.
+        gate_on, gate_off: hysteresis thresholds (default: the spec's, 0.9 / 0.5).
+        meshcat: a ``pydrake.geometry.Meshcat`` to draw the robot live, or None.
+        log: add VectorLogSinks (one sample per integration step) for simulate().
+    """
+    if not isinstance(system, System):
+        raise TypeError(f"system must be a hybridctl.systems.System, got {type(system).__name__}")
+    builder = DiagramBuilder()
+    handle, scene_graph = _plants.add_plant(system, builder, with_geometry=meshcat is not None)
+    if meshcat is not None:
+        from ..viz import add_meshcat
+        add_meshcat(builder, scene_graph, meshcat)
+
+    # The Drake plant measures the acrobot's th1 from hanging down: convert once.
+    offset = _plants.drake_state_offset(system)
+    state_port = handle.state_output
+    if np.any(offset):
+        n = system.n_states
+        convert = builder.AddSystem(AffineSystem(np.zeros((0, 0)), np.zeros((0, n)), np.zeros(0),
+                                                 np.zeros((n, 0)), np.eye(n), -offset))
+        convert.set_name("to_spec_state")
+        builder.Connect(state_port, convert.get_input_port())
+        state_port = convert.get_output_port()
+
+    swing = builder.AddSystem(_swingup_block(system, swingup, swingup_period))
+    if balance is None or isinstance(balance, np.ndarray):
+        balance = LQRController(system, K=balance)
+    bal = balance if isinstance(balance, HeldController) else HeldController(
+        balance, system.n_states, system.n_actions, system.control_period, limit=system.action_limit,
+        name="balance")
+    bal = builder.AddSystem(bal)
+    gate_block = builder.AddSystem(_gate_block(system, gate, gate_on, gate_off))
+    switch = builder.AddSystem(ModeSwitch(system.n_actions))
+    limit = np.full(system.n_actions, system.action_limit)
+    saturation = builder.AddSystem(Saturation(-limit, limit))
+    saturation.set_name("saturation")
+
+    for block in (swing, bal, gate_block):
+        builder.Connect(state_port, block.get_input_port(0))
+    builder.Connect(gate_block.GetOutputPort("mode"), switch.GetInputPort("mode"))
+    builder.Connect(swing.get_output_port(0), switch.GetInputPort("swingup"))
+    builder.Connect(bal.get_output_port(0), switch.GetInputPort("balance"))
+    builder.Connect(switch.get_output_port(0), saturation.get_input_port())
+    builder.Connect(saturation.get_output_port(), handle.actuation_input)
+
+    outputs = {
+        "state": state_port,
+        "command": saturation.get_output_port(),
+        "mode": gate_block.GetOutputPort("mode"),
+        "probability": gate_block.GetOutputPort("probability"),
+        "swingup_command": swing.get_output_port(0),
+        "balance_command": bal.get_output_port(0),
+    }
+    for name, port in outputs.items():
+        builder.ExportOutput(port, name)
+    loggers = {}
+    if log:
+        for name in ("state", "command", "mode", "probability"):
+            loggers[name] = LogVectorOutput(outputs[name], builder, system.dt)
+            loggers[name].set_name(f"log_{name}")
+    parts = dict(plant=handle, swingup=swing, balance=bal, gate=gate_block, switch=switch,
+                 loggers=loggers, scene_graph=scene_graph)
+    return HybridDiagram(builder, system, parts)

@@ -1,0 +1,25 @@
+"""Gymnasium environments for swing-up: one system (:class:`SwingupEnv`) or a torch batch.
+
+Importing this module registers one gymnasium id per system spec,
+``hybridctl/<Name>Swingup-v0`` (``AcrobotSwingup``, ``CartpoleSwingup``,
+``DoubleCartpoleSwingup``, ``PendulumSwingup``). Episodes truncate themselves after
+``episode_duration / decision_period`` decisions, so no TimeLimit wrapper is added.
+
+>>> import gymnasium as gym, hybridctl.envs
+>>> env = gym.make("hybridctl/AcrobotSwingup-v0")
+>>> venv = hybridctl.envs.TorchVectorEnv("acrobot", num_envs=4096)
+"""
+
+import gymnasium as gym
+
+from ..analysis import is_balanced
+from ..systems import known_systems
+from .single import STATE_BOUND, SwingupEnv, env_id
+from .vector import TorchVectorEnv
+
+__all__ = ["SwingupEnv", "TorchVectorEnv", "is_balanced", "env_id", "STATE_BOUND"]
+
+for _name in known_systems():
+    if env_id(_name) not in gym.registry:
+        gym.register(id=env_id(_name), entry_point="hybridctl.envs.single:SwingupEnv",
+                     kwargs={"system": _name})

@@ -1,0 +1,175 @@
+"""One swing-up episode of one benchmark system as a ``gymnasium.Env``.
+
+An action is held for one decision period (the spec's ``control.swingup_period``
+unless given), integrated with ``System.step_unchecked`` every ``dt``; the reward is
+``System.reward`` of the state after the decision (thesis eq. 3.1, tip height).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+from gymnasium import spaces
+from gymnasium.envs.registration import EnvSpec
+
+from .. import systems
+from ..analysis import is_balanced
+from ..systems import System
+
+STATE_BOUND = 1e6
+"""States with a coordinate beyond +-STATE_BOUND (or non-finite) count as diverged."""
+
+
+def resolve_system(system: str | System, **spec_overrides: Any) -> System:
+    """A System from a name (loaded with ``spec_overrides``) or a System (no overrides allowed)."""
+    if isinstance(system, System):
+        if spec_overrides:
+            raise ValueError(f"spec_overrides ({sorted(spec_overrides)}) need a system name, not a loaded System")
+        return system
+    if isinstance(system, str):
+        return systems.load(system, **spec_overrides)
+    raise ValueError(f"system must be a name in {systems.known_systems()} or a System, got {type(system).__name__}")
+
+
+def decision_schedule(system: System, decision_period: float | None) -> tuple[float, int, int]:
+    """(decision_period, integration steps per decision, decisions per episode).
+
+    ``decision_period`` must be a positive multiple of ``system.dt`` that divides
+    ``system.episode_duration``; None means ``system.swingup_period``.
+    """
+    period = system.swingup_period if decision_period is None else float(decision_period)
+    substeps = round(period / system.dt) if math.isfinite(period) else 0
+    decisions = round(system.episode_duration / period) if period > 0 and math.isfinite(period) else 0
+    if (substeps < 1 or decisions < 1 or not math.isclose(substeps * system.dt, period, rel_tol=1e-9)
+            or not math.isclose(decisions * period, system.episode_duration, rel_tol=1e-9)):
+        raise ValueError(f"decision_period must be a positive multiple of dt={system.dt} s that divides "
+                         f"episode_duration={system.episode_duration} s, got {decision_period}")
+    return period, substeps, decisions
+
+
+def advance(system: System, x: torch.Tensor, u: torch.Tensor, substeps: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Hold u over ``substeps`` integration steps from x (B, n); returns (x_next, diverged (B,)).
+
+    A row that leaves [-STATE_BOUND, STATE_BOUND] or turns non-finite is diverged;
+    it is put back to its start state (the last finite decision-rate state) so that
+    no NaN reaches the batched solve. Other rows equal repeated ``System.step`` exactly.
+    """
+    x0, diverged = x, torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)
+    for _ in range(substeps):
+        x = system.step_unchecked(x, u)
+        diverged = diverged | ~(x.abs() <= STATE_BOUND).all(-1)
+        x = torch.where(diverged[:, None], x0, x)
+    return x, diverged
+
+
+def check_state(name: str, value, system: System, batch: int | None = None) -> np.ndarray:
+    """Validate a state (n,) (or (batch, n) when ``batch``): finite and within +-STATE_BOUND."""
+    x = np.array(value.detach().cpu() if isinstance(value, torch.Tensor) else value, dtype=float)
+    n = system.n_states
+    if not (x.shape == (n,) or (batch is not None and x.shape == (batch, n))):
+        shapes = f"({n},)" + (f" or ({batch}, {n})" if batch is not None else "")
+        raise ValueError(f"{name} must have shape {shapes}, got {x.shape}")
+    if not np.all(np.abs(x) <= STATE_BOUND):
+        raise ValueError(f"{name} must be finite with every entry in [-{STATE_BOUND:g}, {STATE_BOUND:g}]")
+    return x
+
+
+def env_id(system_name: str) -> str:
+    """The gymnasium id registered for a system, e.g. 'hybridctl/DoubleCartpoleSwingup-v0'."""
+    return f"hybridctl/{''.join(part.capitalize() for part in system_name.split('_'))}Swingup-v0"
+
+
+class SwingupEnv(gym.Env):
+    """Swing-up of one benchmark system (thesis Ch. 3 episodes) as a gymnasium environment.
+
+    Args:
+        system: a name from ``hybridctl.systems.known_systems()`` or a loaded System.
+        decision_period: seconds each action is held (a multiple of ``dt`` dividing the
+            episode duration); default ``system.swingup_period`` (acrobot: 0.2 s).
+        render_mode: only None (viewing lives in ``hybridctl.viz``).
+        **spec_overrides: passed to ``hybridctl.systems.load`` (with a system name only).
+
+    Observation: the state in the spec's convention (angles not wrapped), float64,
+    in a Box of +-``STATE_BOUND``. Action: torque/force in a float32 Box
+    [-action_limit, action_limit]; out-of-range actions are clipped to the limit, and
+    NaN/Inf or a wrong shape raise ValueError. Reward: ``system.reward`` of the state
+    after the decision (acrobot: tip height, at most 2, so an episode returns <= 100).
+
+    Episodes have a fixed length: truncated after ``max_decisions`` =
+    episode_duration / decision_period decisions (acrobot: 50). They are terminated
+    only on divergence (a state non-finite or beyond +-STATE_BOUND); that step returns
+    the last finite decision-rate state and reward 0. At the end of an episode
+    ``info["success"]`` is the thesis success test (:func:`is_balanced`) over the
+    decision-rate states s_0 .. s_T (False when diverged). ``reset(options={"state": x0})``
+    starts from x0 instead of the spec's initial distribution.
+    """
+
+    metadata = {"render_modes": []}
+
+    def __init__(self, system: str | System, decision_period: float | None = None,
+                 render_mode: str | None = None, **spec_overrides: Any):
+        if render_mode is not None:
+            raise ValueError(f"render_mode must be None (no render modes), got {render_mode!r}")
+        self.system = resolve_system(system, **spec_overrides)
+        self.decision_period, self.substeps, self.max_decisions = decision_schedule(self.system, decision_period)
+        n, m, limit = self.system.n_states, self.system.n_actions, self.system.action_limit
+        self.observation_space = spaces.Box(-STATE_BOUND, STATE_BOUND, (n,), np.float64)
+        self.action_space = spaces.Box(-limit, limit, (m,), np.float32)
+        self.render_mode = None
+        # How to build this env again (gymnasium.make replaces it with the registry's spec).
+        self.spec = EnvSpec(env_id(self.system.name), entry_point="hybridctl.envs.single:SwingupEnv",
+                            kwargs={"system": system, "decision_period": decision_period, **spec_overrides})
+        self._state: torch.Tensor | None = None  # (1, n) float64
+        self._history: deque = deque(maxlen=self.system.success_lookback)
+        self._t = 0
+        self._done = False
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        """Start an episode from ``options["state"]`` or from ``system.sample_initial_states``."""
+        super().reset(seed=seed)
+        if options and "state" in options:
+            x0 = check_state('options["state"]', options["state"], self.system)
+        else:
+            x0 = self.system.sample_initial_states(1, self.np_random)[0]
+        self._state = torch.tensor(x0, dtype=torch.float64)[None]
+        self._t, self._done = 0, False
+        self._history.clear()
+        self._history.append(x0.copy())
+        return x0.copy(), {}
+
+    def step(self, action):
+        """Hold ``action`` (clipped) for one decision period; returns (obs, reward, terminated, truncated, info)."""
+        if self._state is None or self._done:
+            raise RuntimeError("call reset() before step() (and after an episode has ended)")
+        u = np.array(action.detach().cpu() if isinstance(action, torch.Tensor) else action, dtype=np.float64)
+        if u.shape != self.action_space.shape:
+            raise ValueError(f"action must have shape {self.action_space.shape}, got {u.shape}")
+        if not np.all(np.isfinite(u)):
+            raise ValueError(f"action must be finite (clipped to [-{self.system.action_limit}, "
+                             f"{self.system.action_limit}]), got {u}")
+        u = np.clip(u, -self.system.action_limit, self.system.action_limit)
+        x, diverged = advance(self.system, self._state, torch.from_numpy(u)[None], self.substeps)
+        self._t += 1
+        terminated = bool(diverged[0])
+        truncated = self._t >= self.max_decisions and not terminated
+        reward = 0.0 if terminated else float(self.system.reward(x)[0])
+        self._state = x
+        obs = x[0].numpy().copy()
+        self._history.append(obs.copy())
+        info = {}
+        if terminated or truncated:
+            self._done = True
+            info["success"] = truncated and bool(is_balanced(np.array(self._history), self.system))
+        return obs, reward, terminated, truncated, info
+
+    @property
+    def state(self) -> np.ndarray:
+        """A copy of the current state (n,)."""
+        if self._state is None:
+            raise RuntimeError("call reset() first")
+        return self._state[0].numpy().copy()

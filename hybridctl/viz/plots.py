@@ -1,0 +1,148 @@
+"""Matplotlib figures: one trajectory of the hybrid controller, and balance maps.
+
+Figures are returned open (the caller closes them, ``plt.close(fig)``) and saved
+as PNG when a path is given. The Agg backend is selected when no display is
+available; library code never calls ``plt.show``.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import matplotlib
+
+# Headless Linux: choose Agg before pyplot is first imported (never switch a running backend).
+if ("matplotlib.pyplot" not in sys.modules and sys.platform.startswith("linux")
+        and not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY")
+        and not os.environ.get("MPLBACKEND")):
+    matplotlib.use("Agg")
+
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.colors import ListedColormap  # noqa: E402
+
+if TYPE_CHECKING:
+    from hybridctl.systems import System
+
+__all__ = ["plot_trajectory", "plot_balance_map"]
+
+
+def _array(name: str, value, ndims: tuple[int, ...]) -> np.ndarray:
+    if hasattr(value, "detach"):  # torch tensor
+        value = value.detach().cpu().numpy()
+    array = np.asarray(value, dtype=float)
+    if array.ndim not in ndims or array.size == 0:
+        raise ValueError(f"{name} must be a non-empty {' or '.join(map(str, ndims))}-D array, got shape {array.shape}")
+    if not np.isfinite(array).all():
+        raise ValueError(f"{name} contains NaN or Inf")
+    return array
+
+
+def _save(fig, path) -> None:
+    if path is not None:
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        fig.savefig(path, dpi=100)
+
+
+def plot_trajectory(times, states, inputs, gate, system: "System",
+                    path: str | Path | None = None, title: str | None = None):
+    """Figure of one run: a subplot per state, the input(s), and the gate mode.
+
+    ``times`` (T,), ``states`` (T, n_states), ``inputs`` (T, n_actions) or (T,),
+    ``gate`` (T,) with 0 = swing-up policy, 1 = LQR. Angles (the spec's
+    ``state.angles``) are labelled in rad and the action limit is drawn as dashed
+    lines. Saves a PNG at ``path`` when given; returns the open Figure.
+    """
+    times = _array("times", times, (1,))
+    states = _array("states", states, (2,))
+    inputs = _array("inputs", inputs, (1, 2))
+    inputs = inputs.reshape(len(inputs), -1)
+    gate = _array("gate", gate, (1,))
+    T = len(times)
+    if states.shape != (T, system.n_states):
+        raise ValueError(f"states must have shape ({T}, {system.n_states}) to match times, got {states.shape}")
+    if inputs.shape != (T, system.n_actions):
+        raise ValueError(f"inputs must have shape ({T}, {system.n_actions}) or ({T},), got {inputs.shape}")
+    if gate.shape != (T,) or not np.isin(gate, (0.0, 1.0)).all():
+        raise ValueError(f"gate must have shape ({T},) with values in {{0, 1}}, got shape {gate.shape}")
+
+    n_rows = system.n_states + 2
+    fig, axes = plt.subplots(n_rows, 1, sharex=True, figsize=(8, 1.6 * n_rows), squeeze=False)
+    axes = axes[:, 0]
+    for i, name in enumerate(system.state_names):
+        ax = axes[i]
+        ax.plot(times, states[:, i], lw=1.2)
+        n_q = system.n_states // 2
+        is_rate = i >= n_q
+        unit = "rad" if (i % n_q) in system.angle_indices else "m"
+        ax.set_ylabel(f"{name} [{unit}/s]" if is_rate else f"{name} [{unit}]")
+        ax.axhline(system.goal[i], color="0.6", lw=0.8, ls=":")
+    ax = axes[system.n_states]
+    for j, name in enumerate(system.action_names):
+        ax.plot(times, inputs[:, j], lw=1.0, label=name)
+    for limit in (system.action_limit, -system.action_limit):
+        ax.axhline(limit, color="k", ls="--", lw=0.8)
+    ax.set_ylabel(", ".join(system.action_names))
+    ax = axes[-1]
+    ax.step(times, gate, where="post", color="tab:green")
+    ax.set_yticks([0, 1], ["swing-up", "LQR"])
+    ax.set_ylim(-0.2, 1.2)
+    ax.set_ylabel("gate")
+    ax.set_xlabel("time [s]")
+    for ax in axes:
+        ax.grid(True, alpha=0.3)
+    fig.suptitle(title or f"{system.name} trajectory")
+    fig.tight_layout()
+    _save(fig, path)
+    return fig
+
+
+def plot_balance_map(th1_values, th2_values, balanced, path: str | Path | None = None,
+                     title: str | None = None):
+    """Balance map (thesis Fig. 3.6 style): black where the run from (th1, th2) balanced, red where not.
+
+    ``th1_values`` (N1,) and ``th2_values`` (N2,) are the initial angles (rad) of
+    the grid, ``balanced`` an (N1, N2) boolean array indexed [th1, th2]. The title
+    gets the balanced fraction. Saves a PNG at ``path`` when given; returns the open Figure.
+    """
+    th1 = _array("th1_values", th1_values, (1,))
+    th2 = _array("th2_values", th2_values, (1,))
+    for name, values in (("th1_values", th1), ("th2_values", th2)):
+        if np.any(np.diff(values) <= 0):
+            raise ValueError(f"{name} must be strictly increasing")
+    balanced = np.asarray(balanced)
+    if balanced.shape != (len(th1), len(th2)):
+        raise ValueError(f"balanced must have shape ({len(th1)}, {len(th2)}) = (len(th1_values), "
+                         f"len(th2_values)), got {balanced.shape}")
+    if balanced.dtype != bool and not np.isin(balanced, (0, 1)).all():
+        raise ValueError("balanced must be boolean (or 0/1)")
+    balanced = balanced.astype(bool)
+    fraction = balanced.mean() if balanced.size else 0.0
+
+    fig, ax = plt.subplots(figsize=(5.5, 5))
+    cmap = ListedColormap(["tab:red", "black"])
+    ax.pcolormesh(_edges(th1), _edges(th2), balanced.T.astype(int), cmap=cmap, vmin=0, vmax=1,
+                  edgecolors="white", linewidth=0.3 if balanced.size <= 2500 else 0.0)
+    ax.set_xlabel("initial th1 [rad]")
+    ax.set_ylabel("initial th2 [rad]")
+    ax.set_aspect("equal" if _span(th1) and _span(th2) else "auto")
+    heading = title or "balance map"
+    ax.set_title(f"{heading}: {100 * fraction:.1f}% balanced ({balanced.sum()}/{balanced.size})")
+    fig.tight_layout()
+    _save(fig, path)
+    return fig
+
+
+def _span(values: np.ndarray) -> float:
+    return float(values.max() - values.min()) if values.size else 0.0
+
+
+def _edges(centres: np.ndarray) -> np.ndarray:
+    """Cell edges around grid centres (unit width for a single centre)."""
+    if centres.size == 1:
+        return np.array([centres[0] - 0.5, centres[0] + 0.5])
+    mid = (centres[1:] + centres[:-1]) / 2
+    return np.concatenate([[2 * centres[0] - mid[0]], mid, [2 * centres[-1] - mid[-1]]])
