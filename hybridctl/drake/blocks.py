@@ -19,7 +19,13 @@ ArrayFn = Callable[[np.ndarray], np.ndarray]
 
 
 def _as_numpy_fn(fn, name: str) -> ArrayFn:
-    """Wrap a torch module (or any callable) as numpy (n,) -> numpy (k,), without autograd."""
+    """Wrap a torch module (or any callable) as numpy (n,) -> numpy (k,), without autograd.
+
+    An object with a ``numpy_forward`` method (e.g. ``CostToGoGate``) is called
+    through it, skipping the torch round trip on single states.
+    """
+    if hasattr(fn, "numpy_forward"):
+        return lambda x: np.asarray(fn.numpy_forward(x), dtype=float).reshape(-1)
     if isinstance(fn, torch.nn.Module):
         fn.eval()
         try:

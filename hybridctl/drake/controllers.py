@@ -46,20 +46,22 @@ class CostToGoGate(torch.nn.Module):
 
     def cost_to_go(self, x):
         """(x - goal)' S (x - goal), numpy or torch, batched over leading dims."""
-        err = self.system.state_error(x.clone() if isinstance(x, torch.Tensor) else np.array(x, dtype=float))
+        err = self.system.state_error(x if isinstance(x, torch.Tensor) else np.asarray(x, dtype=float))
         S = self.S.to(err.dtype) if isinstance(err, torch.Tensor) else self._S_np
         return ((err @ S) * err).sum(-1)
 
-    def forward(self, x):
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
         """Probability that the LQR can take over, in (0, 1]; shape (..., 1)."""
-        if isinstance(x, torch.Tensor):
-            return torch.exp(-self.cost_to_go(x) / self.scale).unsqueeze(-1)
-        return np.exp(-np.atleast_1d(self.cost_to_go(x)) / self.scale)
+        return torch.exp(-self.cost_to_go(x) / self.scale).unsqueeze(-1)
+
+    def numpy_forward(self, x: np.ndarray) -> np.ndarray:
+        """The same probability for numpy states, shape (..., 1) (used by the Drake ``Gate``)."""
+        return np.exp(-np.asarray(self.cost_to_go(x)) / self.scale)[..., None]
 
     def __call__(self, x):
         if isinstance(x, torch.Tensor):
             return super().__call__(x)
-        return self.forward(x)
+        return self.numpy_forward(x)
 
 
 def _collocated_pfl(M: np.ndarray, b: np.ndarray, actuated: int, accel: float) -> float:
@@ -190,17 +192,17 @@ def lqr_basin_level(system: System, n_samples: int = 20000, horizon: float = 2.5
     rng = np.random.default_rng(seed)
     x = torch.as_tensor(system.goal + rng.uniform(-1, 1, size=(n_samples, system.n_states)) * spread)
     Kt, St = torch.as_tensor(K), torch.as_tensor(S)
-    err = system.state_error(x.clone())
+    err = system.state_error(x)
     V = ((err @ St) * err).sum(-1).numpy()
     lookback = system.success_lookback
     close = torch.ones(n_samples, dtype=torch.bool)
     steps = int(round(horizon / system.dt))
     with torch.no_grad():
         for step in range(steps):
-            u = (-(system.state_error(x.clone()) @ Kt.T)).clamp(-system.action_limit, system.action_limit)
+            u = (-(system.state_error(x) @ Kt.T)).clamp(-system.action_limit, system.action_limit)
             x = system.step_unchecked(x, u)
             if step >= steps - lookback:
-                close &= torch.linalg.norm(system.state_error(x.clone()), dim=-1) < system.success_eps
+                close &= torch.linalg.norm(system.state_error(x), dim=-1) < system.success_eps
     ok = close.numpy() & np.isfinite(x.numpy()).all(axis=1)
     failing = V[~ok]
     level = float(failing.min()) if failing.size else float(V.max())

@@ -162,3 +162,41 @@ def build_hybrid_diagram(system: System, swingup=None, gate=None, *, balance=Non
     parts = dict(plant=handle, swingup=swing, balance=bal, gate=gate_block, switch=switch,
                  loggers=loggers, scene_graph=scene_graph)
     return HybridDiagram(builder, system, parts)
+
+
+def _zero_command(x: np.ndarray) -> np.ndarray:
+    return np.zeros(1)  # single-input systems only, as all benchmark systems are
+
+
+def _always_balance(x: np.ndarray) -> list[float]:
+    return [1.0]
+
+
+def _never_balance(x: np.ndarray) -> list[float]:
+    return [0.0]
+
+
+CONTROLLERS = {
+    "energy": "energy-shaping swing-up + cost-to-go gate (hysteresis) + LQR",
+    "lqr": "LQR only (gate always on)",
+    "swingup": "energy-shaping swing-up only (gate always off)",
+    "zero": "no input (passive dynamics)",
+}
+
+
+def build_named_diagram(system: System, controller: str = "energy", **kwargs) -> HybridDiagram:
+    """``build_hybrid_diagram`` for a controller given by name (see ``CONTROLLERS``).
+
+    Names are what the command line and worker processes pass around, since
+    Drake systems and closures do not pickle.
+    """
+    if controller == "energy":
+        return build_hybrid_diagram(system, **kwargs)
+    if controller == "lqr":
+        return build_hybrid_diagram(system, swingup=_zero_command, gate=_always_balance, **kwargs)
+    if controller == "swingup":
+        return build_hybrid_diagram(system, gate=_never_balance, **kwargs)
+    if controller == "zero":
+        return build_hybrid_diagram(system, swingup=_zero_command, gate=_never_balance, **kwargs)
+    raise ValueError(f"unknown controller {controller!r}; known: "
+                     + ", ".join(f"{k} ({v})" for k, v in CONTROLLERS.items()))

@@ -61,6 +61,7 @@ class System:
         self.episode_duration = float(spec.get("episode.duration"))
         self.action_limit = float(spec.get("action.limit"))
         self.angle_indices: list[int] = list(spec.get("state.angles"))
+        self._angle_index = np.asarray(self.angle_indices, dtype=np.int64)
         self.Q = np.atleast_2d(spec.get("lqr.Q"))
         self.R = np.atleast_2d(spec.get("lqr.R"))
         self.success_eps = float(spec.get("success.eps"))
@@ -140,10 +141,13 @@ class System:
 
     # ------------------------------------------------------- goal, reward, errors
     def state_error(self, x):
-        """x - goal with angle coordinates wrapped to [-pi, pi) (numpy or torch)."""
-        goal = self.goal if not isinstance(x, torch.Tensor) else torch.as_tensor(self.goal, dtype=x.dtype)
+        """x - goal with angle coordinates wrapped to [-pi, pi) (numpy or torch); a new array."""
+        if isinstance(x, torch.Tensor):
+            goal = torch.as_tensor(self.goal, dtype=x.dtype, device=x.device)
+        else:
+            goal = self.goal
         err = x - goal
-        idx = self.angle_indices
+        idx = self._angle_index
         err[..., idx] = (err[..., idx] + np.pi) % (2 * np.pi) - np.pi
         return err
 

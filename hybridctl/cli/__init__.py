@@ -1,0 +1,192 @@
+"""The ``hybridctl`` command line.
+
+    hybridctl systems
+    hybridctl simulate acrobot --controller energy --x0 -1.5698,0,0,0 --duration 15 --out runs/sim
+    hybridctl balance-map acrobot --controller energy --grid 41 --duration 15 --out runs/map
+    hybridctl demo --out runs/demo
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+DEMO_X0 = "-1.5698,0,0,0"  # hanging down, nudged 1e-3 rad: the exact bottom is an equilibrium
+
+
+def _parse_x0(text: str | None, system) -> np.ndarray:
+    if text is None:
+        x0 = np.array(system.spec.get("initial_state.nominal"), dtype=float)
+        x0[system.angle_indices[0]] += 1e-3
+        return x0
+    try:
+        values = [float(v) for v in text.replace(" ", "").split(",") if v]
+    except ValueError:
+        raise SystemExit(f"error: --x0 must be {system.n_states} comma-separated numbers "
+                         f"({', '.join(system.state_names)}), got {text!r}")
+    if len(values) != system.n_states:
+        raise SystemExit(f"error: --x0 needs {system.n_states} values ({', '.join(system.state_names)}), "
+                         f"got {len(values)}")
+    return np.array(values)
+
+
+def _load_system(name: str):
+    from ..systems import SpecError, load
+    try:
+        return load(name)
+    except KeyError as exc:
+        raise SystemExit(f"error: {exc.args[0]}")
+    except SpecError as exc:
+        raise SystemExit(f"error: {exc}")
+
+
+def _positive(kind):
+    def parse(text):
+        value = kind(text)
+        if value <= 0:
+            raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+        return value
+    return parse
+
+
+def cmd_systems(args) -> int:
+    """List the benchmark systems with their state names and integrator."""
+    from ..systems import known_systems, load
+    for name in known_systems():
+        system = load(name)
+        print(f"{name:16s} states={','.join(system.state_names):28s} {system.integrator} dt={system.dt} "
+              f"limit={system.action_limit:g}  {system.spec.get('system.description')}")
+    return 0
+
+
+def run_simulation(system_name: str, controller: str, x0: str | None, duration: float | None,
+                   out: Path, html: bool = True, meshcat: bool = False) -> dict:
+    """Simulate, then write trajectory.npz, summary.json, plot.png and replay.html into ``out``."""
+    import matplotlib.pyplot as plt
+
+    from ..drake import build_named_diagram, simulate
+    from ..viz import plot_trajectory, replay_html
+
+    system = _load_system(system_name)
+    start = _parse_x0(x0, system)
+    live = None
+    if meshcat:
+        from ..viz import start_meshcat
+        live = start_meshcat()
+        print(f"meshcat: open {live.web_url()} (live view while simulating at real time)")
+    try:
+        diagram = build_named_diagram(system, controller, meshcat=live)
+    except ValueError as exc:
+        raise SystemExit(f"error: {exc}")
+    traj = simulate(diagram, start, duration, realtime_rate=1.0 if live is not None else 0.0)
+    traj.meta.update({"controller": controller, "command": " ".join(sys.argv)})
+    summary = traj.save(out)
+    fig = plot_trajectory(traj.t, traj.x, traj.u, traj.gate, system, path=out / "plot.png",
+                          title=f"{system.name}, {controller}: balanced={summary['balanced']}")
+    plt.close(fig)
+    if html and len(traj.t) > 1:
+        replay_html(system, traj.t, traj.x, path=out / "replay.html")
+    return summary
+
+
+def cmd_simulate(args) -> int:
+    """`hybridctl simulate SYSTEM ...`"""
+    out = Path(args.out)
+    summary = run_simulation(args.system, args.controller, args.x0, args.duration, out,
+                             html=not args.no_html, meshcat=args.meshcat)
+    print(json.dumps({k: summary[k] for k in ("system", "balanced", "return", "diverged",
+                                                 "first_balance_time", "wall_time_s")}, indent=1))
+    print(f"wrote {out}/trajectory.npz, summary.json, plot.png" + ("" if args.no_html else ", replay.html"))
+    return 0
+
+
+def cmd_balance_map(args) -> int:
+    """`hybridctl balance-map SYSTEM ...`"""
+    from ..analysis import balance_map
+    system = _load_system(args.system)
+    try:
+        result = balance_map(system, args.controller, grid=args.grid, duration=args.duration,
+                             workers=args.workers, progress=not args.quiet)
+    except ValueError as exc:
+        raise SystemExit(f"error: {exc}")
+    result.meta["command"] = " ".join(sys.argv)
+    summary = result.save(args.out)
+    print(f"balanced_fraction: {summary['balanced_fraction']:.4f} "
+          f"({summary['balanced_count']}/{args.grid * args.grid}), wall {result.wall_time:.1f} s")
+    print(f"wrote {args.out}/balance_map.png, balance_map.json")
+    return 0
+
+
+def cmd_demo(args) -> int:
+    """`hybridctl demo`: acrobot swing-up and balance from hanging down, replay and balance map."""
+    out = Path(args.out)
+    start = time.perf_counter()
+    print("hybridctl demo: acrobot (thesis Ch. 3 parameters) under Drake plant + LQR + energy swing-up + gate")
+    summary = run_simulation("acrobot", "energy", DEMO_X0, 15.0, out / "acrobot", meshcat=args.meshcat)
+    print(f"  simulate: balanced={summary['balanced']} return={summary['return']:.1f} "
+          f"LQR from t={summary['first_balance_time']} s, {summary['realtime_factor']:.0f}x real time")
+    print(f"  open {out / 'acrobot' / 'replay.html'} in a browser to watch it")
+    from ..analysis import balance_map
+    result = balance_map("acrobot", "energy", grid=args.grid, duration=15.0, progress=not args.quiet)
+    result.meta["command"] = " ".join(sys.argv)
+    bm = result.save(out / "balance_map")
+    print(f"  balance map {args.grid}x{args.grid}: {bm['balanced_fraction']:.1%} of rest states balanced "
+          f"by the hand-designed controller (learned SSAC: issue 3)")
+    print(f"demo done in {time.perf_counter() - start:.0f} s; outputs under {out}/")
+    return 0 if summary["balanced"] else 1
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of the ``hybridctl`` command."""
+    from ..drake.diagram import CONTROLLERS
+
+    parser = argparse.ArgumentParser(prog="hybridctl", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("systems", help="list the benchmark systems")
+    p.set_defaults(func=cmd_systems)
+
+    controller_help = "controller: " + "; ".join(f"{k} = {v}" for k, v in CONTROLLERS.items())
+    p = sub.add_parser("simulate", help="simulate one run of a system under a controller")
+    p.add_argument("system")
+    p.add_argument("--controller", default="energy", help=controller_help)
+    p.add_argument("--x0", help="initial state, comma-separated (default: hanging down + 1e-3 rad)")
+    p.add_argument("--duration", type=_positive(float), help="seconds (default: the spec's episode)")
+    p.add_argument("--out", default="runs/simulate", help="output folder (default: runs/simulate)")
+    p.add_argument("--no-html", action="store_true", help="skip the replay.html")
+    p.add_argument("--meshcat", action="store_true", help="also show it live in meshcat (localhost)")
+    p.set_defaults(func=cmd_simulate)
+
+    p = sub.add_parser("balance-map", help="balanced fraction over a grid of rest states (thesis Fig. 3.6)")
+    p.add_argument("system")
+    p.add_argument("--controller", default="energy", help=controller_help)
+    p.add_argument("--grid", type=_positive(int), default=41, help="grid points per axis (default 41, thesis)")
+    p.add_argument("--duration", type=_positive(float), help="seconds per run (default: the spec's episode)")
+    p.add_argument("--workers", type=_positive(int), help="processes (default: all cores)")
+    p.add_argument("--out", default="runs/balance_map", help="output folder")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_balance_map)
+
+    p = sub.add_parser("demo", help="what `make demo` runs")
+    p.add_argument("--out", default="runs/demo")
+    p.add_argument("--grid", type=_positive(int), default=11, help="balance-map grid (default 11)")
+    p.add_argument("--meshcat", action="store_true", help="also show the run live in meshcat")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_demo)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``hybridctl`` console script."""
+    import torch
+
+    torch.set_num_threads(1)  # small networks and single states: threads only add overhead
+    args = build_parser().parse_args(argv)
+    return args.func(args)
+
