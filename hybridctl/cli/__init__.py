@@ -156,7 +156,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("simulate", help="simulate one run of a system under a controller")
     p.add_argument("system")
     p.add_argument("--controller", default="energy", help=controller_help)
-    p.add_argument("--x0", help="initial state, comma-separated (default: hanging down + 1e-3 rad)")
+    p.add_argument("--x0", help="initial state, comma-separated; write --x0=-1.57,0,0,0 when it starts "
+                   "with a minus (default: hanging down + 1e-3 rad)")
     p.add_argument("--duration", type=_positive(float), help="seconds (default: the spec's episode)")
     p.add_argument("--out", default="runs/simulate", help="output folder (default: runs/simulate)")
     p.add_argument("--no-html", action="store_true", help="skip the replay.html")
