@@ -75,7 +75,19 @@ def _collocated_pfl(M: np.ndarray, b: np.ndarray, actuated: int, accel: float) -
     return M[actuated, actuated] * accel + M[actuated, p] * qdd_p + b[actuated]
 
 
-class AcrobotEnergySwingup:
+class _SpecGains:
+    """Gains given as arguments, or else read from the spec's ``[swingup]`` table."""
+
+    GAINS: tuple[str, ...] = ("k_energy",)
+
+    def __init__(self, system: System, **gains: float | None):
+        self.system = system
+        for name in self.GAINS:
+            given = gains.get(name)
+            setattr(self, name, float(system.spec.get(f"swingup.{name}") if given is None else given))
+
+
+class AcrobotEnergySwingup(_SpecGains):
     """Passivity-based energy swing-up for the acrobot (Fantoni, Lozano & Spong 2000).
 
     tau = -k_e E~ dq2 - k_p q2 - k_d dq2 with E~ = E - E_goal. Since dE/dt = tau dq2,
@@ -86,15 +98,13 @@ class AcrobotEnergySwingup:
     (I2 = 1.0) and 25 N m limit: there PFL saturates and never holds q2 near 0.
     """
 
+    GAINS = ("k_energy", "k_p", "k_d")
+
     def __init__(self, system: System, k_energy: float | None = None, k_p: float | None = None,
                  k_d: float | None = None):
         if system.chain.n_q != 2 or system.chain.has_cart:
             raise ValueError(f"AcrobotEnergySwingup needs a fixed-base 2-link system, got {system.name}")
-        spec = system.spec
-        self.system = system
-        self.k_energy = float(spec.get("swingup.k_energy") if k_energy is None else k_energy)
-        self.k_p = float(spec.get("swingup.k_p") if k_p is None else k_p)
-        self.k_d = float(spec.get("swingup.k_d") if k_d is None else k_d)
+        super().__init__(system, k_energy=k_energy, k_p=k_p, k_d=k_d)
         self._goal_energy = float(system.energy(system.goal))
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
@@ -105,22 +115,20 @@ class AcrobotEnergySwingup:
         return np.clip([u], -self.system.action_limit, self.system.action_limit)
 
 
-class CartpoleEnergySwingup:
+class CartpoleEnergySwingup(_SpecGains):
     """Energy shaping of the pole through the cart (Astrom & Furuta 2000, underactuated ch. 3).
 
     Desired cart acceleration xdd = -k_e E~ dtheta cos(theta) - k_p x - k_d dx with
     E~ the pole's missing energy, realised by collocated PFL of the cart.
     """
 
+    GAINS = ("k_energy", "k_p", "k_d")
+
     def __init__(self, system: System, k_energy: float | None = None, k_p: float | None = None,
                  k_d: float | None = None):
         if system.chain.n_q != 2 or not system.chain.has_cart:
             raise ValueError(f"CartpoleEnergySwingup needs a single-pole cart system, got {system.name}")
-        spec = system.spec
-        self.system = system
-        self.k_energy = float(spec.get("swingup.k_energy") if k_energy is None else k_energy)
-        self.k_p = float(spec.get("swingup.k_p") if k_p is None else k_p)
-        self.k_d = float(spec.get("swingup.k_d") if k_d is None else k_d)
+        super().__init__(system, k_energy=k_energy, k_p=k_p, k_d=k_d)
         p = system.chain
         self._pole_inertia = p.link_inertia[0] + p.link_mass[0] * p.link_com[0] ** 2
         self._pole_moment = p.link_mass[0] * p.link_com[0] * p.gravity
@@ -139,12 +147,11 @@ class CartpoleEnergySwingup:
         return np.clip([u], -self.system.action_limit, self.system.action_limit)
 
 
-class PendulumEnergySwingup:
+class PendulumEnergySwingup(_SpecGains):
     """u = k_e (E_goal - E) dtheta, saturated: pumps energy in the direction of motion."""
 
     def __init__(self, system: System, k_energy: float | None = None):
-        self.system = system
-        self.k_energy = float(system.spec.get("swingup.k_energy") if k_energy is None else k_energy)
+        super().__init__(system, k_energy=k_energy)
         self._goal_energy = float(system.energy(system.goal))
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
