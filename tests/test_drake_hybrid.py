@@ -95,14 +95,17 @@ def test_simulation_equals_torch_closed_loop(name):
     gate = drake.CostToGoGate(system)
     limit = system.action_limit
     x, mode = x0.copy(), 0.0
-    states = [x.copy()]
-    for _ in range(len(traj.t) - 1):
+    states, inputs, modes = [], [], []
+    for _ in range(len(traj.t)):
         p = float(gate(x)[0])
         mode = 1.0 if p > 0.9 else (0.0 if p < 0.5 else mode)
         u = np.clip(lqr(x) if mode else swing(x), -limit, limit)
+        states.append(x.copy()), inputs.append(u), modes.append(mode)
         x = system.step(torch.tensor(x[None]), torch.tensor(u[None]))[0].numpy()
-        states.append(x.copy())
     np.testing.assert_allclose(traj.x, np.array(states), rtol=1e-9, atol=1e-9)
+    # u[k] and gate[k] are what acted over [t_k, t_k+1): the pairs (x[k], u[k]) are transitions.
+    np.testing.assert_allclose(traj.u, np.array(inputs), rtol=1e-9, atol=1e-9)
+    np.testing.assert_array_equal(traj.gate, np.array(modes))
 
 
 @pytest.mark.parametrize("name, duration", [("acrobot", 15.0), ("cartpole", 10.0), ("pendulum", 10.0)])
@@ -153,6 +156,24 @@ def test_bad_duration():
     diagram = drake.build_hybrid_diagram(systems.load("pendulum"))
     with pytest.raises(ValueError, match="duration must be"):
         drake.simulate(diagram, [0.0, 0.0], duration=-1.0)
+
+
+def test_meshcat_viewer_does_not_change_the_run():
+    """Viewer publish events must not cut the fixed integration steps."""
+    from hybridctl.viz import start_meshcat
+    system = systems.load("acrobot")
+    plain = drake.simulate(drake.build_hybrid_diagram(system), HANGING["acrobot"], duration=3.0)
+    viewed = drake.simulate(drake.build_hybrid_diagram(system, meshcat=start_meshcat()), HANGING["acrobot"],
+                            duration=3.0)
+    np.testing.assert_allclose(viewed.x, plain.x, rtol=1e-12, atol=1e-12)
+
+
+def test_balance_map_workers_keep_the_systems_overrides():
+    from hybridctl.analysis import balance_map
+    system = systems.load("pendulum", limit=0.01)   # too weak to swing up or hold
+    weak = balance_map(system, grid=2, workers=2, progress=False)
+    strong = balance_map("pendulum", grid=2, workers=1, progress=False)
+    assert weak.fraction < strong.fraction
 
 
 def test_trajectory_save_writes_arrays_and_summary(tmp_path):

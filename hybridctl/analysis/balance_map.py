@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from tqdm.auto import tqdm
+from tqdm import tqdm
 
 from ..systems import System, load
 
@@ -120,9 +120,11 @@ def balance_map(system: System | str, controller: str = "energy", grid: int = 41
     episode). Runs in ``workers`` local processes (default: all cores, at most the
     number of starts), each building its own Drake diagram.
     """
-    overrides = dict(overrides or {})
     if isinstance(system, str):
-        system = load(system, **overrides)
+        system = load(system, **dict(overrides or {}))
+    elif overrides:
+        raise ValueError("pass overrides only with a system name; a loaded System already carries its own")
+    overrides = dict(system.spec.overrides)
     if grid < 2:
         raise ValueError(f"grid must be >= 2, got {grid}")
     duration = system.episode_duration if duration is None else float(duration)

@@ -110,7 +110,10 @@ def build_hybrid_diagram(system: System, swingup=None, gate=None, *, balance=Non
     handle, scene_graph = _plants.add_plant(system, builder, with_geometry=meshcat is not None)
     if meshcat is not None:
         from ..viz import add_meshcat
-        add_meshcat(builder, scene_graph, meshcat)
+        # Publish events end integration steps: keep them on the dt grid (about 30 fps)
+        # so a fixed-step run with the viewer equals one without it.
+        frames = max(1, int(np.ceil((1 / 30) / system.dt - 1e-9)))
+        add_meshcat(builder, scene_graph, meshcat, publish_period=frames * system.dt)
 
     # The Drake plant measures the acrobot's th1 from hanging down: convert once.
     offset = _plants.drake_state_offset(system)

@@ -25,10 +25,13 @@ DIVERGENCE_BOUND = 1e6
 class Trajectory:
     """A simulated run: samples every ``system.dt`` from t = 0.
 
-    ``t`` (T,), ``x`` (T, n) states in the spec convention, ``u`` (T, m) applied
-    (saturated) inputs, ``gate`` (T,) mode (0 swing-up, 1 balance),
-    ``probability`` (T,) gate output; ``diverged`` marks a run stopped because the
-    state left the finite range.
+    ``t`` (T,), ``x`` (T, n) states in the spec convention, ``u`` (T, m) the
+    (saturated) input applied over [t_k, t_k+1), ``gate`` (T,) the mode over that
+    interval (0 swing-up, 1 balance), ``probability`` (T,) the gate output computed
+    at t_k;
+    so (x[k], u[k]) -> x[k+1] is one step of ``System.step``. ``diverged`` marks a
+    run stopped because the state left the finite range (then the inputs of the
+    last sample repeat the previous ones).
     """
 
     system: System
@@ -148,9 +151,11 @@ def simulate(diagram, x0, duration: float | None = None, realtime_rate: float = 
     diverged = False
     start = time.perf_counter()
     try:
-        simulator.AdvanceTo(duration)
-        status = simulator.get_mutable_context().get_time() < duration - 0.5 * system.dt
-        diverged = bool(status)
+        # Past the end: Drake logs the command held over [t_k-1, t_k) at t_k, so the
+        # input applied from the last sample on is logged at t_end + dt. A second extra
+        # step keeps that sample off the final time, where events are ordered differently.
+        simulator.AdvanceTo(duration + 2 * system.dt)
+        diverged = simulator.get_mutable_context().get_time() < duration + 1.5 * system.dt
     except RuntimeError as exc:  # Drake raises on NaN derivatives in some integrators
         diverged = True
         diagram_meta = {"error": str(exc)}
@@ -159,14 +164,21 @@ def simulate(diagram, x0, duration: float | None = None, realtime_rate: float = 
     wall = time.perf_counter() - start
 
     logs = {name: logger.FindLog(context) for name, logger in diagram.loggers.items()}
-    t = logs["state"].sample_times().copy()
+    t = logs["state"].sample_times()
+    keep = int(np.searchsorted(t, duration + 0.5 * system.dt))  # samples with t <= duration
+
+    def applied(data: np.ndarray) -> np.ndarray:
+        """Shift held values one sample back; repeat the last where the run stopped early."""
+        shifted = data[1:keep + 1]
+        return np.concatenate([shifted, shifted[-1:]]) if len(shifted) < keep and len(shifted) else shifted
+
     traj = Trajectory(
         system=system,
-        t=t,
-        x=logs["state"].data().T.copy(),
-        u=logs["command"].data().T.copy(),
-        gate=logs["mode"].data()[0].copy(),
-        probability=logs["probability"].data()[0].copy(),
+        t=t[:keep].copy(),
+        x=logs["state"].data().T[:keep].copy(),
+        u=applied(logs["command"].data().T).copy(),
+        gate=applied(logs["mode"].data()[0]).copy(),
+        probability=applied(logs["probability"].data()[0]).copy(),
         diverged=diverged,
         wall_time=wall,
         meta=diagram_meta,

@@ -67,6 +67,7 @@ class Spec:
     values: dict[str, Any]
     sources: dict[str, str] = field(default_factory=dict)
     units: dict[str, str] = field(default_factory=dict)
+    overrides: dict[str, Any] = field(default_factory=dict)
 
     def get(self, key: str, default: Any = ...) -> Any:
         """Value of 'section.key'; raises SpecError naming the file when missing."""
@@ -170,6 +171,7 @@ def read_spec(name_or_path: str | Path, **overrides: Any) -> Spec:
         raise SpecError(f"{path}: not valid TOML: {exc}") from exc
     spec = _flatten(doc, path)
     _apply_overrides(spec, overrides)
+    spec.overrides = dict(overrides)  # so worker processes can rebuild the same System
     validate(spec)
     return spec
 

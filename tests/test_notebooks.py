@@ -1,0 +1,86 @@
+"""Execute every notebook in ``notebooks/`` headless and check its key outputs.
+
+Notebooks are stored without outputs; this runs each one top to bottom in a fresh
+kernel (the ``python3`` kernel, which jupyter_client resolves to the interpreter
+running pytest, i.e. the project's venv) with the repository root as working
+directory. The executed copy is written to ``runs/notebook/`` for inspection.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+nbformat = pytest.importorskip("nbformat")
+nbclient = pytest.importorskip("nbclient")
+pytest.importorskip("ipykernel")
+
+ROOT = Path(__file__).resolve().parents[1]
+NOTEBOOKS = sorted((ROOT / "notebooks").glob("*.ipynb"))
+
+# Lines each notebook must print (checked on its stream outputs), by file name.
+EXPECTED_LINES = {
+    "01_hybrid_control.ipynb": [
+        "K matches thesis: True",
+        "balanced: True",              # the acrobot's swing-up + balance from hanging down
+        "cartpole balanced: True",
+        "swing-up block: TorchPolicy held for 0.2 s",
+    ],
+}
+
+
+def _stream_text(nb) -> str:
+    return "".join(out.get("text", "") for cell in nb.cells if cell.cell_type == "code"
+                   for out in cell.get("outputs", []) if out.get("output_type") == "stream")
+
+
+def _mime_types(nb) -> set[str]:
+    return {mime for cell in nb.cells if cell.cell_type == "code" for out in cell.get("outputs", [])
+            for mime in out.get("data", {})}
+
+
+def test_notebooks_exist():
+    assert NOTEBOOKS, "no notebooks in notebooks/"
+
+
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.name for p in NOTEBOOKS])
+def test_notebook_is_stored_without_outputs(path):
+    nb = nbformat.read(path, as_version=4)
+    dirty = [i for i, cell in enumerate(nb.cells)
+             if cell.cell_type == "code" and (cell.get("outputs") or cell.get("execution_count") is not None)]
+    assert not dirty, f"{path.name}: clear the outputs of cells {dirty} before committing"
+
+
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.name for p in NOTEBOOKS])
+def test_notebook_runs_headless(path, monkeypatch):
+    # Never start the paced live-meshcat run under test (the kernel inherits this env).
+    monkeypatch.delenv("HYBRIDCTL_LIVE_MESHCAT", raising=False)
+    nb = nbformat.read(path, as_version=4)
+    client = nbclient.NotebookClient(nb, timeout=300, kernel_name="python3",
+                                     resources={"metadata": {"path": str(ROOT)}})
+    start = time.perf_counter()
+    try:
+        client.execute()  # raises CellExecutionError on the first failing cell
+    finally:
+        out_dir = ROOT / "runs" / "notebook"
+        out_dir.mkdir(parents=True, exist_ok=True)
+        nbformat.write(nb, out_dir / f"{path.stem}.executed.ipynb")
+    elapsed = time.perf_counter() - start
+    print(f"{path.name}: executed in {elapsed:.1f} s")
+
+    text = _stream_text(nb)
+    lines = {line.strip() for line in text.splitlines()}
+    for expected in EXPECTED_LINES.get(path.name, []):
+        assert expected in lines, f"{path.name} did not print {expected!r}"
+    if path.name == "01_hybrid_control.ipynb":
+        mimes = _mime_types(nb)
+        assert "image/png" in mimes, "no inline figure"
+        assert "text/html" in mimes, "no inline meshcat replay"
+        # The kernel ran in this interpreter's environment (the venv), not another python.
+        prefix = [line.split(":", 1)[1].strip() for line in text.splitlines() if line.startswith("python_prefix")]
+        assert prefix == [sys.prefix], f"kernel ran in {prefix}, expected {sys.prefix}"
+        for name in ("run_record.json", "acrobot/summary.json", "acrobot/replay.html", "cartpole/summary.json"):
+            assert (ROOT / "runs" / "notebook" / name).is_file(), f"runs/notebook/{name} not written"
