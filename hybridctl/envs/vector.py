@@ -122,6 +122,15 @@ class TorchVectorEnv(VectorEnv):
             raise ValueError(f"actions must be finite (clipped to [-{limit}, {limit}]); got NaN or Inf")
         return u.clamp(-self.system.action_limit, self.system.action_limit)
 
+    def _advance(self, u: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Dynamics of one decision from the current states: (x_next, diverged). Subclasses
+        (e.g. the switched env) override this to put controllers inside the decision."""
+        return advance(self.system, self._state, u, self.substeps)
+
+    def _step_infos(self) -> dict[str, torch.Tensor]:
+        """Extra per-step infos of subclasses (computed before autoreset)."""
+        return {}
+
     # --------------------------------------------------------------------- API
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         """Restart every sub-env; returns (observations (N, n), {})."""
@@ -138,7 +147,7 @@ class TorchVectorEnv(VectorEnv):
         if not self._started:
             raise RuntimeError("call reset() before step()")
         u = self._check_actions(actions)
-        x, terminated = advance(self.system, self._state, u, self.substeps)
+        x, terminated = self._advance(u)
         self._t += 1
         truncated = (self._t >= self.max_decisions) & ~terminated
         rewards = torch.where(terminated, 0.0, self.system.reward(x))
@@ -154,7 +163,7 @@ class TorchVectorEnv(VectorEnv):
         if bool(ended.any()):
             balanced = torch.as_tensor(is_balanced(self._history[ended], self.system), device=self.device)
             success[ended] = balanced & truncated[ended]
-        infos = {"success": success, "_success": ended.clone()}
+        infos = {"success": success, "_success": ended.clone(), **self._step_infos()}
         if self.autoreset_mode == AutoresetMode.SAME_STEP:
             infos["final_obs"], infos["_final_obs"] = x.clone(), ended.clone()
             self._restart(ended)
