@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from ..analysis.balance import lqr_rollouts_balanced
 from ..systems import System
 
 
@@ -191,26 +192,14 @@ def lqr_basin_level(system: System, n_samples: int = 20000, horizon: float = 2.5
     """
     if n_samples < 10:
         raise ValueError(f"n_samples must be >= 10, got {n_samples}")
-    if horizon <= system.dt * system.success_lookback:
-        raise ValueError(f"horizon must exceed lookback * dt = {system.dt * system.success_lookback}, got {horizon}")
     K = system.lqr()[0] if K is None else np.atleast_2d(K)
     S = system.lqr()[1] if S is None else np.asarray(S)
     spread = np.ones(system.n_states) if spread is None else np.asarray(spread, dtype=float)
     rng = np.random.default_rng(seed)
-    x = torch.as_tensor(system.goal + rng.uniform(-1, 1, size=(n_samples, system.n_states)) * spread)
-    Kt, St = torch.as_tensor(K), torch.as_tensor(S)
-    err = system.state_error(x)
-    V = ((err @ St) * err).sum(-1).numpy()
-    lookback = system.success_lookback
-    close = torch.ones(n_samples, dtype=torch.bool)
-    steps = int(round(horizon / system.dt))
-    with torch.no_grad():
-        for step in range(steps):
-            u = (-(system.state_error(x) @ Kt.T)).clamp(-system.action_limit, system.action_limit)
-            x = system.step_unchecked(x, u)
-            if step >= steps - lookback:
-                close &= torch.linalg.norm(system.state_error(x), dim=-1) < system.success_eps
-    ok = close.numpy() & np.isfinite(x.numpy()).all(axis=1)
+    x0 = system.goal + rng.uniform(-1, 1, size=(n_samples, system.n_states)) * spread
+    err = system.state_error(x0)
+    V = np.einsum("ni,ij,nj->n", err, S, err)
+    ok = lqr_rollouts_balanced(system, x0, horizon, K=K)
     failing = V[~ok]
     level = float(failing.min()) if failing.size else float(V.max())
     rates = {f"success_below_{k}x": float(ok[V < k * level].mean()) if np.any(V < k * level) else None
