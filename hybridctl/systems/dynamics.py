@@ -17,13 +17,29 @@ C_jk = l_min(j,k) a_max(j,k) (C_jj = I_j + m_j lc_j^2 + l_j^2 sum_{i>j} m_i):
 
 and J = d(x, phi)/d(q) maps it to joint coordinates: J^T (M_abs J qdd + b_abs) = B u - D v.
 
+Folded form (what is evaluated). Every q-dependent factor above is the sine or
+cosine of one of a few "angle features": the absolute angles phi_j and the
+relative angles r_jk = phi_k - phi_j = th_{j+1} + ... + th_k (j < k), so that
+cos(phi_j - phi_k) = cos r_jk and sin(phi_j - phi_k) = -sin r_jk. Since J is
+constant, J^T (...) J can be multiplied out once, in ``__init__``:
+
+    M(q)_ik = M0_ik + sum_f KM_fik cos(angle_f)
+    b(q, v)_i = sum_f G_fi sin(angle_f) + sum_{f,k} W_fki sin(angle_f) phid_k^2 + D_i v_i
+
+with constant tables M0 = J^T Mabs0 J, KM_f = J^T Kabs_f J, G_f = J^T Gabs_f and
+W_fk = J^T Wabs_fk built from the formulas above (see ``_fold``). Only the
+nonzero coefficients are kept, so each entry costs a handful of elementwise
+operations on (batch,) columns, and M is inverted in closed form for n_q <= 3
+(Cramer's rule on the symmetric 1x1, 2x2, 3x3 matrix) instead of a batched LU.
+
 The functions below take an array namespace (numpy or torch) so the Drake
-controller blocks (numpy, one state) and the training fast path (torch, batched,
-differentiable) share one formula.
+controller blocks (numpy, one state: evaluated on Python floats) and the
+training fast path (torch, batched, differentiable) share one formula.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -84,21 +100,31 @@ class ChainParams:
 
 
 class _Namespace:
-    """The few array operations the chain formula needs, for numpy or torch."""
+    """The few array operations the chain formula needs, for numpy or torch.
+
+    The formula works on "columns": arrays of the batch shape (0-d for a single
+    state), one per state coordinate or intermediate quantity, or plain floats
+    for quantities that do not depend on the state (those cost no array call).
+    Elementwise work on (batch,) columns beats (batch, n, n) tensor algebra here
+    because the matrices are at most 3x3: each torch call costs microseconds of
+    dispatch, so the number of calls matters more than the arithmetic.
+    """
 
     def __init__(self, like):
         self.torch = isinstance(like, torch.Tensor)
+        self.dtype, self.device = (like.dtype, like.device) if self.torch else (None, None)
+        self._consts: dict[float, torch.Tensor] = {}
 
-    def const(self, array: np.ndarray, like):
+    def columns(self, a):
+        """The last axis of ``a`` as a list of arrays of the batch shape (views)."""
+        # unbind is one torch call however many columns there are. A single numpy
+        # state becomes scalars (Python floats for float64, then math.sin/cos), whose
+        # arithmetic is many times faster than that of 0-d arrays.
         if self.torch:
-            return torch.as_tensor(array, dtype=like.dtype, device=like.device)
-        return np.asarray(array, dtype=like.dtype if like.dtype.kind == "f" else float)
-
-    def cat(self, parts, axis):
-        return torch.cat(parts, dim=axis) if self.torch else np.concatenate(parts, axis=axis)
-
-    def cumsum(self, a):
-        return torch.cumsum(a, dim=-1) if self.torch else np.cumsum(a, axis=-1)
+            return list(a.unbind(-1))
+        if a.ndim == 1:
+            return a.tolist() if a.dtype == np.float64 else list(a)
+        return [a[..., i] for i in range(a.shape[-1])]
 
     def solve(self, A, b):
         if self.torch:
@@ -106,10 +132,119 @@ class _Namespace:
         return np.linalg.solve(A, b[..., None])[..., 0]
 
     def cos(self, a):
-        return torch.cos(a) if self.torch else np.cos(a)
+        if self.torch:
+            return torch.cos(a)
+        return math.cos(a) if isinstance(a, float) else np.cos(a)
 
     def sin(self, a):
-        return torch.sin(a) if self.torch else np.sin(a)
+        if self.torch:
+            return torch.sin(a)
+        return math.sin(a) if isinstance(a, float) else np.sin(a)
+
+    def cumsum(self, a):
+        return torch.cumsum(a, dim=-1) if self.torch else np.cumsum(a, axis=-1)
+
+    def const(self, value: float):
+        """``value`` as a 0-d tensor of the namespace's dtype and device (cached), or a float.
+
+        Passing Python floats to torch calls costs a scalar-to-tensor conversion
+        per call (two in float32); cached 0-d tensors avoid it.
+        """
+        if not self.torch:
+            return value
+        if value not in self._consts:
+            self._consts[value] = torch.tensor(value, dtype=self.dtype, device=self.device)
+        return self._consts[value]
+
+    def lincomb(self, const: float, terms):
+        """const + sum of coef * f1 [* f2] over terms (coef, f1) or (coef, f1, f2) of columns.
+
+        In torch every term is exactly one call, ``add(alpha=)`` or ``addcmul(value=)``,
+        the first one starting from the cached constant. Returns ``const`` when
+        there are no terms.
+        """
+        if not self.torch:
+            out = const
+            for t in terms:
+                out = out + (t[0] * t[1] if len(t) == 2 else t[0] * t[1] * t[2])
+            return out
+        out = None
+        for t in terms:
+            if out is None and const == 0.0 and t[0] == 1.0 and len(t) == 2:
+                out = t[1]              # a bare column: no call at all
+                continue
+            base = self.const(const) if out is None else out
+            out = torch.add(base, t[1], alpha=t[0]) if len(t) == 2 else torch.addcmul(base, t[1], t[2], value=t[0])
+        return const if out is None else out
+
+    def products(self, terms):
+        """sum of coef * x * y over terms (coef, x, y) whose factors are columns or floats."""
+        const, arrays = 0.0, []
+        for coef, x, y in terms:
+            if isinstance(x, float) and isinstance(y, float):
+                const += coef * x * y
+            elif isinstance(x, float) or isinstance(y, float):
+                arrays.append((coef * x, y) if isinstance(x, float) else (coef * y, x))
+            else:
+                arrays.append((coef, x, y))
+        return self.lincomb(const, arrays)
+
+    def stack(self, cols, like):
+        """Columns (arrays or floats) -> one array (..., len(cols)); floats are broadcast
+        to ``like``, a column that gives the batch shape, dtype and device."""
+        if not self.torch:
+            dtype = np.result_type(like, *cols)
+            dtype = dtype if dtype.kind == "f" else np.dtype(float)
+            shapes = {getattr(c, "shape", ()) for c in [like, *cols]}
+            if shapes == {()}:
+                return np.array(cols, dtype=dtype)      # one state: numpy scalars and floats
+            out = np.empty(np.broadcast_shapes(*shapes) + (len(cols),), dtype=dtype)
+            for i, col in enumerate(cols):
+                out[..., i] = col
+            return out
+        cols = [torch.full_like(like, c) if isinstance(c, float) else c for c in cols]
+        if len({c.shape for c in cols}) > 1:
+            cols = torch.broadcast_tensors(*cols)
+        if (cols[0].numel() >= 1024 and not any(c.requires_grad for c in cols)
+                and all(c.dtype == cols[0].dtype for c in cols)):
+            # torch.stack on the last axis is a slow strided cat for large batches
+            # (~20 us at 4096 x 4); copying column by column into the interleaved
+            # result is about twice as fast there (and slower for small batches).
+            out = cols[0].new_empty(cols[0].shape + (len(cols),))
+            for dst, src in zip(out.unbind(-1), cols):
+                dst.copy_(src)
+            return out
+        return torch.stack(cols, dim=-1)
+
+
+_NUMPY = _Namespace(np.zeros(0))
+
+
+def _solve_symmetric(xp, m, r):
+    """Solve M qdd = r for symmetric M (n <= 3) in closed form (Cramer's rule / adjugate).
+
+    ``m[i][k]`` (i <= k) and ``r[i]`` are columns or floats, so this is batched
+    and differentiable wherever the namespace is. Mass matrices are symmetric
+    positive definite and well conditioned, where the explicit inverse is as
+    accurate as LU (the Drake comparison holds to 1e-9).
+    """
+    n = len(r)
+    if n == 1:
+        return [r[0] / m[0][0]]
+    if n == 2:
+        (a, b), d = m[0], m[1][1]
+        det = xp.products([(1.0, a, d), (-1.0, b, b)])
+        return [xp.products([(1.0, d, r[0]), (-1.0, b, r[1])]) / det,
+                xp.products([(1.0, a, r[1]), (-1.0, b, r[0])]) / det]
+    (a, b, c), (d, e), f = m[0], m[1][1:], m[2][2]
+    # Cofactors of [[a, b, c], [b, d, e], [c, e, f]] (the adjugate is symmetric too).
+    A = [[xp.products([(1.0, d, f), (-1.0, e, e)]), xp.products([(1.0, c, e), (-1.0, b, f)]),
+          xp.products([(1.0, b, e), (-1.0, c, d)])],
+         [None, xp.products([(1.0, a, f), (-1.0, c, c)]), xp.products([(1.0, b, c), (-1.0, a, e)])],
+         [None, None, xp.products([(1.0, a, d), (-1.0, b, b)])]]
+    det = xp.products([(1.0, a, A[0][0]), (1.0, b, A[0][1]), (1.0, c, A[0][2])])
+    return [xp.products([(1.0, A[min(i, k)][max(i, k)], r[k]) for k in range(3)]) / det
+            for i in range(3)]
 
 
 class ChainDynamics:
@@ -121,21 +256,131 @@ class ChainDynamics:
         self._C = params.coupling()
         self._J = params.jacobian()
         self._total_mass = params.cart_mass + params.link_mass.sum() if params.has_cart else 0.0
-        self._cache: dict = {}
+        self._fold()
+        self._namespaces: dict = {}
 
-    def _consts(self, like):
-        """Constants as arrays of ``like``'s type, dtype and device (cached for torch)."""
-        key = (type(like), str(getattr(like, "dtype", "")), str(getattr(like, "device", "")))
-        if key not in self._cache:
-            xp = _Namespace(like)
-            self._cache[key] = (xp, xp.const(self._a, like), xp.const(self._C, like),
-                                xp.const(self._J, like), xp.const(self.p.actuation, like),
-                                xp.const(self.p.joint_damping, like))
-        return self._cache[key]
+    def _xp(self, like) -> _Namespace:
+        """The namespace for ``like`` (one per torch dtype and device, so constants are cached)."""
+        if not isinstance(like, torch.Tensor):
+            return _NUMPY
+        key = (like.dtype, like.device)
+        xp = self._namespaces.get(key)
+        if xp is None:
+            xp = self._namespaces[key] = _Namespace(like)
+        return xp
 
+    def _fold(self) -> None:
+        """Tables of the folded form (module docstring), kept as lists of nonzero terms.
+
+        Terms are (coef, key) or (coef, key1, key2) over the keys ("sin", f),
+        ("cos", f), ("phid2", k) = phid_k^2, ("v", i), ("u", col) that
+        ``_columns`` evaluates; feature f < N is phi_f, feature N + p is r_jk of
+        the p-th pair (j, k) in ``self._pairs``.
+        """
+        p, a, C, J = self.p, self._a, self._C, self._J
+        N, n_q, c = p.n_links, p.n_q, int(p.has_cart)
+        self._pairs = [(j, k) for j in range(N) for k in range(j + 1, N)]
+        n_f = N + len(self._pairs)
+        # In absolute coordinates (x, phi): M_abs = Mabs0 + sum_f Kabs_f cos(angle_f) and
+        # b_abs = sum_f Gabs_f sin(angle_f) + sum_{f,k} Wabs_fk sin(angle_f) phid_k^2.
+        Mabs0, Kabs = np.zeros((n_q, n_q)), np.zeros((n_f, n_q, n_q))
+        Gabs, Wabs = np.zeros((n_f, n_q)), np.zeros((n_f, N, n_q))
+        if p.has_cart:
+            Mabs0[0, 0] = self._total_mass
+        for j in range(N):
+            Mabs0[c + j, c + j] = C[j, j]
+            Gabs[j, c + j] = p.gravity * a[j]                  # g a_j sin phi_j
+            if p.has_cart:
+                Kabs[j, 0, c + j] = Kabs[j, c + j, 0] = a[j]   # a_j cos phi_j (x-phi_j coupling)
+                Wabs[j, j, 0] = -a[j]                          # x row: -a_j sin phi_j phid_j^2
+        for f, (j, k) in enumerate(self._pairs, start=N):
+            Kabs[f, c + j, c + k] = Kabs[f, c + k, c + j] = C[j, k]   # C_jk cos(phi_j - phi_k)
+            Wabs[f, k, c + j] = -C[j, k]   # row j: C_jk sin(phi_j - phi_k) phid_k^2 = -C_jk sin r_jk phid_k^2
+            Wabs[f, j, c + k] = C[j, k]    # row k: C_kj sin(phi_k - phi_j) phid_j^2 = +C_jk sin r_jk phid_j^2
+        # Fold in the constant J: M = J^T M_abs J and b = J^T b_abs + D v.
+        M0 = J.T @ Mabs0 @ J
+        KM = np.einsum("ai,fab,bk->fik", J, Kabs, J)
+        G, W = Gabs @ J, Wabs @ J
+        # Upper triangle of M: {(i, k): (constant, [(coef, ("cos", f))])}.
+        self._M_entries = {(i, k): (float(M0[i, k]), [(float(KM[f, i, k]), ("cos", f))
+                                                      for f in range(n_f) if KM[f, i, k] != 0.0])
+                           for i in range(n_q) for k in range(i, n_q)}
+        self._bias_rows = []
+        for i in range(n_q):
+            row = [(float(G[f, i]), ("sin", f)) for f in range(n_f) if G[f, i] != 0.0]
+            row += [(float(W[f, k, i]), ("sin", f), ("phid2", k))
+                    for f in range(n_f) for k in range(N) if W[f, k, i] != 0.0]
+            if p.joint_damping[i] != 0.0:
+                row.append((float(p.joint_damping[i]), ("v", i)))
+            self._bias_rows.append(row)
+        # Right-hand sides of M qdd = B u - b, what the solve needs.
+        self._rhs_rows = [[(float(p.actuation[i, col]), ("u", col)) for col in range(p.actuation.shape[1])
+                           if p.actuation[i, col] != 0.0] + [(-t[0],) + t[1:] for t in self._bias_rows[i]]
+                          for i in range(n_q)]
+        # What _columns must evaluate: only the trig functions and velocities some term uses.
+        keys = {key for _, terms in self._M_entries.values() for _, key in terms}
+        keys |= {key for row in self._rhs_rows for term in row for key in term[1:]}
+        self._sin = [f for f in range(n_f) if ("sin", f) in keys]
+        self._cos = [f for f in range(n_f) if ("cos", f) in keys]
+        self._phid2 = [k for k in range(N) if ("phid2", k) in keys]
+
+    def _columns(self, xp, q, v, u=()):
+        """Every quantity the tables refer to, by key, from columns of q, v (and u)."""
+        p, c, N = self.p, int(self.p.has_cart), self.p.n_links
+        th = q[c:]
+        # phi_1 = th_1 + offset, phi_j = phi_{j-1} + th_j (the order of Drake's AcrobotPlant: sin(q1 + q2)).
+        angles = [xp.lincomb(p.angle_offset, [(1.0, th[0])])]
+        for j in range(1, N):
+            angles.append(angles[-1] + th[j])
+        # r_jk = th_{j+1} + ... + th_k, summed directly (not phi_k - phi_j, which would cancel).
+        rel = {}
+        for j, k in self._pairs:
+            rel[j, k] = th[k] if k == j + 1 else rel[j, k - 1] + th[k]
+            angles.append(rel[j, k])
+        cols = {("v", i): vi for i, vi in enumerate(v)}
+        cols.update((("u", i), ui) for i, ui in enumerate(u))
+        for f in self._sin:
+            cols["sin", f] = xp.sin(angles[f])
+        for f in self._cos:
+            cols["cos", f] = xp.cos(angles[f])
+        phid = None
+        for k in range(max(self._phid2, default=-1) + 1):
+            phid = v[c] if k == 0 else phid + v[c + k]     # phid_k = v_1 + ... + v_k
+            if k in self._phid2:
+                cols["phid2", k] = phid * phid
+        return cols
+
+    @staticmethod
+    def _evaluate(xp, const, terms, cols):
+        """One table entry (const + terms) at the evaluated columns."""
+        return xp.lincomb(const, [(t[0], cols[t[1]]) if len(t) == 2 else (t[0], cols[t[1]], cols[t[2]])
+                                  for t in terms])
+
+    def _mass_entries(self, xp, cols):
+        """Upper triangle {(i, k): column or float} of M."""
+        return {ik: self._evaluate(xp, const, terms, cols) for ik, (const, terms) in self._M_entries.items()}
+
+    def _matrix(self, xp, m, like):
+        """The symmetric (..., n_q, n_q) matrix from its upper triangle."""
+        n_q = self.p.n_q
+        flat = xp.stack([m[min(i, k), max(i, k)] for i in range(n_q) for k in range(n_q)], like)
+        return flat.reshape(flat.shape[:-1] + (n_q, n_q))
+
+    def _accelerations(self, xp, q, v, u):
+        """qdd as a list of columns, from columns of q, v and u."""
+        n_q = self.p.n_q
+        cols = self._columns(xp, q, v, u)
+        m = self._mass_entries(xp, cols)
+        r = [self._evaluate(xp, 0.0, row, cols) for row in self._rhs_rows]
+        if n_q <= 3:
+            return _solve_symmetric(xp, [[m.get((i, k)) for k in range(n_q)] for i in range(n_q)], r)
+        # Longer chains: a batched LU solve of the assembled matrix.
+        return xp.columns(xp.solve(self._matrix(xp, m, q[0]), xp.stack(r, q[0])))
+
+    # ------------------------------------------------------------------ public
     def absolute_angles(self, q):
         """Link angles phi_k from hanging down (..., N) and the base position (..., 1) or None."""
-        xp = self._consts(q)[0]
+        xp = self._xp(q)
         c = int(self.p.has_cart)
         phi = xp.cumsum(q[..., c:]) + self.p.angle_offset
         return phi, (q[..., :1] if self.p.has_cart else None)
@@ -145,41 +390,24 @@ class ChainDynamics:
 
         The equations of motion are M qdd + b = B u, with damping included in b.
         """
-        xp, a, C, J, _, damping = self._consts(q)
-        c = int(self.p.has_cart)
-        phi = xp.cumsum(q[..., c:]) + self.p.angle_offset
-        phid = xp.cumsum(v[..., c:])
-        dphi = phi[..., :, None] - phi[..., None, :]
-        H = C * xp.cos(dphi)
-        link_bias = ((C * xp.sin(dphi)) @ (phid * phid)[..., None])[..., 0] + self.p.gravity * a * xp.sin(phi)
-        if self.p.has_cart:
-            coupling = a * xp.cos(phi)                                     # (..., N)
-            top = xp.cat([q[..., :1] * 0 + self._total_mass, coupling], axis=-1)[..., None, :]
-            rest = xp.cat([coupling[..., :, None], H], axis=-1)
-            M_abs = xp.cat([top, rest], axis=-2)
-            cart_bias = -(a * xp.sin(phi) * phid * phid).sum(-1)[..., None]
-            b_abs = xp.cat([cart_bias, link_bias], axis=-1)
-        else:
-            M_abs, b_abs = H, link_bias
-        JT = J.T if not xp.torch else J.transpose(0, 1)
-        M = JT @ M_abs @ J
-        b = (JT @ b_abs[..., None])[..., 0] + damping * v
-        return M, b
+        xp = self._xp(q)
+        qc, vc = xp.columns(q), xp.columns(v)
+        cols = self._columns(xp, qc, vc)
+        b = [self._evaluate(xp, 0.0, row, cols) for row in self._bias_rows]
+        return self._matrix(xp, self._mass_entries(xp, cols), qc[0]), xp.stack(b, qc[0])
 
     def accelerations(self, q, v, u):
         """qdd = M^-1 (B u - b)."""
-        B = self._consts(q)[4]
-        M, b = self.manipulator(q, v)
-        xp = self._consts(q)[0]
-        return xp.solve(M, (B @ u[..., None])[..., 0] - b)
+        xp = self._xp(q)
+        qc = xp.columns(q)
+        return xp.stack(self._accelerations(xp, qc, xp.columns(v), xp.columns(u)), qc[0])
 
     def derivatives(self, x, u):
         """Time derivative [v, qdd] of x = [q, v] under input u (batched over leading dims)."""
-        n_q = self.p.n_q
-        q, v = x[..., :n_q], x[..., n_q:]
-        qdd = self.accelerations(q, v, u)
-        xp = self._consts(x)[0]
-        return xp.cat([v, qdd], axis=-1)
+        xp = self._xp(x)
+        cols = xp.columns(x)
+        q, v = cols[:self.p.n_q], cols[self.p.n_q:]
+        return xp.stack(v + self._accelerations(xp, q, v, xp.columns(u)), cols[0])
 
     def energy(self, x):
         """Total mechanical energy (kinetic + potential, zero potential at the pivot height)."""
@@ -188,13 +416,15 @@ class ChainDynamics:
         M, _ = self.manipulator(q, v * 0)
         kinetic = 0.5 * (v[..., None, :] @ M @ v[..., :, None])[..., 0, 0]
         phi, _ = self.absolute_angles(q)
-        xp, a = self._consts(x)[:2]
+        xp = self._xp(x)
+        a = torch.as_tensor(self._a, dtype=x.dtype, device=x.device) if xp.torch else self._a
         potential = -self.p.gravity * (a * xp.cos(phi)).sum(-1)
         return kinetic + potential
 
     def tip_height(self, x):
         """Height of the distal tip above the base pivot: -sum_j l_j cos phi_j."""
         phi, _ = self.absolute_angles(x[..., :self.p.n_q])
-        xp = self._consts(x)[0]
-        l = xp.const(self.p.link_length, x)
+        xp = self._xp(x)
+        l = self.p.link_length
+        l = torch.as_tensor(l, dtype=x.dtype, device=x.device) if xp.torch else l
         return -(l * xp.cos(phi)).sum(-1)

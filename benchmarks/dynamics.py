@@ -1,0 +1,222 @@
+"""Throughput of the batched torch dynamics against gymnasium's Acrobot-v1, and the
+real-time factor of the Drake hybrid diagram. Prints one JSON document.
+
+    .venv/bin/python benchmarks/dynamics.py [--quick] [--out FILE] [--threads N]
+
+Every number is the median of several timed repeats (wall clock, after a
+warm-up), measured in this one run, so ratios compare like with like on the
+same machine under the same load. See benchmarks/README.md for what is and is
+not comparable.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import importlib.metadata
+import json
+import os
+import platform
+import statistics
+import sys
+import time
+from pathlib import Path
+
+# Benchmark this checkout, whether or not the package is installed.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from hybridctl import systems  # noqa: E402
+
+ACROBOT_BATCHES = (1, 64, 4096)
+OTHER_BATCH = 4096
+DRAKE_DURATION = 10.0   # simulated seconds per Drake run
+DRAKE_REPEATS = 3
+
+
+def _settings(quick: bool) -> dict:
+    """Repeats and seconds per repeat: --quick is for tests (whole run well under 20 s)."""
+    return {"repeats": 3, "seconds_per_repeat": 0.02, "gym_steps": 2000} if quick else \
+        {"repeats": 7, "seconds_per_repeat": 0.25, "gym_steps": 20000}
+
+
+def _version(dist: str) -> str | None:
+    try:
+        return importlib.metadata.version(dist)
+    except importlib.metadata.PackageNotFoundError:
+        return None
+
+
+def machine_info() -> dict:
+    """Where the numbers come from: platform, cores, load, library versions, torch threads."""
+    info = {
+        "platform": platform.platform(),
+        "machine": platform.machine(),
+        "processor": platform.processor() or None,
+        "python": platform.python_version(),
+        "cpu_count": os.cpu_count(),
+        "cpus_available": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
+        "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
+        "numpy": np.__version__,
+        "torch": torch.__version__,
+        "torch_threads": torch.get_num_threads(),
+        "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(),
+        "drake": _version("drake"),
+        "gymnasium": _version("gymnasium"),
+    }
+    return info
+
+
+def time_calls(fn, seconds: float, repeats: int) -> dict:
+    """Median seconds per call of ``fn()``: warm up, size a repeat to ``seconds``, time ``repeats``."""
+    for _ in range(3):
+        fn()
+    calls, start = 0, time.perf_counter()
+    while True:                       # estimate the cost of one call
+        fn()
+        calls += 1
+        elapsed = time.perf_counter() - start
+        if elapsed >= seconds / 5 or calls >= 10000:
+            break
+    number = max(1, round(seconds / (elapsed / calls)))
+    per_call, cpu_per_call = [], []
+    for _ in range(repeats):
+        start, cpu_start = time.perf_counter(), time.thread_time()
+        for _ in range(number):
+            fn()
+        per_call.append((time.perf_counter() - start) / number)
+        cpu_per_call.append((time.thread_time() - cpu_start) / number)
+    return {"median": statistics.median(per_call), "min": min(per_call), "max": max(per_call),
+            "cpu_median": statistics.median(cpu_per_call), "calls_per_repeat": number}
+
+
+def bench_gym_acrobot(settings: dict) -> dict:
+    """gymnasium Acrobot-v1 ``env.step`` rate (unwrapped, random actions, reset on termination)."""
+    import gymnasium as gym
+
+    env = gym.make("Acrobot-v1").unwrapped
+    env.reset(seed=0)
+    n = settings["gym_steps"]
+    actions = [int(a) for a in np.random.default_rng(0).integers(0, 3, size=n)]
+
+    def run(count):
+        for a in actions[:count]:
+            _, _, terminated, _, _ = env.step(a)
+            if terminated:
+                env.reset()
+
+    run(min(n, 500))                  # warm-up
+    rates, cpu_rates = [], []
+    for _ in range(settings["repeats"]):
+        start, cpu_start = time.perf_counter(), time.thread_time()
+        run(n)
+        rates.append(n / (time.perf_counter() - start))
+        cpu_rates.append(n / (time.thread_time() - cpu_start))
+    env.close()
+    return {"env": "Acrobot-v1 (unwrapped)", "steps_per_s": statistics.median(rates),
+            "min": min(rates), "max": max(rates), "steps_per_cpu_s": statistics.median(cpu_rates),
+            "steps_per_repeat": n, "repeats": settings["repeats"]}
+
+
+def bench_step(system, batch: int, dtype: torch.dtype, method: str, settings: dict) -> dict:
+    """State-steps per second of ``System.step`` (or ``step_unchecked``) at one batch size and dtype.
+
+    The same states and inputs are stepped every call (no feedback), so the
+    timing does not depend on where a long rollout would drift.
+    """
+    rng = np.random.default_rng(0)
+    x = torch.tensor(system.sample_initial_states(batch, rng), dtype=dtype)
+    u = torch.tensor(rng.uniform(-1, 1, size=(batch, system.n_actions)) * system.action_limit, dtype=dtype)
+    step = getattr(system, method)
+    t = time_calls(lambda: step(x, u), settings["seconds_per_repeat"], settings["repeats"])
+    return {"system": system.name, "method": method, "batch": batch, "dtype": str(dtype).replace("torch.", ""),
+            "state_steps_per_s": batch / t["median"], "seconds_per_call": t["median"],
+            "seconds_per_call_min": t["min"], "seconds_per_call_max": t["max"],
+            "cpu_seconds_per_call": t["cpu_median"], "calls_per_repeat": t["calls_per_repeat"]}
+
+
+def bench_drake() -> dict:
+    """Real-time factor (simulated s / wall s) of the default acrobot hybrid diagram, 10 s from hanging down."""
+    try:
+        from hybridctl import drake
+    except Exception as exc:  # the module may not exist yet, or fail to import: report, don't crash
+        return {"skipped": f"import hybridctl.drake failed: {type(exc).__name__}: {exc}"}
+    try:
+        system = systems.load("acrobot")
+        x0 = np.asarray(system.spec.get("initial_state.nominal"), dtype=float)
+        start = time.perf_counter()
+        diagram = drake.build_hybrid_diagram(system)
+        build = time.perf_counter() - start
+        walls, traj = [], None
+        for _ in range(DRAKE_REPEATS):
+            start = time.perf_counter()
+            traj = drake.simulate(diagram, x0, DRAKE_DURATION)
+            walls.append(time.perf_counter() - start)
+    except Exception as exc:  # the API is still moving: make the failure visible in the JSON
+        return {"error": f"{type(exc).__name__}: {exc}"}
+    wall = statistics.median(walls)
+    return {"system": "acrobot", "diagram": "build_hybrid_diagram defaults (energy swing-up, cost-to-go gate, LQR)",
+            "x0": x0.tolist(), "duration_s": DRAKE_DURATION, "build_s": build, "wall_s": wall,
+            "wall_s_min": min(walls), "wall_s_max": max(walls), "repeats": DRAKE_REPEATS,
+            "realtime_factor": DRAKE_DURATION / wall,
+            "steps_per_s": DRAKE_DURATION / system.dt / wall, "dt": system.dt,
+            "balanced": bool(getattr(traj, "balanced", False))}
+
+
+def run(quick: bool = False, threads: int = 1) -> dict:
+    torch.set_num_threads(threads)
+    settings = _settings(quick)
+    report = {
+        "benchmark": "dynamics",
+        "timestamp": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "command": [sys.executable, *sys.argv],
+        "quick": quick,
+        "machine": machine_info(),
+        "method": {"timer": "time.perf_counter (wall clock); cpu_* fields: time.thread_time of the "
+                            "calling thread (complete only with --threads 1)",
+                   "statistic": "median", **settings,
+                   "unit": "state-steps/s = batch size x System.step calls per second"},
+    }
+    gym_result = bench_gym_acrobot(settings)
+    steps = []
+    acrobot = systems.load("acrobot")
+    for method in ("step", "step_unchecked"):
+        for batch in ACROBOT_BATCHES:
+            for dtype in (torch.float32, torch.float64):
+                steps.append(bench_step(acrobot, batch, dtype, method, settings))
+    for name in systems.known_systems():
+        if name != "acrobot":
+            for method in ("step", "step_unchecked"):
+                steps.append(bench_step(systems.load(name), OTHER_BATCH, torch.float64, method, settings))
+    drake_result = bench_drake()
+
+    gym_rate = gym_result["steps_per_s"]
+    for entry in steps:
+        entry["ratio_vs_gym_acrobot"] = entry["state_steps_per_s"] / gym_rate
+    if "steps_per_s" in drake_result:
+        drake_result["ratio_vs_gym_acrobot"] = drake_result["steps_per_s"] / gym_rate
+    report.update({"gym_acrobot": gym_result, "step": steps, "drake_hybrid": drake_result})
+    return report
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--quick", action="store_true", help="fewer, shorter repeats (for tests)")
+    parser.add_argument("--out", type=Path, help="also write the JSON to this file")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    args = parser.parse_args(argv)
+    if args.threads < 1:
+        parser.error("--threads must be >= 1")
+    report = run(quick=args.quick, threads=args.threads)
+    text = json.dumps(report, indent=2, allow_nan=False)
+    print(text)
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(text + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,80 @@
+"""benchmarks/dynamics.py --quick runs and reports well-formed numbers (no speed thresholds)."""
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def report(tmp_path_factory):
+    out = tmp_path_factory.mktemp("bench") / "nested" / "dynamics.json"
+    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "dynamics.py"), "--quick", "--out", str(out)],
+                          cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    printed = json.loads(proc.stdout)          # stdout is exactly one JSON document
+    assert json.loads(out.read_text()) == printed
+    return printed
+
+
+def _positive_finite(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0
+
+
+def _ratios(node):
+    """Every value under a key named ratio_vs_gym_acrobot, anywhere in the document."""
+    if isinstance(node, dict):
+        for key, value in node.items():
+            if key == "ratio_vs_gym_acrobot":
+                yield value
+            else:
+                yield from _ratios(value)
+    elif isinstance(node, list):
+        for value in node:
+            yield from _ratios(value)
+
+
+def test_header(report):
+    assert report["benchmark"] == "dynamics" and report["quick"] is True
+    assert "benchmarks/dynamics.py" in " ".join(report["command"])
+    assert isinstance(report["timestamp"], str) and report["timestamp"]
+    machine = report["machine"]
+    for key in ("platform", "cpu_count", "torch", "drake", "gymnasium", "torch_threads"):
+        assert key in machine, key
+    assert machine["torch_threads"] == 1          # the default
+
+
+def test_gym_reference(report):
+    gym = report["gym_acrobot"]
+    assert gym["env"].startswith("Acrobot-v1") and _positive_finite(gym["steps_per_s"])
+
+
+def test_step_entries(report):
+    steps = report["step"]
+    acrobot = {(e["method"], e["batch"], e["dtype"]) for e in steps if e["system"] == "acrobot"}
+    assert {("step", b, d) for b in (1, 64, 4096) for d in ("float32", "float64")} <= acrobot
+    others = {e["system"] for e in steps if e["system"] != "acrobot" and e["batch"] == 4096 and e["dtype"] == "float64"}
+    assert others == {"cartpole", "double_cartpole", "pendulum"}
+    for entry in steps:
+        assert _positive_finite(entry["state_steps_per_s"]) and _positive_finite(entry["seconds_per_call"])
+        assert _positive_finite(entry["ratio_vs_gym_acrobot"])
+
+
+def test_every_ratio_is_positive_finite(report):
+    ratios = list(_ratios(report))
+    assert len(ratios) >= len(report["step"])
+    assert all(_positive_finite(r) for r in ratios), ratios
+
+
+def test_drake_entry_reports_or_skips(report):
+    drake = report["drake_hybrid"]
+    assert "error" not in drake, drake["error"]
+    if "skipped" in drake:
+        assert isinstance(drake["skipped"], str) and drake["skipped"]
+    else:
+        assert _positive_finite(drake["realtime_factor"]) and drake["duration_s"] == 10.0
