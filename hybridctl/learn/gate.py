@@ -1,0 +1,206 @@
+"""The learned gate of SSAC (thesis Sec. 3.3, Algorithm 2): a classifier of the LQR's basin.
+
+The gate G(s) in [0, 1] says whether the LQR can take over from state s. It is a
+4-32-32-1 ReLU MLP with a sigmoid output (thesis appendix), trained with a
+weighted binary cross-entropy whose positive-class weight
+c_w = (n_total / n_positive) * w, w = 0.01 (thesis eq. 3.3), which makes it
+conservative: a false "LQR can take over" costs an episode, a false "cannot" only
+delays the hand-over. Labels come from LQR rollouts (warm start) and, during
+SSAC, from the episodes in which the LQR acted.
+
+Two deliberate differences from the thesis, both control knowledge handed to
+the network instead of learned by it: it sees the wrapped state error (angles in
+[-pi, pi)) scaled per coordinate, so a turn of 2 pi is the same state to the gate
+as to the LQR; and it gets log(1 + V / scale) with V = (x - goal)' S (x - goal)
+the LQR cost-to-go as an extra input. The LQR's basin is a thin sliver of the
+sampled states (V < ~260 for the acrobot, errors of ~0.02 rad), which a raw-state
+4-32-32-1 MLP did not carve out in our tests (it never handed over).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+import torch
+
+from ..analysis.balance import lqr_rollouts_balanced
+from ..systems import System
+
+
+@dataclass
+class GateConfig:
+    """Every hyperparameter of gate learning, with its source."""
+
+    hidden: tuple[int, ...] = (32, 32)        # thesis appendix Ch. 3: two hidden layers of 32, ReLU
+    positive_weight: float = 0.01             # thesis eq. 3.3: w in c_w = n_t / n_p * w
+    label_eps: float = 0.2                    # implementation notes: gate labels within 0.2 (L2)
+    label_lookback: int = 10                  # implementation notes: last 10 states
+    label_horizon: float = 2.5                # implementation notes: 2.5 s LQR rollouts
+    warm_samples: int = 100_000               # hybridctl: 2.5e7 LQR steps, ~1 min on 2 cores (thesis: 1e6 steps)
+    warm_fit_steps: int = 3000                # hybridctl: Adam steps on the warm-start data
+    refit_steps: int = 500                    # hybridctl: Adam steps per SSAC refit on all gate data
+    batch_size: int = 4096                    # hybridctl: minibatches drawn from the whole data set
+    cost_feature: bool = True                 # hybridctl: log(1 + V / gate.cost_scale) as an extra input
+    lr: float = 1e-3                          # hybridctl; thesis "initial gate learning rate" 1e-5 (too slow here)
+    seed: int = 0
+    extra: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        """JSON-ready dict."""
+        data = asdict(self)
+        data["hidden"] = list(self.hidden)
+        return data
+
+
+class GateNet(torch.nn.Module):
+    """Gate classifier: states (B, n) -> probabilities (B, 1) that the LQR can take over.
+
+    Features are the wrapped state error divided by ``feature_scale`` (by default
+    the spec's ``gate.warm_far`` spread, so features are O(1)) and, with
+    ``cost_feature``, log(1 + V / gate.cost_scale) of the LQR cost-to-go V.
+    """
+
+    def __init__(self, system: System, hidden: tuple[int, ...] = (32, 32),
+                 feature_scale: np.ndarray | None = None, cost_feature: bool = True):
+        super().__init__()
+        self.system_name = system.name
+        scale = _spread(system, "gate.warm_far") if feature_scale is None else np.asarray(feature_scale, float)
+        self.register_buffer("feature_scale", torch.as_tensor(scale, dtype=torch.float32))
+        self.register_buffer("goal", torch.as_tensor(system.goal, dtype=torch.float32))
+        self.register_buffer("angle_mask", torch.zeros(system.n_states, dtype=torch.bool))
+        self.angle_mask[system.angle_indices] = True
+        self.cost_feature = bool(cost_feature)
+        S = system.lqr()[1] / float(system.spec.get("gate.cost_scale"))
+        self.register_buffer("S_scaled", torch.as_tensor(S, dtype=torch.float32))
+        layers, width = [], system.n_states + int(self.cost_feature)
+        for h in hidden:
+            layers += [torch.nn.Linear(width, h), torch.nn.ReLU()]
+            width = h
+        layers.append(torch.nn.Linear(width, 1))
+        self.net = torch.nn.Sequential(*layers)
+
+    def features(self, x: torch.Tensor) -> torch.Tensor:
+        """Wrapped state error, scaled, and optionally log(1 + V / scale)."""
+        x = x.to(self.goal.dtype)
+        err = x - self.goal
+        wrapped = torch.remainder(err + np.pi, 2 * np.pi) - np.pi
+        err = torch.where(self.angle_mask, wrapped, err)
+        features = err / self.feature_scale
+        if self.cost_feature:
+            cost = ((err @ self.S_scaled) * err).sum(-1, keepdim=True)
+            features = torch.cat([features, torch.log1p(cost)], dim=-1)
+        return features
+
+    def logits(self, x: torch.Tensor) -> torch.Tensor:
+        """Pre-sigmoid outputs (B, 1)."""
+        return self.net(self.features(x))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Probabilities (B, 1)."""
+        return torch.sigmoid(self.logits(x))
+
+
+def _spread(system: System, key: str) -> np.ndarray:
+    if not system.spec.has(key):
+        raise ValueError(f"{system.spec.path}: gate learning needs '{key}' (a spread per state)")
+    spread = np.asarray(system.spec.get(key), dtype=float)
+    if spread.shape != (system.n_states,) or np.any(spread <= 0):
+        raise ValueError(f"{system.spec.path}: '{key}' must be {system.n_states} positive numbers")
+    return spread
+
+
+def warm_start_states(system: System, n: int, rng: np.random.Generator) -> np.ndarray:
+    """Thesis Algorithm 2 samples: half goal + U(-warm_near, warm_near), half goal + U(-warm_far, warm_far)."""
+    if n < 2:
+        raise ValueError(f"n must be >= 2, got {n}")
+    near, far = _spread(system, "gate.warm_near"), _spread(system, "gate.warm_far")
+    half = n // 2
+    states = np.concatenate([rng.uniform(-near, near, size=(half, system.n_states)),
+                             rng.uniform(-far, far, size=(n - half, system.n_states))])
+    return system.goal + states
+
+
+def label_states(system: System, states: np.ndarray, config: GateConfig, K=None) -> np.ndarray:
+    """Labels 1 where the saturated LQR from that state balances (config's eps, lookback, horizon)."""
+    return lqr_rollouts_balanced(system, states, config.label_horizon, eps=config.label_eps,
+                                 lookback=config.label_lookback, K=K)
+
+
+def gate_loss(gate: GateNet, states: torch.Tensor, labels: torch.Tensor, positive_weight: float) -> torch.Tensor:
+    """Thesis eq. 3.3: weighted BCE with c_w = (n_total / n_positive) * positive_weight."""
+    n_pos = float(labels.sum())
+    c_w = (labels.numel() / n_pos) * positive_weight if n_pos > 0 else 1.0
+    return torch.nn.functional.binary_cross_entropy_with_logits(
+        gate.logits(states).squeeze(-1), labels.float(), pos_weight=torch.tensor(c_w))
+
+
+def fit_gate(gate: GateNet, states, labels, steps: int, lr: float = 1e-3, positive_weight: float = 0.01,
+             batch_size: int = 4096, generator: torch.Generator | None = None,
+             optimizer: torch.optim.Optimizer | None = None) -> list[float]:
+    """Adam on minibatches drawn from the whole gate data set (the thesis refits on all of it).
+
+    The class weight c_w uses the whole data set's class balance. Returns the losses.
+    """
+    x = torch.as_tensor(np.asarray(states), dtype=torch.float32)
+    y = torch.as_tensor(np.asarray(labels), dtype=torch.bool)
+    if x.shape[0] != y.shape[0] or x.shape[0] == 0:
+        raise ValueError(f"states and labels must be non-empty and of equal length, got {x.shape[0]} and {y.shape[0]}")
+    n_pos = int(y.sum())
+    c_w = (len(y) / n_pos) * positive_weight if n_pos else 1.0
+    optimizer = optimizer or torch.optim.Adam(gate.parameters(), lr=lr)
+    losses = []
+    gate.train()
+    for step in range(steps):
+        rows = torch.randint(len(y), (min(batch_size, len(y)),), generator=generator)
+        loss = torch.nn.functional.binary_cross_entropy_with_logits(
+            gate.logits(x[rows]).squeeze(-1), y[rows].float(), pos_weight=torch.tensor(c_w))
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"gate loss became {loss.item()} at fit step {step}")
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        losses.append(loss.item())
+    gate.eval()
+    return losses
+
+
+def gate_metrics(gate: torch.nn.Module, states, labels, on: float = 0.9) -> dict:
+    """How the gate's hand-over decision (p > on) compares with the labels.
+
+    ``false_handover_rate``: share of predicted hand-overs whose LQR rollout fails
+    (what the conservative weighting keeps small); ``recall``: share of
+    balanceable states the gate hands over.
+    """
+    with torch.no_grad():
+        p = gate(torch.as_tensor(np.asarray(states))).reshape(-1).numpy()
+    y = np.asarray(labels, dtype=bool)
+    handover = p > on
+    return {
+        "n": int(len(y)), "positives": int(y.sum()),
+        "handovers": int(handover.sum()),
+        "false_handover_rate": float((handover & ~y).sum() / max(handover.sum(), 1)),
+        "recall": float((handover & y).sum() / max(y.sum(), 1)),
+        "accuracy": float(((p > 0.5) == y).mean()),
+    }
+
+
+def warm_start_gate(system: System, config: GateConfig | None = None, progress: bool = False):
+    """Thesis Algorithm 2: sample states, label them by LQR rollouts, fit a GateNet.
+
+    Returns (gate, states, labels, info) so SSAC keeps the data for later refits.
+    """
+    config = config or GateConfig()
+    rng = np.random.default_rng(config.seed)
+    torch.manual_seed(config.seed)
+    states = warm_start_states(system, config.warm_samples, rng)
+    labels = label_states(system, states, config)
+    if labels.sum() == 0:
+        raise RuntimeError(f"no warm-start state of {system.name} was balanced by the LQR; widen gate.warm_near")
+    gate = GateNet(system, tuple(config.hidden), cost_feature=config.cost_feature)
+    generator = torch.Generator().manual_seed(config.seed)
+    losses = fit_gate(gate, states, labels, config.warm_fit_steps, config.lr, config.positive_weight,
+                      config.batch_size, generator)
+    info = {"positive_fraction": float(labels.mean()), "final_loss": losses[-1],
+            **gate_metrics(gate, states, labels, float(system.spec.get("gate.on")))}
+    return gate, states, labels, info

@@ -1,0 +1,69 @@
+"""Gate learning (thesis Sec. 3.3, Algorithm 2)."""
+
+import numpy as np
+import pytest
+import torch
+
+from hybridctl import systems
+from hybridctl.learn.gate import (GateConfig, GateNet, fit_gate, gate_metrics, label_states, warm_start_gate,
+                                  warm_start_states)
+
+
+@pytest.fixture(scope="module")
+def acrobot():
+    return systems.load("acrobot")
+
+
+def test_gate_is_periodic_in_angles(acrobot):
+    gate = GateNet(acrobot)
+    x = torch.tensor([[1.0, -0.5, 0.3, 2.0]])
+    shifted = x + torch.tensor([[2 * np.pi, -4 * np.pi, 0.0, 0.0]])
+    torch.testing.assert_close(gate(x), gate(shifted), rtol=1e-5, atol=1e-6)
+    with torch.no_grad():
+        assert gate(x).shape == (1, 1) and 0 < gate(x).item() < 1
+
+
+def test_labels_from_lqr_rollouts(acrobot):
+    states = np.array([acrobot.goal, acrobot.goal + [0.01, -0.01, 0.0, 0.0], [-np.pi / 2, 0.0, 0.0, 0.0]])
+    np.testing.assert_array_equal(label_states(acrobot, states, GateConfig()), [True, True, False])
+
+
+def test_warm_start_states_cover_near_and_far(acrobot):
+    states = warm_start_states(acrobot, 1000, np.random.default_rng(0))
+    err = np.abs(acrobot.state_error(states))
+    near, far = np.asarray(acrobot.spec.get("gate.warm_near")), np.asarray(acrobot.spec.get("gate.warm_far"))
+    assert np.all(err[:500] <= near + 1e-12) and np.any(err[500:, 3] > near[3])
+    assert np.all(err <= far + 1e-9)
+
+
+def test_class_weight_makes_the_gate_conservative(acrobot):
+    """A smaller positive weight (thesis w = 0.01) gives fewer hand-overs than w = 1 on the same data."""
+    rng = np.random.default_rng(1)
+    states = warm_start_states(acrobot, 6000, rng)
+    labels = label_states(acrobot, states, GateConfig())
+    handovers = {}
+    for w in (0.01, 1.0):
+        torch.manual_seed(0)
+        gate = GateNet(acrobot)
+        losses = fit_gate(gate, states, labels, steps=400, lr=3e-3, positive_weight=w,
+                          generator=torch.Generator().manual_seed(0))
+        assert losses[-1] < losses[0]
+        handovers[w] = gate_metrics(gate, states, labels)["handovers"]
+    assert handovers[0.01] < handovers[1.0]
+
+
+def test_warm_start_gate_returns_data_and_metrics(acrobot):
+    config = GateConfig(warm_samples=4000, warm_fit_steps=200)
+    gate, states, labels, info = warm_start_gate(acrobot, config)
+    assert states.shape == (4000, 4) and labels.shape == (4000,) and labels.any()
+    assert {"false_handover_rate", "recall", "positive_fraction"} <= set(info)
+    assert info["positive_fraction"] == pytest.approx(labels.mean())
+
+
+def test_fit_gate_bad_input(acrobot):
+    gate = GateNet(acrobot)
+    with pytest.raises(ValueError, match="equal length"):
+        fit_gate(gate, np.zeros((3, 4)), np.zeros(2, dtype=bool), steps=1)
+    bad = np.full((8, 4), np.nan)
+    with pytest.raises(FloatingPointError, match="gate loss"):
+        fit_gate(gate, bad, np.ones(8, dtype=bool), steps=1)
