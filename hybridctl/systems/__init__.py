@@ -29,7 +29,11 @@ def check_array(name: str, value, width: int, dtype_float: bool = True) -> None:
     shape = tuple(value.shape)
     if len(shape) not in (1, 2) or shape[-1] != width:
         raise ValueError(f"{name} must have shape ({width},) or (batch, {width}), got {shape}")
-    finite = torch.isfinite(value).all() if isinstance(value, torch.Tensor) else np.isfinite(value).all()
+    if isinstance(value, torch.Tensor):
+        # NaN and Inf both turn a sum of zeros into NaN: one reduction, no boolean tensor.
+        finite = torch.isfinite((value * 0).sum())
+    else:
+        finite = np.isfinite(value).all()
     if not bool(finite):
         raise ValueError(f"{name} contains NaN or Inf")
 
