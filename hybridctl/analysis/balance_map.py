@@ -131,6 +131,8 @@ def balance_map(system: System | str, controller: str = "energy", grid: int = 41
     if duration <= 0:
         raise ValueError(f"duration must be > 0, got {duration}")
     (a1, a2), (r1, r2) = grid_axes(system, axes, ranges)
+    from ..drake import build_named_diagram
+    build_named_diagram(system, controller, log=False)  # bad names/checkpoints fail here, not in a worker
     values1, values2 = np.linspace(*r1, grid), np.linspace(*r2, grid)
     starts = []
     for i, v1 in enumerate(values1):

@@ -3,6 +3,7 @@
     hybridctl systems
     hybridctl simulate acrobot --controller energy --x0 -1.5698,0,0,0 --duration 15 --out runs/sim
     hybridctl balance-map acrobot --controller energy --grid 41 --duration 15 --out runs/map
+    hybridctl train ssac acrobot --seed 0 --out runs/ssac-acrobot-s0 [--resume] [--set polyak=0.9]
     hybridctl demo --out runs/demo
 """
 
@@ -70,6 +71,7 @@ def run_simulation(system_name: str, controller: str, x0: str | None, duration: 
     import matplotlib.pyplot as plt
 
     from ..drake import build_named_diagram, simulate
+    from ..learn.checkpoint import CheckpointError
     from ..viz import plot_trajectory, replay_html
 
     system = _load_system(system_name)
@@ -81,7 +83,7 @@ def run_simulation(system_name: str, controller: str, x0: str | None, duration: 
         print(f"meshcat: open {live.web_url()} (live view while simulating at real time)")
     try:
         diagram = build_named_diagram(system, controller, meshcat=live)
-    except ValueError as exc:
+    except (ValueError, CheckpointError) as exc:
         raise SystemExit(f"error: {exc}")
     traj = simulate(diagram, start, duration, realtime_rate=1.0 if live is not None else 0.0)
     traj.meta.update({"controller": controller, "command": " ".join(sys.argv)})
@@ -108,11 +110,12 @@ def cmd_simulate(args) -> int:
 def cmd_balance_map(args) -> int:
     """`hybridctl balance-map SYSTEM ...`"""
     from ..analysis import balance_map
+    from ..learn.checkpoint import CheckpointError
     system = _load_system(args.system)
     try:
         result = balance_map(system, args.controller, grid=args.grid, duration=args.duration,
                              workers=args.workers, progress=not args.quiet)
-    except ValueError as exc:
+    except (ValueError, CheckpointError) as exc:
         raise SystemExit(f"error: {exc}")
     result.meta["command"] = " ".join(sys.argv)
     summary = result.save(args.out)
@@ -139,6 +142,81 @@ def cmd_demo(args) -> int:
           f"by the hand-designed controller (learned SSAC: issue 3)")
     print(f"demo done in {time.perf_counter() - start:.0f} s; outputs under {out}/")
     return 0 if summary["balanced"] else 1
+
+
+def _parse_settings(pairs: list[str], config_class) -> dict:
+    """--set key=value pairs -> config overrides (values parsed as JSON, else kept as text)."""
+    import dataclasses
+
+    fields = {f.name for f in dataclasses.fields(config_class)}
+    out = {}
+    for pair in pairs or []:
+        key, sep, text = pair.partition("=")
+        key = key.strip().replace("-", "_")
+        if not sep or not key:
+            raise SystemExit(f"error: --set expects key=value, got {pair!r}")
+        if key not in fields:
+            raise SystemExit(f"error: --set {key}: not a {config_class.__name__} field; fields: "
+                             + ", ".join(sorted(fields)))
+        try:
+            out[key] = json.loads(text)
+        except json.JSONDecodeError:
+            out[key] = text
+    return out
+
+
+def cmd_train(args) -> int:
+    """`hybridctl train ALGO SYSTEM ...`: train, checkpoint, evaluate, plot."""
+    from ..learn import SAC, SSAC, SSACConfig
+    from ..learn.checkpoint import CheckpointError
+
+    algo = {"sac": SAC, "ssac": SSAC}[args.algorithm]
+    settings = _parse_settings(args.set, algo.config_class)
+    if args.seed is not None:
+        settings["seed"] = args.seed
+    if args.steps is not None:
+        settings["total_steps"] = args.steps
+    out = Path(args.out or f"runs/train/{args.algorithm}-{args.system}-s{settings.get('seed', 0)}")
+    _load_system(args.system)  # clear error for an unknown system name
+    try:
+        if args.algorithm == "ssac":
+            config = SSACConfig.variant(args.variant, **settings)
+        else:
+            if args.variant != "hybridctl":
+                raise SystemExit("error: --variant applies to ssac only")
+            config = SAC.config_class(**settings)
+        config.validate()
+    except (TypeError, ValueError) as exc:
+        raise SystemExit(f"error: {exc}")
+    start = time.perf_counter()
+    try:
+        if args.resume and (out / "checkpoint").exists() or args.resume and (out / "final").exists():
+            from ..learn.checkpoint import newest_checkpoint
+            found = newest_checkpoint([out / "checkpoint", out / "final"])
+            agent = algo.load(found, **{k: v for k, v in settings.items() if k == "total_steps"})
+            print(f"resuming {found} at {agent.num_timesteps} env steps")
+        else:
+            if args.resume:
+                print(f"--resume: no checkpoint under {out}; starting a new run")
+            print(f"{algo.algorithm_name} on {args.system}: {config.total_steps} env steps, seed {config.seed}"
+                  + (" (warm-starting the gate first)" if args.algorithm == "ssac" else ""))
+            agent = algo(args.system, config=config)
+        agent.learn(progress=not args.quiet, log_dir=out, resume=args.resume)
+    except CheckpointError as exc:
+        raise SystemExit(f"error: {exc}")
+    except FloatingPointError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 3
+    result = agent.evaluate(episodes=args.eval_episodes)
+    result.update({"command": args.command_line, "env_steps": agent.num_timesteps,
+                   "train_wall_time_s": agent.wall_time, "session_wall_time_s": time.perf_counter() - start,
+                   "train_mean_return_last100": agent.mean_return, "train_success_rate_last100": agent.success_rate})
+    from ..learn.checkpoint import write_json
+    write_json(out / "eval.json", result)
+    print(f"deterministic return over {result['episodes']} episodes: {result['mean_return']:.2f} "
+          f"+- {result['std_return']:.2f} (min {result['min_return']:.2f}), success {result['success_rate']:.0%}")
+    print(f"wrote {out}/final (checkpoint), progress.csv, training_curves.png, eval.json")
+    return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -174,6 +252,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_balance_map)
 
+    p = sub.add_parser("train", help="train SAC or Switched SAC (thesis Ch. 3) on a system")
+    p.add_argument("algorithm", choices=["ssac", "sac"])
+    p.add_argument("system")
+    p.add_argument("--steps", type=_positive(int), help="total env steps (default 2e6, thesis)")
+    p.add_argument("--seed", type=int, help="seed (default 0)")
+    p.add_argument("--variant", choices=["hybridctl", "paper", "author"], default="hybridctl",
+                   help="SSAC settings: hybridctl's defaults, the thesis' throughout, or the author's code")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE",
+                   help="override a config field, e.g. --set polyak=0.9 (repeatable)")
+    p.add_argument("--out", help="run folder (default runs/train/ALGO-SYSTEM-sSEED)")
+    p.add_argument("--resume", action="store_true", help="continue from the run folder's newest checkpoint")
+    p.add_argument("--eval-episodes", type=_positive(int), default=100, help="episodes in eval.json")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_train)
+
     p = sub.add_parser("demo", help="what `make demo` runs")
     p.add_argument("--out", default="runs/demo")
     p.add_argument("--grid", type=_positive(int), default=11, help="balance-map grid (default 11)")
@@ -188,6 +281,8 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     torch.set_num_threads(1)  # small networks and single states: threads only add overhead
+    argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
+    args.command_line = "hybridctl " + " ".join(argv)
     return args.func(args)
 

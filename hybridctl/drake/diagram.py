@@ -184,6 +184,8 @@ CONTROLLERS = {
     "lqr": "LQR only (gate always on)",
     "swingup": "energy-shaping swing-up only (gate always off)",
     "zero": "no input (passive dynamics)",
+    "ssac:PATH": "learned swing-up + learned gate (hysteresis) + LQR from an SSAC checkpoint directory",
+    "sac:PATH": "learned swing-up only from a SAC checkpoint directory (gate always off)",
 }
 
 
@@ -201,5 +203,20 @@ def build_named_diagram(system: System, controller: str = "energy", **kwargs) ->
         return build_hybrid_diagram(system, gate=_never_balance, **kwargs)
     if controller == "zero":
         return build_hybrid_diagram(system, swingup=_zero_command, gate=_never_balance, **kwargs)
+    kind, sep, path = controller.partition(":")
+    if sep and kind in ("ssac", "sac"):
+        from ..learn import load_controller
+
+        if not path:
+            raise ValueError(f"controller {controller!r} needs a checkpoint path after '{kind}:'")
+        policy, gate, meta = load_controller(path, system)
+        if kind == "ssac" and gate is None:
+            raise ValueError(f"{path} is a {meta.get('algorithm')} checkpoint without a gate; use sac:{path}")
+        if kind == "sac":
+            gate = _never_balance
+        gate_meta = meta.get("gate", {})
+        kwargs.setdefault("gate_on", gate_meta.get("gate_on"))
+        kwargs.setdefault("gate_off", gate_meta.get("gate_off"))
+        return build_hybrid_diagram(system, swingup=policy, gate=gate, **kwargs)
     raise ValueError(f"unknown controller {controller!r}; known: "
                      + ", ".join(f"{k} ({v})" for k, v in CONTROLLERS.items()))

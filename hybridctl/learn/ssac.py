@@ -1,0 +1,424 @@
+"""Switched Soft Actor-Critic (thesis Ch. 3, Algorithms 2-4): learn a swing-up and a gate around an LQR.
+
+The controller has three parts (thesis Sec. 3.3): the gate G(s) in [0, 1] (a
+:class:`~hybridctl.learn.gate.GateNet`) with hysteresis (LQR on above 0.9, off
+below 0.5), Drake's LQR about the upright, and the SAC policy as the swing-up.
+SSAC is SAC (:mod:`hybridctl.learn.sac`) on the switched env, plus:
+
+1. **Warm start** (Alg. 2): before any episode, states sampled near and far from
+   the goal are labelled by saturated-LQR rollouts and the gate is fitted on them
+   (weighted BCE, thesis eq. 3.3).
+2. **Rollouts** (Alg. 3): every decision runs gate + LQR + held swing-up action in
+   a :class:`~hybridctl.envs.SwitchedVectorEnv` (the LQR acts every 0.01 s).
+3. **Needle buffer** (Alg. 4 lines 5-7): every transition of an episode that
+   passes the success test T(s) (thesis eq. 3.2) is also stored in D_n, drawn
+   with probability ``needle_prob`` (paper 0.5, author code 0.2).
+4. **Gate data** (Alg. 4 line 8): the states of an episode's decisions that began
+   under the LQR, labelled with the episode's T(s), are added to the gate data
+   set D_g, which also keeps the warm-start data. Every ``gate_refit_every`` env
+   steps the gate is refitted on minibatches drawn from all of D_g.
+
+>>> from hybridctl.learn import SSAC
+>>> agent = SSAC("acrobot", seed=0)                 # warm-starts the gate (~1 min)
+>>> agent.learn(log_dir="runs/ssac-acrobot")
+>>> agent.predict(state)                           # swing-up action only
+>>> agent.act(state)                               # what the switched controller does
+
+Settings: ``SSACConfig()`` holds the thesis' values except three measured
+changes (Polyak 0.9, sin/cos of angles as inputs, gate data relabelled from visited
+states); ``SSACConfig.variant("paper")`` is the thesis throughout and
+``SSACConfig.variant("author")`` the author's code (needle 0.2, gate refit every
+2.5e4 steps, gamma 0.99, 16 updates per round, quadratic reward).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from . import checkpoint as ckpt
+from .gate import GateConfig, GateNet, fit_gate, label_states, warm_start_gate
+from .sac import SAC, SACConfig
+
+GATE_DATA_FILE = "gate_data.pt"
+REWARDS = ("tip_height", "quadratic")
+
+# the thesis' own values where hybridctl's defaults differ (SSACConfig comments say why)
+PAPER = {"polyak": 0.995, "obs_transform": "none", "gate_relabel_per_refit": 0}
+# where the author's code differs from the paper (implementation notes, Ch. 3)
+AUTHOR_CODE = {**PAPER, "needle_prob": 0.2, "gate_refit_every": 25_000, "gamma": 0.99, "updates_per_round": 16,
+               "reward": "quadratic"}
+
+
+@dataclass
+class SSACConfig(SACConfig):
+    """SAC's settings (thesis appendix) plus the gate and needle-buffer settings of SSAC."""
+
+    polyak: float = 0.9                  # hybridctl (thesis 0.995): SSAC acrobot pilot, seed 0, 3e5 steps: mean
+    #                                      return 88.2 (0.9 + angle_sincos) vs 23.3 (thesis values)
+    obs_transform: str = "angle_sincos"  # hybridctl (thesis: raw state); the envs do not wrap angles
+    needle_prob: float = 0.5             # thesis Sec. 3.3 p_d = 0.5 (author code 0.2)
+    reward: str = "tip_height"           # thesis eq. 3.1; "quadratic": author script -0.1 |q - q_goal|^2
+    gate_refit_every: int = 50_000       # thesis appendix: gate refit every 5e4 steps (author code 2.5e4)
+    gate_refit_steps: int = 500          # hybridctl: Adam steps per refit, minibatches from all of D_g
+    gate_warm_samples: int = 100_000     # hybridctl: LQR-labelled warm-start states (2.5e7 LQR steps;
+    #                                      thesis: the gate alone trained for 1e6 steps first)
+    gate_warm_fit_steps: int = 3000      # hybridctl: Adam steps on the warm-start data
+    gate_lr: float = 1e-3                # hybridctl; thesis appendix 1e-5 (did not move the gate in 3000 steps)
+    gate_positive_weight: float = 0.01   # thesis eq. 3.3: w in c_w = n_total / n_positive * w
+    gate_batch_size: int = 4096          # hybridctl: gate minibatch
+    gate_data_max: int = 2_000_000       # hybridctl: D_g capacity (oldest episode data dropped first)
+    gate_cost_feature: bool = True       # hybridctl: log(1 + V / cost_scale) as a gate input (gate.py)
+    gate_relabel_per_refit: int = 4000   # hybridctl: before each refit, this many swing-up decision states the
+    #                                      episodes visited (with V < gate_relabel_cost * cost_scale) are labelled
+    #                                      by LQR rollouts (as the warm start, Alg. 2) and added to D_g; 0 = thesis
+    #                                      only (D_g grows from LQR-active decisions alone, which never teaches
+    #                                      the gate states the LQR has not yet been handed)
+    gate_relabel_cost: float = 1.0       # hybridctl: candidate states have LQR cost-to-go V < this * gate.cost_scale
+    variant_name: str = "hybridctl"      # which preset the config started from (informational)
+
+    def validate(self) -> None:
+        """Raise ValueError naming the first invalid field."""
+        super().validate()
+        for name in ("gate_refit_every", "gate_refit_steps", "gate_warm_samples", "gate_warm_fit_steps",
+                     "gate_batch_size", "gate_data_max"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 1:
+                raise ValueError(f"SSACConfig.{name} must be an integer >= 1, got {value!r}")
+        if not isinstance(self.gate_relabel_per_refit, (int, np.integer)) or self.gate_relabel_per_refit < 0:
+            raise ValueError(f"SSACConfig.gate_relabel_per_refit must be an integer >= 0, "
+                             f"got {self.gate_relabel_per_refit!r}")
+        if not (math.isfinite(self.gate_relabel_cost) and self.gate_relabel_cost > 0):
+            raise ValueError(f"SSACConfig.gate_relabel_cost must be > 0, got {self.gate_relabel_cost!r}")
+        if self.gate_warm_samples < 2:
+            raise ValueError(f"SSACConfig.gate_warm_samples must be >= 2, got {self.gate_warm_samples}")
+        if not (math.isfinite(self.gate_lr) and self.gate_lr > 0):
+            raise ValueError(f"SSACConfig.gate_lr must be a finite number > 0, got {self.gate_lr!r}")
+        if not (math.isfinite(self.gate_positive_weight) and self.gate_positive_weight > 0):
+            raise ValueError(f"SSACConfig.gate_positive_weight must be > 0, got {self.gate_positive_weight!r}")
+        if self.reward not in REWARDS:
+            raise ValueError(f"SSACConfig.reward must be one of {REWARDS}, got {self.reward!r}")
+
+    @classmethod
+    def variant(cls, name: str = "hybridctl", **overrides) -> "SSACConfig":
+        """``"hybridctl"``: the defaults (thesis values except polyak, obs_transform and gate
+        relabelling, see the field comments); ``"paper"``: the thesis' values throughout;
+        ``"author"``: the author's code where it differs from the paper."""
+        if name == "hybridctl":
+            return cls(**overrides)
+        if name == "paper":
+            return cls(**{**PAPER, "variant_name": "paper", **overrides})
+        if name == "author":
+            return cls(**{**AUTHOR_CODE, "variant_name": "author", **overrides})
+        raise ValueError(f"variant must be 'hybridctl', 'paper' or 'author', got {name!r}")
+
+    def gate_config(self) -> GateConfig:
+        """The :class:`GateConfig` these settings describe (seeded with ``seed``)."""
+        return GateConfig(warm_samples=self.gate_warm_samples, warm_fit_steps=self.gate_warm_fit_steps,
+                          refit_steps=self.gate_refit_steps, batch_size=self.gate_batch_size,
+                          cost_feature=self.gate_cost_feature, lr=self.gate_lr,
+                          positive_weight=self.gate_positive_weight, seed=self.seed)
+
+
+class GateDataset:
+    """D_g: gate states (float32) and labels (bool), warm-start rows first, capped FIFO after them."""
+
+    def __init__(self, n_states: int, capacity: int):
+        self.n_states, self.capacity = int(n_states), int(capacity)
+        self.states = torch.zeros((0, self.n_states), dtype=torch.float32)
+        self.labels = torch.zeros(0, dtype=torch.bool)
+        self.n_warm = 0
+
+    def __len__(self) -> int:
+        return int(self.labels.numel())
+
+    def add(self, states, labels, warm: bool = False) -> None:
+        """Append rows; episode rows beyond ``capacity`` push out the oldest episode rows."""
+        states = torch.as_tensor(np.asarray(states) if not isinstance(states, torch.Tensor) else states,
+                                 dtype=torch.float32).reshape(-1, self.n_states).cpu()
+        labels = torch.as_tensor(labels, dtype=torch.bool).reshape(-1).cpu()
+        self.states = torch.cat([self.states, states])
+        self.labels = torch.cat([self.labels, labels])
+        if warm:
+            self.n_warm += len(labels)
+        excess = len(self) - max(self.capacity, self.n_warm)
+        if excess > 0:  # keep the warm-start rows, drop the oldest episode rows
+            keep = torch.ones(len(self), dtype=torch.bool)
+            keep[self.n_warm:self.n_warm + excess] = False
+            self.states, self.labels = self.states[keep], self.labels[keep]
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"states": self.states, "labels": self.labels, "n_warm": self.n_warm}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.states = state["states"].to(torch.float32).cpu()
+        self.labels = state["labels"].to(torch.bool).cpu()
+        self.n_warm = int(state["n_warm"])
+
+
+class SSAC(SAC):
+    """Switched SAC: the SAC swing-up learner on a :class:`SwitchedVectorEnv` with a learned gate.
+
+    Args:
+        env_or_system: a system name or System (a SwitchedVectorEnv is built around a
+            warm-started gate and Drake's LQR; ``config.reward`` picks the reward), or
+            a ready :class:`~hybridctl.envs.SwitchedVectorEnv` (its gate is used and
+            refitted; pass ``gate_data`` to refit on its data too).
+        config: an :class:`SSACConfig` (default: the thesis' values).
+        gate: a GateNet to use instead of warm-starting one.
+        gate_data: (states, labels) to start D_g with (the warm-start data set).
+        progress: show a progress bar while warm-starting the gate.
+        **overrides: config fields, e.g. ``SSAC("acrobot", seed=1, needle_prob=0.2)``.
+
+    Attributes beyond SAC's: ``gate`` (GateNet), ``gate_data`` (:class:`GateDataset`),
+    ``gate_info`` (warm-start and latest refit metrics), ``num_gate_refits``.
+    """
+
+    config_class = SSACConfig
+    algorithm_name = "SSAC"
+    csv_columns = (*SAC.csv_columns, "gate_data", "gate_refits", "lqr_share")
+
+    def __init__(self, env_or_system, config: SSACConfig | None = None, gate: GateNet | None = None,
+                 gate_data: tuple[Any, Any] | None = None, **overrides):
+        cfg = dataclasses.replace(config if config is not None else SSACConfig(), **overrides)
+        cfg.validate()
+        self._init_gate, self._init_gate_data, self.gate_info = gate, gate_data, {}
+        super().__init__(env_or_system, config=cfg)
+        self.gate = self.env.gate
+        self.gate_opt = torch.optim.Adam(self.gate.parameters(), lr=cfg.gate_lr)
+        self.gate_generator = torch.Generator().manual_seed(cfg.seed + 7919)
+        self.gate_data = GateDataset(self.obs_dim, cfg.gate_data_max)
+        if self._init_gate_data is not None:
+            self.gate_data.add(*self._init_gate_data, warm=True)
+        self._init_gate_data = None
+        horizon = self.staging.horizon
+        self._lqr_at_start = torch.zeros((cfg.num_envs, horizon), dtype=torch.bool, device=self.device)
+        self.num_gate_refits = 0
+        self.num_gate_episodes = 0
+        self.num_gate_relabelled = 0
+        self._next_refit = cfg.gate_refit_every
+        # swing-up decision states near the goal, waiting to be labelled by LQR rollouts
+        S = self.system.lqr()[1] / float(self.system.spec.get("gate.cost_scale"))
+        self._cost_matrix = torch.as_tensor(S, dtype=torch.float32, device=self.device)
+        self._goal = torch.as_tensor(self.system.goal, dtype=torch.float32, device=self.device)
+        self._relabel_pool = torch.zeros((0, self.obs_dim), dtype=torch.float32)
+        self._lqr_share_sum, self._lqr_share_n = 0.0, 0
+
+    # ------------------------------------------------------------------ construction
+    def _make_env(self, env_or_system, cfg: SSACConfig):
+        from ..envs import SwitchedVectorEnv
+        from ..systems import System, load
+
+        if isinstance(env_or_system, SwitchedVectorEnv):
+            if self._init_gate is not None:
+                env_or_system.set_gate(self._init_gate)
+            return env_or_system
+        if not isinstance(env_or_system, (str, System)):
+            raise TypeError(f"SSAC needs a system name, a System or a SwitchedVectorEnv, "
+                            f"got {type(env_or_system).__name__}")
+        system = env_or_system
+        if isinstance(system, str):
+            system = load(system, **({"reward.kind": cfg.reward} if cfg.reward != "tip_height" else {}))
+        elif system.reward_kind != cfg.reward:
+            overrides = {**(system.spec.overrides or {}), "reward.kind": cfg.reward}
+            system = load(system.name, **overrides)
+        gate = self._init_gate
+        if gate is None:
+            gate, states, labels, info = warm_start_gate(system, cfg.gate_config())
+            self._init_gate_data = (states, labels)
+            self.gate_info = {"warm_start": info}
+        return SwitchedVectorEnv(system, cfg.num_envs, gate=gate, device=cfg.device, seed=cfg.seed)
+
+    @classmethod
+    def _construct_for_load(cls, env, config: SSACConfig, found: Path) -> "SSAC":
+        # the checkpoint holds the gate's weights: skip the warm start, start from an empty gate
+        from ..envs import SwitchedVectorEnv
+        from ..systems import System, load
+
+        if isinstance(env, SwitchedVectorEnv):
+            return cls(env, config=config)
+        system = env if isinstance(env, System) else load(env)
+        if system.reward_kind != config.reward:
+            system = load(system.name, **{**(system.spec.overrides or {}), "reward.kind": config.reward})
+        return cls(system, config=config, gate=GateNet(system, cost_feature=config.gate_cost_feature))
+
+    # ====================================================== SSAC additions to SAC
+    def store_transitions(self, obs, actions, rewards, next_obs, dones, infos) -> None:
+        """SAC's replay + staging, and which decisions began under the LQR (gate data)."""
+        t = self.staging.length.clamp(max=self.staging.horizon - 1)
+        lqr = infos.get("lqr_at_start")
+        if "lqr_fraction" in infos:
+            self._lqr_share_sum += float(infos["lqr_fraction"].sum())
+            self._lqr_share_n += int(infos["lqr_fraction"].numel())
+        if lqr is not None:
+            self._lqr_at_start[torch.arange(len(t), device=self.device), t] = torch.as_tensor(
+                lqr, device=self.device).bool()
+        super().store_transitions(obs, actions, rewards, next_obs, dones, infos)
+        if self.config.gate_relabel_per_refit and lqr is not None:
+            swingup = ~torch.as_tensor(lqr, device=self.device).bool()
+            err = self.system.state_error(obs.double()).float()
+            cost = ((err @ self._cost_matrix) * err).sum(-1)
+            keep = swingup & (cost < self.config.gate_relabel_cost)
+            if bool(keep.any()):
+                pool = torch.cat([self._relabel_pool, obs[keep].cpu()])
+                self._relabel_pool = pool[-max(50_000, self.config.gate_relabel_per_refit):]
+
+    def on_episodes_end(self, ended: torch.Tensor, infos: dict) -> None:
+        """Alg. 4 line 8: LQR-active decision states of the ended episodes, labelled T(s), go to D_g."""
+        rows = ended & ~self.staging.overflow
+        if not bool(rows.any()):
+            return
+        steps = torch.arange(self.staging.horizon, device=self.device)
+        in_episode = steps[None, :] < self.staging.length[rows][:, None]
+        mask = in_episode & self._lqr_at_start[rows]
+        success = torch.as_tensor(infos["success"], device=self.device)[rows].bool()
+        labels = success[:, None].expand_as(mask)[mask]
+        if labels.numel():
+            self.gate_data.add(self.staging.data["obs"][rows][mask], labels)
+            self.num_gate_episodes += int(mask.any(-1).sum())
+        self._lqr_at_start[ended] = False
+
+    def on_update_round(self) -> None:
+        """Alg. 4 lines 18-19: refit the gate on all of D_g every ``gate_refit_every`` env steps."""
+        if self.num_timesteps >= self._next_refit:
+            self._next_refit = (self.num_timesteps // self.config.gate_refit_every + 1) * self.config.gate_refit_every
+            self.refit_gate()
+
+    def refit_gate(self, steps: int | None = None) -> dict:
+        """Refit the gate on minibatches from the whole gate data set; returns the metrics."""
+        cfg = self.config
+        relabelled = self._relabel_visited_states()
+        if len(self.gate_data) == 0 or not bool(self.gate_data.labels.any()):
+            return {}
+        threads = torch.get_num_threads()
+        losses = fit_gate(self.gate, self.gate_data.states, self.gate_data.labels,
+                          cfg.gate_refit_steps if steps is None else steps, cfg.gate_lr,
+                          cfg.gate_positive_weight, cfg.gate_batch_size, self.gate_generator, self.gate_opt)
+        torch.set_num_threads(threads)
+        self.num_gate_refits += 1
+        episode = slice(self.gate_data.n_warm, None)
+        info = {"loss": losses[-1], "data": len(self.gate_data), **relabelled, "episode_rows": len(self.gate_data) - self.gate_data.n_warm,
+                "episode_positive_fraction": float(self.gate_data.labels[episode].float().mean())
+                if len(self.gate_data) > self.gate_data.n_warm else math.nan}
+        self.gate_info["last_refit"] = info
+        self.env.set_gate(self.gate)
+        return info
+
+    def _relabel_visited_states(self) -> dict:
+        """Label up to ``gate_relabel_per_refit`` pooled swing-up states by LQR rollouts, add them to D_g."""
+        n_pool, n = len(self._relabel_pool), self.config.gate_relabel_per_refit
+        if n == 0 or n_pool == 0:
+            return {}
+        rows = torch.randperm(n_pool, generator=self.gate_generator)[:n]
+        states = self._relabel_pool[rows].double().numpy()
+        self._relabel_pool = self._relabel_pool[:0]
+        labels = label_states(self.system, states, self.config.gate_config())
+        self.gate_data.add(states, labels)
+        self.num_gate_relabelled += len(labels)
+        return {"relabelled": int(len(labels)), "relabelled_positive": int(labels.sum())}
+
+    # ================================================================= inference
+    def act(self, states, deterministic: bool = True):
+        """What the switched controller commands from ``states`` with a fresh gate mode
+        (swing-up until the gate says > gate_on): numpy/torch (n,) or (B, n) in, same out.
+
+        Inside a running episode the hysteresis needs the mode's history: use
+        :class:`~hybridctl.envs.SwitchedVectorEnv` or the Drake diagram for rollouts.
+        """
+        is_torch = isinstance(states, torch.Tensor)
+        x = states if is_torch else torch.as_tensor(np.asarray(states, dtype=np.float64))
+        swingup = self.predict(x, deterministic=deterministic)
+        xb = x.reshape(-1, self.obs_dim)
+        with torch.no_grad():
+            p = self.gate(xb.to(torch.float32)).reshape(-1)
+            lqr = self.env.lqr(xb.to(self.env.dtype)).to(swingup.dtype if is_torch else torch.float64)
+        sw = swingup if is_torch else torch.as_tensor(swingup, dtype=torch.float64)
+        out = torch.where((p > self.env.gate_on)[:, None], lqr, sw.reshape(-1, self.action_dim))
+        out = out.clamp(-float(self.action_scale.max()), float(self.action_scale.max()))
+        out = out.reshape(sw.shape)
+        return out if is_torch else out.numpy()
+
+    def make_eval_env(self, num_envs: int, seed: int):
+        """A SwitchedVectorEnv with a frozen copy of the current gate and the same LQR."""
+        from ..envs import SwitchedVectorEnv
+
+        return SwitchedVectorEnv(self.system, num_envs, gate=self.gate_module(), K=self.env._K.cpu().numpy(),
+                                 gate_on=self.env.gate_on, gate_off=self.env.gate_off,
+                                 decision_period=self.env.decision_period, device=self.device, seed=seed)
+
+    def gate_module(self) -> GateNet:
+        """A frozen copy of the current gate (for a Drake ``Gate`` block)."""
+        import copy
+
+        gate = copy.deepcopy(self.gate).to("cpu").eval()
+        for p in gate.parameters():
+            p.requires_grad_(False)
+        return gate
+
+    # ============================================================ checkpoints
+    def extra_checkpoint_state(self) -> dict[str, Any]:
+        return {"gate": self.gate.state_dict(), "gate_opt": self.gate_opt.state_dict(),
+                "gate_generator": self.gate_generator.get_state(),
+                "gate_counters": {"refits": self.num_gate_refits, "episodes": self.num_gate_episodes,
+                                  "relabelled": self.num_gate_relabelled, "next_refit": self._next_refit}}
+
+    def load_extra_checkpoint_state(self, state: dict[str, Any]) -> None:
+        if "gate" not in state:
+            raise ckpt.CheckpointError("SSAC checkpoint lacks the gate's weights (model.pt 'extra.gate'); "
+                                       "was it written by SAC?")
+        self.gate.load_state_dict(state["gate"])
+        self.gate.eval()
+        if state.get("gate_opt"):
+            self.gate_opt.load_state_dict(state["gate_opt"])
+        if "gate_generator" in state:
+            self.gate_generator.set_state(state["gate_generator"].cpu())
+        counters = state.get("gate_counters", {})
+        self.num_gate_refits = int(counters.get("refits", 0))
+        self.num_gate_episodes = int(counters.get("episodes", 0))
+        self.num_gate_relabelled = int(counters.get("relabelled", 0))
+        self._next_refit = int(counters.get("next_refit", self.config.gate_refit_every))
+        self.env.set_gate(self.gate)
+
+    def _write_checkpoint(self, d: Path, include_replay: bool) -> None:
+        super()._write_checkpoint(d, include_replay)
+        meta = ckpt.read_json(d / ckpt.CONFIG_FILE)
+        meta["gate"] = {"hidden": [m.out_features for m in self.gate.net if isinstance(m, torch.nn.Linear)][:-1],
+                        "cost_feature": self.gate.cost_feature, "gate_on": self.env.gate_on,
+                        "gate_off": self.env.gate_off, "K": self.env._K.cpu().tolist(),
+                        "info": self.gate_info}
+        ckpt.write_json(d / ckpt.CONFIG_FILE, meta)
+        if include_replay:
+            torch.save({**self.gate_data.state_dict(), "relabel_pool": self._relabel_pool}, d / GATE_DATA_FILE)
+
+    def _restore(self, found: Path, replay: bool) -> None:
+        found = ckpt.resolve_checkpoint_dir(found)
+        meta = ckpt.read_json(found / ckpt.CONFIG_FILE)
+        if meta.get("algorithm") not in (None, self.algorithm_name):
+            raise ckpt.CheckpointError(f"checkpoint {found} was written by {meta.get('algorithm')}, not SSAC "
+                                       f"(use {meta.get('algorithm')}.load)")
+        super()._restore(found, replay)
+        self.gate_info = meta.get("gate", {}).get("info", {})
+        if replay:
+            if (found / GATE_DATA_FILE).is_file():
+                data = ckpt.load_tensors(found / GATE_DATA_FILE, "cpu")
+                self.gate_data.load_state_dict(data)
+                self._relabel_pool = data.get("relabel_pool", self._relabel_pool[:0]).to(torch.float32)
+            else:
+                warnings.warn(f"{found} has no {GATE_DATA_FILE}: gate refits use only new episode data",
+                              stacklevel=3)
+        self._lqr_at_start.zero_()
+
+    def _log_row(self, steps_per_s: float) -> dict:
+        row = super()._log_row(steps_per_s)
+        row["gate_data"] = len(self.gate_data)
+        row["gate_refits"] = self.num_gate_refits
+        row["lqr_share"] = self._lqr_share_sum / max(self._lqr_share_n, 1)
+        self._lqr_share_sum, self._lqr_share_n = 0.0, 0
+        return row
