@@ -137,17 +137,18 @@ def gate_loss(gate: GateNet, states: torch.Tensor, labels: torch.Tensor, positiv
 
 def fit_gate(gate: GateNet, states, labels, steps: int, lr: float = 1e-3, positive_weight: float = 0.01,
              batch_size: int = 4096, generator: torch.Generator | None = None,
-             optimizer: torch.optim.Optimizer | None = None) -> list[float]:
+             optimizer: torch.optim.Optimizer | None = None, class_weight: float | None = None) -> list[float]:
     """Adam on minibatches drawn from the whole gate data set (the thesis refits on all of it).
 
-    The class weight c_w uses the whole data set's class balance. Returns the losses.
+    The class weight c_w is ``class_weight`` if given, else eq. 3.3 on the whole data
+    set's class balance. Returns the losses.
     """
     x = torch.as_tensor(np.asarray(states), dtype=torch.float32)
     y = torch.as_tensor(np.asarray(labels), dtype=torch.bool)
     if x.shape[0] != y.shape[0] or x.shape[0] == 0:
         raise ValueError(f"states and labels must be non-empty and of equal length, got {x.shape[0]} and {y.shape[0]}")
     n_pos = int(y.sum())
-    c_w = (len(y) / n_pos) * positive_weight if n_pos else 1.0
+    c_w = class_weight if class_weight is not None else (len(y) / n_pos) * positive_weight if n_pos else 1.0
     optimizer = optimizer or torch.optim.Adam(gate.parameters(), lr=lr)
     losses = []
     gate.train()

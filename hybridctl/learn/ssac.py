@@ -51,7 +51,7 @@ GATE_DATA_FILE = "gate_data.pt"
 REWARDS = ("tip_height", "quadratic")
 
 # the thesis' own values where hybridctl's defaults differ (SSACConfig comments say why)
-PAPER = {"polyak": 0.995, "obs_transform": "none", "gate_relabel_per_refit": 0}
+PAPER = {"polyak": 0.995, "obs_transform": "none", "gate_relabel_per_refit": 0, "gate_class_weight_from": "all"}
 # where the author's code differs from the paper (implementation notes, Ch. 3)
 AUTHOR_CODE = {**PAPER, "needle_prob": 0.2, "gate_refit_every": 25_000, "gamma": 0.99, "updates_per_round": 16,
                "reward": "quadratic"}
@@ -67,12 +67,19 @@ class SSACConfig(SACConfig):
     needle_prob: float = 0.5             # thesis Sec. 3.3 p_d = 0.5 (author code 0.2)
     reward: str = "tip_height"           # thesis eq. 3.1; "quadratic": author script -0.1 |q - q_goal|^2
     gate_refit_every: int = 50_000       # thesis appendix: gate refit every 5e4 steps (author code 2.5e4)
-    gate_refit_steps: int = 500          # hybridctl: Adam steps per refit, minibatches from all of D_g
+    gate_refit_steps: int = 2000         # hybridctl: Adam steps per refit (~2 s), minibatches from all of D_g
     gate_warm_samples: int = 100_000     # hybridctl: LQR-labelled warm-start states (2.5e7 LQR steps;
     #                                      thesis: the gate alone trained for 1e6 steps first)
-    gate_warm_fit_steps: int = 3000      # hybridctl: Adam steps on the warm-start data
-    gate_lr: float = 1e-3                # hybridctl; thesis appendix 1e-5 (did not move the gate in 3000 steps)
+    gate_warm_fit_steps: int = 5000      # hybridctl: Adam steps on the warm-start data
+    gate_lr: float = 3e-3                # hybridctl; thesis appendix 1e-5. Seed-1 pilot gate data, 3000 steps from
+    #                                      scratch: lr 1e-3 handed over nowhere, 3e-3 recalled 55 % of positive
+    #                                      episode states at 1.8 % false hand-overs
     gate_positive_weight: float = 0.01   # thesis eq. 3.3: w in c_w = n_total / n_positive * w
+    gate_class_weight_from: str = "warm"  # hybridctl: c_w of eq. 3.3 from the warm-start data's class balance,
+    #                                       kept for refits; "all" (thesis): from all of D_g. With "all", c_w
+    #                                       falls towards w = 0.01 as D_g fills with (mostly positive) LQR-active
+    #                                       states, and then no state reaches p > 0.9 (seed 1 pilot: hand-overs
+    #                                       went from 51 % of control periods to 0 after the first refit)
     gate_batch_size: int = 4096          # hybridctl: gate minibatch
     gate_data_max: int = 2_000_000       # hybridctl: D_g capacity (oldest episode data dropped first)
     gate_cost_feature: bool = True       # hybridctl: log(1 + V / cost_scale) as a gate input (gate.py)
@@ -103,6 +110,9 @@ class SSACConfig(SACConfig):
             raise ValueError(f"SSACConfig.gate_lr must be a finite number > 0, got {self.gate_lr!r}")
         if not (math.isfinite(self.gate_positive_weight) and self.gate_positive_weight > 0):
             raise ValueError(f"SSACConfig.gate_positive_weight must be > 0, got {self.gate_positive_weight!r}")
+        if self.gate_class_weight_from not in ("warm", "all"):
+            raise ValueError(f"SSACConfig.gate_class_weight_from must be 'warm' or 'all', "
+                             f"got {self.gate_class_weight_from!r}")
         if self.reward not in REWARDS:
             raise ValueError(f"SSACConfig.reward must be one of {REWARDS}, got {self.reward!r}")
 
@@ -300,7 +310,8 @@ class SSAC(SAC):
         threads = torch.get_num_threads()
         losses = fit_gate(self.gate, self.gate_data.states, self.gate_data.labels,
                           cfg.gate_refit_steps if steps is None else steps, cfg.gate_lr,
-                          cfg.gate_positive_weight, cfg.gate_batch_size, self.gate_generator, self.gate_opt)
+                          cfg.gate_positive_weight, cfg.gate_batch_size, self.gate_generator, self.gate_opt,
+                          class_weight=self._class_weight())
         torch.set_num_threads(threads)
         self.num_gate_refits += 1
         episode = slice(self.gate_data.n_warm, None)
@@ -310,6 +321,14 @@ class SSAC(SAC):
         self.gate_info["last_refit"] = info
         self.env.set_gate(self.gate)
         return info
+
+    def _class_weight(self) -> float | None:
+        """c_w for refits: eq. 3.3 on the warm-start rows ("warm"), or None (whole D_g, "all")."""
+        data = self.gate_data
+        if self.config.gate_class_weight_from == "all" or data.n_warm == 0:
+            return None
+        n_pos = int(data.labels[:data.n_warm].sum())
+        return (data.n_warm / n_pos) * self.config.gate_positive_weight if n_pos else None
 
     def _relabel_visited_states(self) -> dict:
         """Label up to ``gate_relabel_per_refit`` pooled swing-up states by LQR rollouts, add them to D_g."""

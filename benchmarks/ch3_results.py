@@ -1,0 +1,108 @@
+"""Collect the Chapter 3 training runs into one JSON record (read by notebooks/02_switched_sac.ipynb).
+
+    .venv/bin/python benchmarks/ch3_results.py --runs runs/train --out notebooks/data/ch3 \
+        --balance-map ssac-acrobot-s0 ssac-acrobot-s1 --grid 41
+
+For every ``hybridctl train`` run folder under ``--runs`` (one with ``eval.json``):
+the command, algorithm, system, seed, env steps, training wall time, the
+deterministic evaluation and the training curve (from ``progress.csv``). With
+``--balance-map RUN ...`` it also simulates those runs' final checkpoints in the
+Drake diagram over a ``--grid`` x ``--grid`` grid of rest states (thesis Fig. 3.6)
+and stores ``balance_map_RUN.json`` / ``.png`` next to the record.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def machine() -> dict:
+    """What the runs were measured on."""
+    import torch
+
+    return {"platform": platform.platform(), "python": platform.python_version(), "cpus": os.cpu_count(),
+            "torch": torch.__version__, "torch_threads_per_run": 1}
+
+
+def read_run(folder: Path) -> dict:
+    """One run's record: config, evaluation, training curve."""
+    meta = json.loads((folder / "final" / "config.json").read_text())
+    result = json.loads((folder / "eval.json").read_text())
+    curve = []
+    if (folder / "progress.csv").is_file():
+        with open(folder / "progress.csv", newline="") as fh:
+            for row in csv.DictReader(fh):
+                curve.append({k: float(row[k]) if row.get(k) not in (None, "") else None
+                              for k in ("env_steps", "mean_return", "success_rate", "wall_time", "lqr_share")
+                              if k in row})
+    cfg = meta["config"]
+    return {"run": folder.name, "algorithm": meta["algorithm"], "system": meta["system"]["name"],
+            "seed": cfg["seed"], "command": result.get("command"), "env_steps": result["env_steps"],
+            "train_wall_time_s": result.get("train_wall_time_s"),
+            "eval": {k: result[k] for k in ("episodes", "seed", "mean_return", "std_return", "min_return",
+                                            "success_rate")},
+            "train_last100": {"mean_return": result.get("train_mean_return_last100"),
+                              "success_rate": result.get("train_success_rate_last100")},
+            "config": {k: cfg[k] for k in ("polyak", "obs_transform", "needle_prob", "gamma", "total_steps")
+                       if k in cfg},
+            "gate": meta.get("gate", {}).get("info", {}), "curve": curve}
+
+
+def summarize(runs: list[dict]) -> dict:
+    """Mean and spread over seeds per (algorithm, system)."""
+    groups: dict[str, list[dict]] = {}
+    for r in runs:
+        groups.setdefault(f"{r['algorithm']} {r['system']}", []).append(r)
+    return {key: {"seeds": [r["seed"] for r in rs],
+                  "mean_return": float(np.mean([r["eval"]["mean_return"] for r in rs])),
+                  "std_over_seeds": float(np.std([r["eval"]["mean_return"] for r in rs])),
+                  "success_rate": float(np.mean([r["eval"]["success_rate"] for r in rs])),
+                  "env_steps": [r["env_steps"] for r in rs],
+                  "train_wall_time_s": [r["train_wall_time_s"] for r in rs]} for key, rs in groups.items()}
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--runs", default="runs/train")
+    parser.add_argument("--out", default="notebooks/data/ch3")
+    parser.add_argument("--balance-map", nargs="*", default=[], metavar="RUN")
+    parser.add_argument("--grid", type=int, default=41)
+    parser.add_argument("--workers", type=int)
+    args = parser.parse_args(argv)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    folders = sorted(p.parent for p in Path(args.runs).glob("*/eval.json"))
+    runs = [read_run(f) for f in folders]
+    record = {"machine": machine(), "collected": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+              "summary": summarize(runs), "runs": runs, "balance_maps": {}}
+    old = out / "results.json"
+    if old.is_file():  # keep balance maps computed earlier
+        record["balance_maps"] = json.loads(old.read_text()).get("balance_maps", {})
+    from hybridctl.analysis import balance_map
+
+    for name in args.balance_map:
+        run = next(r for r in runs if r["run"] == name)
+        kind = "ssac" if run["algorithm"] == "SSAC" else "sac"
+        result = balance_map(run["system"], f"{kind}:{Path(args.runs) / name / 'final'}", grid=args.grid,
+                             workers=args.workers)
+        summary = result.save(out / f"balance_map_{name}")
+        record["balance_maps"][name] = {"grid": args.grid, "balanced_fraction": summary["balanced_fraction"],
+                                        "balanced_count": summary["balanced_count"],
+                                        "wall_time_s": result.wall_time, "folder": f"balance_map_{name}"}
+        print(f"{name}: {summary['balanced_fraction']:.4f} balanced ({summary['balanced_count']}/"
+              f"{args.grid ** 2}) in {result.wall_time:.0f} s")
+    (out / "results.json").write_text(json.dumps(record, indent=1) + "\n")
+    print(json.dumps(record["summary"], indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
