@@ -1,6 +1,11 @@
-"""Analysis: the thesis success test, balance maps (and later meshes, dimensions, MFPT)."""
+"""Analysis: the thesis success test and balance maps (Ch. 3); box meshes, mesh dimension and
+variation estimators (Ch. 4)."""
 
 from .balance import decision_indices, episode_return, is_balanced, lqr_rollouts_balanced
 from .balance_map import BalanceMap, balance_map, grid_axes
+from .mesh import MeshDimension, box_keys, box_mesh_size, count_distinct_rows, mesh_dimension
+from .variation import madogram, power_variation, variation_dimension, variogram
 
-__all__ = ["decision_indices", "episode_return", "is_balanced", "lqr_rollouts_balanced", "BalanceMap", "balance_map", "grid_axes"]
+__all__ = ["decision_indices", "episode_return", "is_balanced", "lqr_rollouts_balanced", "BalanceMap",
+           "balance_map", "grid_axes", "MeshDimension", "box_keys", "box_mesh_size", "count_distinct_rows",
+           "mesh_dimension", "madogram", "power_variation", "variation_dimension", "variogram"]
