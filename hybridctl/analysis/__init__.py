@@ -4,8 +4,9 @@ variation estimators (Ch. 4)."""
 from .balance import decision_indices, episode_return, is_balanced, lqr_rollouts_balanced
 from .balance_map import BalanceMap, balance_map, grid_axes
 from .mesh import MeshDimension, box_keys, box_mesh_size, count_distinct_rows, mesh_dimension
+from .postprocess import PostProcessor
 from .variation import madogram, power_variation, variation_dimension, variogram
 
 __all__ = ["decision_indices", "episode_return", "is_balanced", "lqr_rollouts_balanced", "BalanceMap",
            "balance_map", "grid_axes", "MeshDimension", "box_keys", "box_mesh_size", "count_distinct_rows",
-           "mesh_dimension", "madogram", "power_variation", "variation_dimension", "variogram"]
+           "mesh_dimension", "PostProcessor", "madogram", "power_variation", "variation_dimension", "variogram"]

@@ -14,11 +14,12 @@ import gymnasium as gym
 
 from ..analysis import is_balanced
 from ..systems import known_systems
+from .postprocess import DimensionReward
 from .single import STATE_BOUND, SwingupEnv, env_id
 from .switched import SwitchedVectorEnv
 from .vector import TorchVectorEnv
 
-__all__ = ["SwingupEnv", "TorchVectorEnv", "SwitchedVectorEnv", "is_balanced", "env_id", "STATE_BOUND"]
+__all__ = ["DimensionReward", "SwingupEnv", "TorchVectorEnv", "SwitchedVectorEnv", "is_balanced", "env_id", "STATE_BOUND"]
 
 for _name in known_systems():
     if env_id(_name) not in gym.registry:
