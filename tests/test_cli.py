@@ -63,3 +63,33 @@ def test_bad_arguments_exit_nonzero_with_clear_message(args, message, tmp_path):
     proc = run(*args, "--out", str(tmp_path), check=False)
     assert proc.returncode != 0
     assert message in proc.stderr + proc.stdout
+
+
+def test_train_ars_resume_and_init(tmp_path):
+    """hybridctl train ars: a run, its resume, and the thesis' identity-then-post-processing protocol."""
+    out = tmp_path / "ars"
+    small = ["--set", "n_directions=2", "--set", "top_directions=1", "--set", "episode_steps=40",
+             "--set", "transient_steps=5", "--backend", "serial", "--eval-episodes", "2", "--quiet"]
+    run("train", "ars", "Pendulum-v1", "--epochs", "2", "--out", str(out), *small)
+    result = json.loads((out / "eval.json").read_text())
+    assert result["epochs"] == 2 and result["env_steps"] == 2 * 2 * 2 * 40
+    assert set(result["mean_dimensions"]) == {"mesh_lower", "mesh_upper", "madogram", "variogram"}
+    assert len((out / "progress.csv").read_text().splitlines()) == 3
+    proc = run("train", "ars", "Pendulum-v1", "--epochs", "3", "--resume", "--out", str(out), *small)
+    assert "resuming" in proc.stdout and json.loads((out / "eval.json").read_text())["epochs"] == 3
+    post = tmp_path / "ars-mesh"
+    run("train", "ars", "Pendulum-v1", "--init", str(out / "final"), "--postprocess", "madogram", "--epochs", "4",
+        "--out", str(post), *small)
+    config = json.loads((post / "final" / "config.json").read_text())["config"]
+    assert config["postprocess"] == "madogram" and json.loads((post / "eval.json").read_text())["epochs"] == 4
+
+
+@pytest.mark.parametrize("args, message", [
+    (["train", "ars", "Pendulum-v1", "--postprocess", "fractal"], "postprocess"),
+    (["train", "ars", "Pendulum-v1", "--steps", "10"], "--epochs"),
+    (["train", "sac", "acrobot", "--postprocess", "madogram"], "ars only"),
+    (["train", "ars", "Pendulum-v1", "--init", "/nonexistent/ck"], "no checkpoint"),
+])
+def test_train_ars_bad_arguments(args, message, tmp_path):
+    proc = run(*args, "--out", str(tmp_path / "x"), "--quiet", check=False)
+    assert proc.returncode != 0 and message in proc.stderr, proc.stderr

@@ -177,6 +177,12 @@ def cmd_train(args) -> int:
     from ..learn import SAC, SSAC, SSACConfig
     from ..learn.checkpoint import CheckpointError
 
+    if args.algorithm == "ars":
+        return _train_ars(args)
+    for flag in ("epochs", "postprocess", "init", "backend", "workers", "address"):
+        if getattr(args, flag) is not None:
+            raise SystemExit(f"error: --{flag} applies to ars only")
+    args.eval_episodes = args.eval_episodes or 100
     algo = {"sac": SAC, "ssac": SSAC}[args.algorithm]
     settings = _parse_settings(args.set, algo.config_class)
     if args.seed is not None:
@@ -226,6 +232,52 @@ def cmd_train(args) -> int:
     return 0
 
 
+def _train_ars(args) -> int:
+    """`hybridctl train ars ENV ...`: ARS V2-t with optional dimension post-processing (thesis Ch. 4)."""
+    from ..learn.ars import ARS, ARSConfig
+    from ..learn.checkpoint import CheckpointError, newest_checkpoint, write_json
+
+    if args.steps is not None or args.variant != "hybridctl":
+        raise SystemExit("error: ars takes --epochs (not --steps) and no --variant")
+    settings = _parse_settings(args.set, ARSConfig)
+    for key in ("seed", "postprocess", "backend", "workers", "address"):
+        if getattr(args, key) is not None:
+            settings[key] = getattr(args, key)
+    if args.epochs is not None:
+        settings["epochs"] = args.epochs
+    out = Path(args.out or f"runs/train/ars-{args.system.replace('/', '_')}-s{settings.get('seed', 0)}")
+    try:
+        ARSConfig(**settings).validate()
+        found = newest_checkpoint([out / "checkpoint", out / "final"]) if args.resume else None
+        if found is not None:
+            agent = ARS.load(found, **settings)
+            print(f"resuming {found} at epoch {agent.epoch}")
+        elif args.init is not None:
+            agent = ARS.load(args.init, env=args.system, **settings)
+            print(f"starting from {args.init} (epoch {agent.epoch}); training to epoch {agent.config.epochs}")
+        else:
+            agent = ARS(args.system, ARSConfig(**settings))
+            print(f"ARS on {args.system}: {agent.config.epochs} epochs, seed {agent.config.seed}, "
+                  f"post-processor {agent.config.postprocess}, backend {agent.config.backend}")
+        agent.learn(log_dir=out, progress=not args.quiet)
+    except (TypeError, ValueError) as exc:
+        raise SystemExit(f"error: {exc}")
+    except CheckpointError as exc:
+        raise SystemExit(f"error: {exc}")
+    except FloatingPointError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 3
+    result = agent.evaluate(episodes=args.eval_episodes or agent.config.eval_episodes, measure=True)
+    result.update({"command": args.command_line, "epochs": agent.epoch, "env_steps": agent.env_steps,
+                   "train_wall_time_s": agent.wall_time})
+    write_json(out / "eval.json", result)
+    dims = result["mean_dimensions"]
+    print(f"return over {result['episodes']} episodes: {result['mean_return']:.1f} +- {result['std_return']:.1f}; "
+          f"mesh dimension lower {dims['mesh_lower']}, upper {dims['mesh_upper']}; "
+          f"wrote {out}/final, progress.csv, eval.json")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``hybridctl`` command."""
     from ..drake.diagram import CONTROLLERS
@@ -259,10 +311,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_balance_map)
 
-    p = sub.add_parser("train", help="train SAC or Switched SAC (thesis Ch. 3) on a system")
-    p.add_argument("algorithm", choices=["ssac", "sac"])
-    p.add_argument("system")
+    p = sub.add_parser("train", help="train SAC / Switched SAC (thesis Ch. 3) on a system, or ARS (Ch. 4) on an env")
+    p.add_argument("algorithm", choices=["ssac", "sac", "ars"])
+    p.add_argument("system", help="system name (ssac, sac); gymnasium env id or system name (ars)")
     p.add_argument("--steps", type=_positive(int), help="total env steps (default 2e6, thesis)")
+    p.add_argument("--epochs", type=_positive(int), help="ars: total epochs (default 1000, thesis)")
+    p.add_argument("--postprocess", help="ars: reward post-processor: identity, mesh-lower, mesh-upper, "
+                   "mesh-mean, madogram, variogram (thesis Sec. 4.2.5)")
+    p.add_argument("--init", help="ars: start from this checkpoint's policy and normalisation (the thesis "
+                   "trains 750 identity epochs, then 250 with post-processing)")
+    p.add_argument("--backend", choices=["serial", "processes", "ray"], help="ars: rollout backend (default processes)")
+    p.add_argument("--workers", type=_positive(int), help="ars: rollout workers (default: all cores)")
+    p.add_argument("--address", help="ars: Ray cluster address for --backend ray (default: a local instance)")
     p.add_argument("--seed", type=int, help="seed (default 0)")
     p.add_argument("--variant", choices=["hybridctl", "paper", "author"], default="hybridctl",
                    help="SSAC settings: hybridctl's defaults, the thesis' throughout, or the author's code")
@@ -270,7 +330,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="override a config field, e.g. --set polyak=0.9 (repeatable)")
     p.add_argument("--out", help="run folder (default runs/train/ALGO-SYSTEM-sSEED)")
     p.add_argument("--resume", action="store_true", help="continue from the run folder's newest checkpoint")
-    p.add_argument("--eval-episodes", type=_positive(int), default=100, help="episodes in eval.json")
+    p.add_argument("--eval-episodes", type=_positive(int), help="episodes in eval.json (default 100; ars 5)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_train)
 

@@ -1,0 +1,520 @@
+"""Augmented Random Search, V2-t (Mania, Guy & Recht 2018), as used in thesis Ch. 4.
+
+Each epoch: draw N Gaussian directions delta_k; roll out the policy with parameters
+theta + sigma delta_k and theta - sigma delta_k (the same env seed for both); keep the
+b directions with the largest max(r+, r-); step
+
+    theta <- theta + alpha / (b sigma_R) * sum_k (r+_k - r-_k) delta_k
+
+where sigma_R is the standard deviation of the 2b kept returns. Observations are
+normalised by the running mean and std of every state visited in training (V2); the
+statistics are frozen within an epoch and updated after it. Returns may be
+post-processed by trajectory dimension (:class:`~hybridctl.analysis.PostProcessor`,
+thesis eq. 4.4-4.5).
+
+Policies: ``"linear"`` (the thesis: action = M (s - mu) / sd, M starts at zero), or
+any torch module (``"mlp:64,64"`` builds a tanh MLP; or pass an ``nn.Module``), whose
+parameters are flattened into theta.
+
+>>> agent = ARS("Hopper-v5", ARSConfig(postprocess="mesh-lower", seed=0))
+>>> agent.learn(epochs=100, log_dir="runs/ars-hopper")     # progress bar, CSV, checkpoints
+>>> agent.predict(obs)                                       # deterministic action
+>>> agent.save("runs/ars-hopper/final"); ARS.load("runs/ars-hopper/final")
+
+Rollouts run on a backend from :mod:`hybridctl.learn.rollouts` ("processes" by
+default, "serial", or "ray"). Directions and env seeds come from
+``SeedSequence([seed, epoch, ...])``, and results are combined in task order, so a
+seed gives the same run on every backend, and a resumed run continues exactly.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import io
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+from ..analysis.mesh import mesh_dimension
+from ..analysis.postprocess import KINDS as POSTPROCESS_KINDS
+from ..analysis.postprocess import PostProcessor
+from ..analysis.variation import madogram, variogram
+from . import checkpoint as ckpt
+from .rollouts import BACKENDS, cached_env, make_backend
+
+
+@dataclass
+class ARSConfig:
+    """Every ARS setting, with the thesis' value and its source."""
+
+    step_size: float = 0.02          # alpha, thesis Ch. 4 (implementation notes)
+    noise: float = 0.025             # sigma (exploration noise), thesis Ch. 4
+    n_directions: int = 50           # N, thesis Ch. 4
+    top_directions: int = 20         # b, thesis Ch. 4
+    epochs: int = 1000               # thesis Ch. 4: 750 identity epochs + 250 with post-processing
+    episode_steps: int | None = None  # None: the env's own limit (1000 for the MuJoCo locomotion envs)
+    reward_shift: float = 0.0        # subtracted per step in training (Mania et al.: 1 for Hopper/Walker)
+    policy: str = "linear"           # "linear" (thesis) or "mlp:H1,H2,..." (torch, tanh hidden units)
+    postprocess: str = "identity"    # thesis Sec. 4.2.5: identity, mesh-lower, mesh-upper, mesh-mean, madogram,
+    #                                  variogram
+    postprocess_form: str = "auto"   # "divide" (eq. 4.4), "multiply" (eq. 6.2), "auto": by the return's sign
+    transient_steps: int = 200       # T_r, thesis Sec. 4.2.5
+    seed: int = 0
+    backend: str = "processes"       # "serial", "processes" (local, default), "ray"
+    workers: int | None = None       # None: every core (processes) or the cluster's CPUs (ray)
+    address: str | None = None       # Ray cluster address (backend "ray"); None starts a local instance
+    checkpoint_every: int = 10       # epochs between atomic checkpoints
+    eval_episodes: int = 5           # thesis Ch. 4: 5 rollouts per seed for the metrics
+
+    def validate(self) -> None:
+        """Raise ValueError naming the first invalid field."""
+        for name in ("step_size", "noise"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"ARSConfig.{name} must be a finite number > 0, got {value!r}")
+        for name in ("n_directions", "top_directions", "epochs", "checkpoint_every", "eval_episodes"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 1:
+                raise ValueError(f"ARSConfig.{name} must be an integer >= 1, got {value!r}")
+        if self.top_directions > self.n_directions:
+            raise ValueError(f"ARSConfig.top_directions ({self.top_directions}) must be <= n_directions "
+                             f"({self.n_directions})")
+        if self.episode_steps is not None and (not isinstance(self.episode_steps, int) or self.episode_steps < 1):
+            raise ValueError(f"ARSConfig.episode_steps must be None or an integer >= 1, got {self.episode_steps!r}")
+        if self.postprocess not in POSTPROCESS_KINDS:
+            raise ValueError(f"ARSConfig.postprocess must be one of {POSTPROCESS_KINDS}, got {self.postprocess!r}")
+        if self.backend not in BACKENDS:
+            raise ValueError(f"ARSConfig.backend must be one of {BACKENDS}, got {self.backend!r}")
+        _parse_policy(self.policy)
+        self.postprocessor()
+
+    def postprocessor(self) -> PostProcessor:
+        """The reward post-processor these settings describe."""
+        return PostProcessor(self.postprocess, transient_steps=self.transient_steps, form=self.postprocess_form)
+
+
+def _parse_policy(text: str) -> tuple[int, ...] | None:
+    """"linear" -> None; "mlp:64,64" -> (64, 64)."""
+    if text == "linear":
+        return None
+    if text.startswith("mlp:"):
+        try:
+            sizes = tuple(int(h) for h in text[4:].split(",") if h)
+        except ValueError:
+            sizes = ()
+        if sizes and all(h > 0 for h in sizes):
+            return sizes
+    raise ValueError(f"ARSConfig.policy must be 'linear' or 'mlp:H1,H2,...' (positive sizes), got {text!r}")
+
+
+# ----------------------------------------------------------------------------- policies
+
+def mlp_policy(obs_dim: int, act_dim: int, hidden: tuple[int, ...]) -> torch.nn.Module:
+    """A tanh MLP with a tanh output (actions in [-1, 1], scaled to the action bounds by the rollout)."""
+    layers, width = [], obs_dim
+    for h in hidden:
+        layers += [torch.nn.Linear(width, h), torch.nn.Tanh()]
+        width = h
+    layers += [torch.nn.Linear(width, act_dim), torch.nn.Tanh()]
+    return torch.nn.Sequential(*layers).double()
+
+
+class PolicySpec:
+    """What a worker needs to rebuild a policy from a flat parameter vector (pickles)."""
+
+    def __init__(self, obs_dim: int, act_dim: int, low: np.ndarray, high: np.ndarray,
+                 module: torch.nn.Module | None = None, function: Callable | None = None):
+        self.obs_dim, self.act_dim = obs_dim, act_dim
+        self.low, self.high = np.asarray(low, dtype=np.float64), np.asarray(high, dtype=np.float64)
+        self.module = module      # None: linear
+        self.function = function  # a fixed policy obs -> action (no parameters), e.g. for robustness tests
+
+    @property
+    def n_params(self) -> int:
+        """Length of theta."""
+        if self.function is not None:
+            return 0
+        if self.module is None:
+            return self.obs_dim * self.act_dim
+        return sum(p.numel() for p in self.module.parameters())
+
+    def initial_theta(self) -> np.ndarray:
+        """Zero for the linear policy (Mania et al.); the module's own initialisation otherwise."""
+        if self.module is None:
+            return np.zeros(self.n_params)
+        return torch.nn.utils.parameters_to_vector(self.module.parameters()).detach().double().numpy().copy()
+
+    def actor(self, theta: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+        """action(normalised obs) for these parameters, clipped to the action bounds."""
+        if self.function is not None:
+            return lambda z: np.clip(np.asarray(self.function(z), dtype=np.float64), self.low, self.high)
+        if self.module is None:
+            matrix = theta.reshape(self.act_dim, self.obs_dim)
+            return lambda z: np.clip(matrix @ z, self.low, self.high)
+        torch.nn.utils.vector_to_parameters(torch.as_tensor(theta, dtype=torch.float64), self.module.parameters())
+        mid, half = (self.high + self.low) / 2, (self.high - self.low) / 2
+
+        def act(z):
+            with torch.no_grad():
+                y = self.module(torch.as_tensor(z, dtype=torch.float64)).numpy()
+            return mid + half * y
+        return act
+
+
+# ----------------------------------------------------------------------------- one rollout (runs in workers)
+
+def make_env(env: str | Callable[[], gym.Env], env_kwargs: dict | None = None,
+             max_steps: int | None = None) -> gym.Env:
+    """A gymnasium env from an id (hybridctl system names map to their swing-up env) or a factory.
+
+    ``max_steps`` replaces an id's time limit (e.g. 10,000-step robustness episodes); a factory's
+    env keeps its own, and rollouts stop at ``max_steps`` anyway.
+    """
+    if callable(env):
+        return env()
+    import hybridctl.envs  # noqa: F401  (registers hybridctl/... ids)
+    from ..envs import env_id
+    from ..systems import known_systems
+
+    name = env_id(env) if env in known_systems() else env
+    kwargs = dict(env_kwargs or {})
+    if max_steps is not None:
+        kwargs["max_episode_steps"] = max_steps
+    return gym.make(name, **kwargs)
+
+
+@dataclass
+class RolloutTask:
+    """One episode: parameters, frozen normalisation, env seed and settings (plain, picklable)."""
+
+    env: Any
+    env_kwargs: dict | None
+    policy: PolicySpec
+    theta: np.ndarray
+    obs_mean: np.ndarray
+    obs_std: np.ndarray
+    seed: int
+    max_steps: int | None
+    reward_shift: float
+    postprocessor: PostProcessor
+    keep_states: bool = False
+    action_noise: float = 0.0
+    obs_noise: float = 0.0
+    measure: bool = False       # also measure the episode's dimensions (evaluation)
+    push: tuple | None = None   # (rate, magnitude): per step, with probability rate, a force of that
+    #                             magnitude at a random angle in the x-z plane on the root body (thesis Sec. 4.3)
+
+
+def run_episode(task: RolloutTask) -> dict:
+    """Roll out one episode; returns the post-processed and raw return, steps and state statistics."""
+    env = cached_env((repr(task.env), repr(task.env_kwargs), task.max_steps),
+                     lambda: make_env(task.env, task.env_kwargs, task.max_steps))
+    actor = task.policy.actor(task.theta)
+    rng = np.random.default_rng(task.seed)
+    obs, _ = env.reset(seed=int(task.seed))
+    states, raw_return, shifted, steps, terminated = [np.asarray(obs, dtype=np.float64)], 0.0, 0.0, 0, False
+    limit = task.max_steps or np.inf
+    while steps < limit:
+        seen = states[-1] + (task.obs_noise * rng.normal(size=states[-1].shape) if task.obs_noise else 0.0)
+        action = actor((seen - task.obs_mean) / task.obs_std)
+        if task.action_noise:
+            action = np.clip(action + task.action_noise * rng.normal(size=action.shape), task.policy.low,
+                             task.policy.high)
+        pushed = task.push is not None and rng.random() < task.push[0]
+        if pushed:
+            _set_push(env, task.push[1] * _unit_xz(rng))
+        obs, reward, terminated, truncated, _ = env.step(action)
+        if pushed:
+            _set_push(env, np.zeros(3))
+        steps += 1
+        raw_return += float(reward)
+        shifted += float(reward) - task.reward_shift
+        states.append(np.asarray(obs, dtype=np.float64))
+        if terminated or truncated:
+            break
+    x = np.stack(states)
+    if not np.all(np.isfinite(x)) or not math.isfinite(raw_return):
+        return {"finite": False, "steps": steps}
+    processed, info = task.postprocessor(x, shifted)
+    out = {"finite": True, "return": processed, "raw_return": raw_return, "steps": steps,
+           "terminated": bool(terminated), "dimension": info["dimension"], "reason": info["reason"],
+           "sum": x[:-1].sum(axis=0), "sumsq": (x[:-1] ** 2).sum(axis=0), "count": x.shape[0] - 1}
+    if task.keep_states:
+        out["states"] = x
+    if task.measure:
+        out["dimensions"] = measure_dimensions(x, task.postprocessor.transient_steps)
+    return out
+
+
+def measure_dimensions(states: np.ndarray, transient_steps: int = 200) -> dict:
+    """Raw (unclipped) lower/upper mesh dimension, madogram and variogram of the states after the
+    transient (thesis Table 4.1 metrics); None where the episode is too short to measure."""
+    tail = states[transient_steps:]
+    if tail.shape[0] < 10:
+        return {"mesh_lower": None, "mesh_upper": None, "madogram": None, "variogram": None}
+    md = mesh_dimension(tail)
+    return {"mesh_lower": md.lower, "mesh_upper": md.upper, "madogram": madogram(tail), "variogram": variogram(tail)}
+
+
+def _unit_xz(rng: np.random.Generator) -> np.ndarray:
+    angle = rng.uniform(0.0, 2 * np.pi)
+    return np.array([np.cos(angle), 0.0, np.sin(angle)])
+
+
+def _set_push(env: gym.Env, force: np.ndarray) -> None:
+    """Apply ``force`` (world x, y, z) to the first body after the world in a MuJoCo env."""
+    data = getattr(env.unwrapped, "data", None)
+    if data is None or not hasattr(data, "xfrc_applied"):
+        raise ValueError(f"push disturbances need a MuJoCo env (with data.xfrc_applied); "
+                         f"{type(env.unwrapped).__name__} has none")
+    data.xfrc_applied[1, :3] = force
+
+
+# ----------------------------------------------------------------------------- running normalisation
+
+class RunningStats:
+    """Mean and std of every state seen (merged in task order, so identical on every backend)."""
+
+    def __init__(self, dim: int):
+        self.count, self.sum, self.sumsq = 0, np.zeros(dim), np.zeros(dim)
+
+    def add(self, total: np.ndarray, total_sq: np.ndarray, count: int) -> None:
+        """Merge sums of ``count`` states."""
+        self.sum += total
+        self.sumsq += total_sq
+        self.count += count
+
+    @property
+    def mean(self) -> np.ndarray:
+        """Running mean (0 before any data)."""
+        return self.sum / self.count if self.count else np.zeros_like(self.sum)
+
+    @property
+    def std(self) -> np.ndarray:
+        """Running std; 1 where the variance is below 1e-8 (constant coordinates), as in Mania et al."""
+        if self.count < 2:
+            return np.ones_like(self.sum)
+        var = np.maximum(self.sumsq / self.count - self.mean ** 2, 0.0)
+        return np.where(var < 1e-8, 1.0, np.sqrt(var))
+
+
+# ----------------------------------------------------------------------------- the algorithm
+
+class ARS:
+    """ARS V2-t with optional dimension post-processing: ``learn`` / ``predict`` / ``evaluate`` / ``save`` / ``load``."""
+
+    algorithm_name = "ARS"
+    config_class = ARSConfig
+
+    def __init__(self, env: str | Callable[[], gym.Env], config: ARSConfig | None = None,
+                 env_kwargs: dict | None = None, policy: torch.nn.Module | None = None, **overrides):
+        self.config = dataclasses.replace(config or ARSConfig(), **overrides)
+        self.config.validate()
+        self.env, self.env_kwargs = env, env_kwargs
+        probe = make_env(env, env_kwargs)
+        if not isinstance(probe.action_space, gym.spaces.Box):
+            raise ValueError(f"ARS needs a continuous (Box) action space, got {probe.action_space}")
+        obs_dim = int(np.prod(probe.observation_space.shape))
+        act_dim = int(np.prod(probe.action_space.shape))
+        hidden = _parse_policy(self.config.policy)
+        if policy is not None:
+            module = policy.double()
+        elif hidden:
+            torch.manual_seed(self.config.seed)  # the MLP's initial weights follow the seed
+            module = mlp_policy(obs_dim, act_dim, hidden)
+        else:
+            module = None
+        self.policy = PolicySpec(obs_dim, act_dim, probe.action_space.low, probe.action_space.high, module)
+        self.env_name = env if isinstance(env, str) else getattr(env, "__name__", repr(env))
+        probe.close()
+        self.theta = self.policy.initial_theta()
+        self.stats = RunningStats(obs_dim)
+        self.epoch, self.env_steps, self.wall_time = 0, 0, 0.0
+        self.history: list[dict] = []
+
+    # -- rollouts ------------------------------------------------------------------------
+    def _tasks(self, thetas: list[np.ndarray], seeds: list[int], max_steps: int | None = None,
+                reward_shift: float | None = None, postprocessor: PostProcessor | None = None,
+                **options) -> list[RolloutTask]:
+        """One rollout task per (theta, seed); ``options``: keep_states, action_noise, obs_noise, push."""
+        cfg = self.config
+        mean, std = self.stats.mean, self.stats.std
+        return [RolloutTask(self.env, self.env_kwargs, self.policy, th, mean, std, s, max_steps or cfg.episode_steps,
+                            cfg.reward_shift if reward_shift is None else reward_shift,
+                            postprocessor or cfg.postprocessor(), **options)
+                for th, s in zip(thetas, seeds)]
+
+    def _epoch_draws(self, epoch: int) -> tuple[np.ndarray, list[int]]:
+        """Directions (N, n_params) and one env seed per direction for ``epoch`` (from the seed alone)."""
+        seq = np.random.SeedSequence([self.config.seed, epoch])
+        rng = np.random.default_rng(seq)
+        directions = rng.standard_normal((self.config.n_directions, self.policy.n_params))
+        seeds = [int(s) for s in rng.integers(0, 2 ** 31 - 1, size=self.config.n_directions)]
+        return directions, seeds
+
+    def train_epoch(self, backend) -> dict:
+        """One ARS V2-t update: 2N rollouts, top-b directions, step scaled by the kept returns' std."""
+        cfg = self.config
+        directions, seeds = self._epoch_draws(self.epoch)
+        thetas = [self.theta + sign * cfg.noise * d for d in directions for sign in (1.0, -1.0)]
+        results = backend.map(run_episode, self._tasks(thetas, [s for s in seeds for _ in (0, 1)]))
+        bad = [i for i, r in enumerate(results) if not r["finite"]]
+        if bad:
+            raise FloatingPointError(f"ARS epoch {self.epoch}: {len(bad)} rollouts produced NaN/inf states or "
+                                     f"rewards (first: direction {bad[0] // 2}); training stopped, the last "
+                                     f"checkpoint is intact")
+        r = np.array([res["return"] for res in results]).reshape(cfg.n_directions, 2)
+        top = np.argsort(-np.max(r, axis=1), kind="stable")[:cfg.top_directions]
+        sigma_r = r[top].std()
+        step = (r[top, 0] - r[top, 1]) @ directions[top]
+        if sigma_r > 0:
+            self.theta = self.theta + cfg.step_size / (cfg.top_directions * sigma_r) * step
+        for res in results:  # V2: update the normalisation after the epoch, in task order
+            self.stats.add(res["sum"], res["sumsq"], res["count"])
+        steps = sum(res["steps"] for res in results)
+        self.env_steps += steps
+        self.epoch += 1
+        return {"epoch": self.epoch, "env_steps": self.env_steps, "mean_return": float(r.mean()),
+                "max_return": float(r.max()), "mean_raw_return": float(np.mean([x["raw_return"] for x in results])),
+                "mean_dimension": float(np.mean([x["dimension"] for x in results])), "sigma_r": float(sigma_r),
+                "episode_steps": steps / len(results)}
+
+    def learn(self, epochs: int | None = None, log_dir: str | Path | None = None, progress: bool = True,
+              backend=None) -> "ARS":
+        """Train until ``epochs`` epochs in total (default ``config.epochs``); checkpoint every
+        ``checkpoint_every`` epochs into ``log_dir/checkpoint`` and finally ``log_dir/final``."""
+        from tqdm.auto import tqdm
+
+        target = self.config.epochs if epochs is None else int(epochs)
+        if target < 1:
+            raise ValueError(f"epochs must be >= 1, got {target}")
+        own_backend = backend is None
+        backend = backend or make_backend(self.config.backend, self.config.workers, self.config.address)
+        log_dir = Path(log_dir) if log_dir is not None else None
+        bar = tqdm(total=target, initial=self.epoch, desc=f"ARS {self.env_name}", disable=not progress,
+                   unit="epoch")
+        try:
+            while self.epoch < target:
+                start = time.perf_counter()
+                row = self.train_epoch(backend)
+                self.wall_time += time.perf_counter() - start
+                row.update(wall_time=self.wall_time, steps_per_s=row["episode_steps"] * 2 * self.config.n_directions
+                           / max(time.perf_counter() - start, 1e-9))
+                self.history.append(row)
+                bar.update(1)
+                bar.set_postfix(ret=f"{row['mean_raw_return']:.1f}", dim=f"{row['mean_dimension']:.2f}",
+                                sps=f"{row['steps_per_s']:.0f}")
+                if log_dir is not None:
+                    _append_csv(log_dir / "progress.csv", row)
+                    if self.epoch % self.config.checkpoint_every == 0:
+                        self.save(log_dir / "checkpoint")
+        finally:
+            bar.close()
+            if own_backend:
+                backend.close()
+        if log_dir is not None:
+            self.save(log_dir / "final")
+        return self
+
+    # -- use ---------------------------------------------------------------------------------
+    def predict(self, obs: np.ndarray, deterministic: bool = True) -> np.ndarray:
+        """The policy's action for ``obs`` (ARS policies are deterministic)."""
+        return self.policy.actor(self.theta)((np.asarray(obs, dtype=np.float64) - self.stats.mean) / self.stats.std)
+
+    def evaluate(self, episodes: int | None = None, seed: int = 12345, episode_steps: int | None = None,
+                 postprocess: str = "identity", backend=None, keep_states: bool = False, measure: bool = False,
+                 **noise) -> dict:
+        """Deterministic rollouts of the current policy: raw returns, episode lengths, dimensions.
+
+        ``measure``: also the raw lower/upper mesh dimension, madogram and variogram of every
+        episode (after the transient) and their means (``mean_dimensions``).
+
+        ``noise``: ``action_noise``, ``obs_noise`` (std of Gaussian noise) or ``push``
+        (probability per step, magnitude); see :func:`hybridctl.learn.robustness`.
+        """
+        n = episodes or self.config.eval_episodes
+        seeds = [int(s) for s in np.random.default_rng(seed).integers(0, 2 ** 31 - 1, size=n)]
+        pp = PostProcessor(postprocess, transient_steps=self.config.transient_steps)
+        tasks = self._tasks([self.theta] * n, seeds, max_steps=episode_steps, reward_shift=0.0, postprocessor=pp,
+                            keep_states=keep_states, measure=measure, **noise)
+        results = (backend or make_backend("serial")).map(run_episode, tasks)
+        finite = [r for r in results if r["finite"]]
+        returns = np.array([r["raw_return"] for r in finite])
+        out = {"episodes": n, "seed": seed, "mean_return": float(returns.mean()) if len(finite) else None,
+               "std_return": float(returns.std()) if len(finite) else None, "returns": returns.tolist(),
+               "steps": [r["steps"] for r in results], "terminated": [r.get("terminated", True) for r in results],
+               "nonfinite": n - len(finite), "dimension": [r["dimension"] for r in finite]}
+        if keep_states:
+            out["states"] = [r["states"] for r in finite]
+        if measure:
+            out["dimensions"] = [r["dimensions"] for r in finite]
+            out["mean_dimensions"] = {
+                key: (float(np.mean(vals)) if (vals := [d[key] for d in out["dimensions"] if d[key] is not None])
+                      else None) for key in ("mesh_lower", "mesh_upper", "madogram", "variogram")}
+        return out
+
+    # -- checkpoints ---------------------------------------------------------------------------
+    def save(self, path: str | Path) -> Path:
+        """Write a checkpoint directory atomically (weights load with ``weights_only=True``)."""
+        def write(tmp: Path) -> None:
+            tensors = {"theta": torch.as_tensor(self.theta), "stats_sum": torch.as_tensor(self.stats.sum),
+                       "stats_sumsq": torch.as_tensor(self.stats.sumsq), "stats_count": self.stats.count}
+            if self.policy.module is not None:
+                tensors["module_state"] = self.policy.module.state_dict()
+            torch.save(tensors, tmp / ckpt.MODEL_FILE)
+            ckpt.write_json(tmp / ckpt.CONFIG_FILE, {
+                "algorithm": self.algorithm_name, "format": ckpt.FORMAT_VERSION, "env": self.env_name,
+                "env_kwargs": self.env_kwargs, "obs_dim": self.policy.obs_dim, "act_dim": self.policy.act_dim,
+                "config": dataclasses.asdict(self.config), "versions": ckpt.versions()})
+            ckpt.write_json(tmp / ckpt.NORMALIZATION_FILE, {"type": "running_mean_std", "mean": self.stats.mean,
+                                                             "std": self.stats.std, "count": self.stats.count})
+            ckpt.write_json(tmp / ckpt.PROGRESS_FILE, {"epoch": self.epoch, "env_steps": self.env_steps,
+                                                        "wall_time": self.wall_time, "history": self.history})
+        return ckpt.write_checkpoint_dir(path, write)
+
+    @classmethod
+    def load(cls, path: str | Path, env: str | Callable[[], gym.Env] | None = None,
+             policy: torch.nn.Module | None = None, **overrides) -> "ARS":
+        """Restore a checkpoint. ``env`` is required when it was trained on a factory rather than an
+        id, ``policy`` when it was trained with a custom torch module."""
+        folder = ckpt.resolve_checkpoint_dir(path)
+        meta = ckpt.read_json(folder / ckpt.CONFIG_FILE)
+        if meta.get("algorithm") != cls.algorithm_name:
+            raise ckpt.CheckpointError(f"{folder} holds a {meta.get('algorithm')!r} checkpoint, not ARS")
+        config = ARSConfig(**{**meta["config"], **overrides})
+        agent = cls(env if env is not None else meta["env"], config, env_kwargs=meta.get("env_kwargs"), policy=policy)
+        if (agent.policy.obs_dim, agent.policy.act_dim) != (meta["obs_dim"], meta["act_dim"]):
+            raise ckpt.CheckpointError(
+                f"{folder} was trained on {meta['env']} with {meta['obs_dim']} observations and {meta['act_dim']} "
+                f"actions; this env has {agent.policy.obs_dim} and {agent.policy.act_dim}")
+        tensors = ckpt.load_tensors(folder / ckpt.MODEL_FILE)
+        agent.theta = tensors["theta"].double().numpy().copy()
+        agent.stats.sum = tensors["stats_sum"].double().numpy().copy()
+        agent.stats.sumsq = tensors["stats_sumsq"].double().numpy().copy()
+        agent.stats.count = int(tensors["stats_count"])
+        if agent.policy.module is not None and "module_state" in tensors:
+            agent.policy.module.load_state_dict(tensors["module_state"])
+        progress = ckpt.read_json(folder / ckpt.PROGRESS_FILE)
+        agent.epoch, agent.env_steps = int(progress["epoch"]), int(progress["env_steps"])
+        agent.wall_time, agent.history = float(progress["wall_time"]), list(progress.get("history", []))
+        return agent
+
+
+def _append_csv(path: Path, row: dict) -> None:
+    """Append one row to a CSV log (header on first write)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    new = not path.exists()
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=list(row))
+    if new:
+        writer.writeheader()
+    writer.writerow(row)
+    with open(path, "a", newline="") as fh:
+        fh.write(buffer.getvalue())

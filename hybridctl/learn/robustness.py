@@ -1,0 +1,79 @@
+"""Failure rates under disturbances (thesis Sec. 4.3, Table 4.4), for any policy.
+
+A failure is an early termination (the env's ``terminated``, e.g. a hopper falling)
+before ``episode_steps`` steps. Conditions (thesis Sec. 4.3): zero-mean Gaussian noise
+on the actions or on the observations, and random pushes (at every step, with
+probability ``rate``, a force of fixed ``magnitude`` at a random angle in the x-z plane
+on the root body; MuJoCo envs only).
+
+>>> failure_rates(agent, conditions={"none": {}, "action noise 0.1": {"action_noise": 0.1},
+...                                  "push 0.01 x 50 N": {"push": (0.01, 50.0)}}, episodes=50)
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable
+
+import numpy as np
+
+from .ars import ARS, PolicySpec, RolloutTask, make_env, run_episode
+from .rollouts import make_backend
+from ..analysis.postprocess import PostProcessor
+
+
+def wilson_interval(failures: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """95 % Wilson score interval of a failure fraction."""
+    if n == 0:
+        return (0.0, 1.0)
+    p = failures / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return (max(0.0, centre - half), min(1.0, centre + half))
+
+
+def failure_rates(policy: ARS | Callable[[np.ndarray], np.ndarray], env=None, conditions: dict | None = None,
+                  episodes: int = 50, episode_steps: int = 10_000, seed: int = 0, backend: str = "processes",
+                  workers: int | None = None) -> dict:
+    """Fraction of episodes that terminate early under each disturbance condition.
+
+    ``policy``: an :class:`ARS` agent (its env, normalisation and parameters are used), or a
+    picklable callable ``obs -> action`` together with ``env`` (an id or a factory).
+    ``conditions``: name -> dict with any of ``action_noise``, ``obs_noise`` (std) and
+    ``push`` ((rate, magnitude)). The same ``episodes`` env seeds are used for every
+    condition. Returns, per condition, failures, fraction, 95 % Wilson interval, mean return.
+    """
+    conditions = conditions or {"none": {}}
+    if episodes < 1 or episode_steps < 1:
+        raise ValueError(f"episodes and episode_steps must be >= 1, got {episodes} and {episode_steps}")
+    for name, cond in conditions.items():
+        unknown = set(cond) - {"action_noise", "obs_noise", "push"}
+        if unknown:
+            raise ValueError(f"condition {name!r}: unknown keys {sorted(unknown)}; use action_noise, obs_noise, push")
+    if isinstance(policy, ARS):
+        env, spec, theta = policy.env, policy.policy, policy.theta
+        mean, std, env_kwargs = policy.stats.mean, policy.stats.std, policy.env_kwargs
+    else:
+        if env is None:
+            raise ValueError("failure_rates needs env= when the policy is a plain callable")
+        probe = make_env(env)
+        obs_dim, act_dim = int(np.prod(probe.observation_space.shape)), int(np.prod(probe.action_space.shape))
+        spec = PolicySpec(obs_dim, act_dim, probe.action_space.low, probe.action_space.high, function=policy)
+        probe.close()
+        theta, mean, std, env_kwargs = np.zeros(0), np.zeros(obs_dim), np.ones(obs_dim), None
+    seeds = [int(s) for s in np.random.default_rng(seed).integers(0, 2 ** 31 - 1, size=episodes)]
+    identity = PostProcessor("identity")
+    report = {}
+    with make_backend(backend, workers) as pool:
+        for name, cond in conditions.items():
+            tasks = [RolloutTask(env, env_kwargs, spec, theta, mean, std, s, episode_steps, 0.0, identity,
+                                 action_noise=cond.get("action_noise", 0.0), obs_noise=cond.get("obs_noise", 0.0),
+                                 push=cond.get("push")) for s in seeds]
+            results = pool.map(run_episode, tasks)
+            failed = sum(1 for r in results if not r["finite"] or r["terminated"])
+            returns = [r["raw_return"] for r in results if r["finite"]]
+            report[name] = {"condition": cond, "episodes": episodes, "failures": failed,
+                            "failure_rate": failed / episodes, "interval95": wilson_interval(failed, episodes),
+                            "mean_return": float(np.mean(returns)) if returns else None,
+                            "mean_steps": float(np.mean([r["steps"] for r in results]))}
+    return report

@@ -1,0 +1,136 @@
+"""ARS V2-t (thesis Ch. 4): learning, backends, determinism, checkpoints, post-processing, robustness."""
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hybridctl.learn import rollouts
+from hybridctl.learn.ars import ARS, ARSConfig
+from hybridctl.learn.checkpoint import CheckpointError
+from hybridctl.learn.robustness import failure_rates, wilson_interval
+from toy_envs import goal_seeking_policy, point_reach, point_reach_nan
+
+SMALL = dict(n_directions=8, top_directions=4, step_size=0.05, noise=0.05, backend="serial", checkpoint_every=2)
+
+
+def test_defaults_are_the_thesis_values():
+    cfg = ARSConfig()
+    assert (cfg.step_size, cfg.noise, cfg.n_directions, cfg.top_directions) == (0.02, 0.025, 50, 20)
+    assert cfg.transient_steps == 200 and cfg.policy == "linear" and cfg.backend == "processes"
+
+
+def test_ars_learns_the_point_task():
+    agent = ARS(point_reach, ARSConfig(seed=0, **SMALL))
+    before = agent.evaluate(episodes=10)["mean_return"]
+    agent.learn(epochs=25, progress=False)
+    after = agent.evaluate(episodes=10)["mean_return"]
+    assert after > before + 20, (before, after)          # ~60 steps of reward: from drifting to reaching
+    assert agent.stats.count == agent.env_steps            # every training state went into the normaliser
+    assert agent.env_steps <= 25 * 16 * 60
+
+
+def test_mlp_policy_learns_too():
+    # a random MLP falls within a few steps; larger steps than the linear policy's get it going
+    agent = ARS(point_reach, ARSConfig(seed=1, policy="mlp:16", **{**SMALL, "step_size": 0.1, "noise": 0.1}))
+    before = agent.evaluate(episodes=10)["mean_return"]
+    agent.learn(epochs=25, progress=False)
+    assert agent.evaluate(episodes=10)["mean_return"] > before + 10
+
+
+def test_processes_and_serial_backends_agree():
+    serial = ARS(point_reach, ARSConfig(seed=3, **SMALL)).learn(epochs=3, progress=False)
+    with rollouts.make_backend("processes", workers=2) as backend:
+        parallel = ARS(point_reach, ARSConfig(seed=3, **SMALL)).learn(epochs=3, progress=False, backend=backend)
+    np.testing.assert_array_equal(serial.theta, parallel.theta)
+    np.testing.assert_array_equal(serial.stats.sum, parallel.stats.sum)
+
+
+def test_ray_backend_agrees():
+    pytest.importorskip("ray")
+    serial = ARS(point_reach, ARSConfig(seed=3, **SMALL)).learn(epochs=2, progress=False)
+    with rollouts.make_backend("ray", workers=2) as backend:
+        remote = ARS(point_reach, ARSConfig(seed=3, **SMALL)).learn(epochs=2, progress=False, backend=backend)
+    np.testing.assert_array_equal(serial.theta, remote.theta)
+
+
+def test_resume_continues_exactly(tmp_path):
+    straight = ARS(point_reach, ARSConfig(seed=4, **SMALL)).learn(epochs=4, progress=False)
+    first = ARS(point_reach, ARSConfig(seed=4, **SMALL)).learn(epochs=2, progress=False, log_dir=tmp_path)
+    assert (tmp_path / "checkpoint" / "model.pt").is_file() and (tmp_path / "progress.csv").is_file()
+    resumed = ARS.load(tmp_path / "final", env=point_reach)
+    assert resumed.epoch == 2 and np.array_equal(resumed.theta, first.theta)
+    resumed.learn(epochs=4, progress=False)
+    np.testing.assert_array_equal(straight.theta, resumed.theta)
+    obs = np.array([0.1, -0.1, 0.0, 0.2])
+    np.testing.assert_array_equal(straight.predict(obs), resumed.predict(obs))
+
+
+def test_load_rejects_other_checkpoints(tmp_path):
+    with pytest.raises(CheckpointError, match="no checkpoint"):
+        ARS.load(tmp_path / "missing", env=point_reach)
+    agent = ARS(point_reach, ARSConfig(seed=0, **SMALL))
+    agent.save(tmp_path / "ck")
+    os.remove(tmp_path / "ck" / "normalization.json")
+    with pytest.raises(CheckpointError, match="normalization.json"):
+        ARS.load(tmp_path / "ck", env=point_reach)
+    agent.save(tmp_path / "ck2")
+    with pytest.raises(CheckpointError, match="observations"):
+        ARS.load(tmp_path / "ck2", env="Pendulum-v1")
+
+
+def test_postprocessed_training_divides_by_the_dimension():
+    cfg = ARSConfig(seed=5, postprocess="madogram", transient_steps=10, **SMALL)
+    agent = ARS(point_reach, cfg)
+    row = agent.train_epoch(rollouts.SerialBackend())
+    assert 1.0 < row["mean_dimension"] <= 2.0
+    assert row["mean_return"] < row["mean_raw_return"]     # positive returns divided by D > 1
+
+
+def test_nan_rollouts_stop_training_with_a_message():
+    agent = ARS(point_reach_nan, ARSConfig(seed=0, **SMALL))
+    with pytest.raises(FloatingPointError, match="NaN"):
+        agent.learn(epochs=1, progress=False)
+
+
+@pytest.mark.parametrize("field, value", [("n_directions", 0), ("top_directions", 99), ("noise", -1.0),
+                                          ("postprocess", "fractal"), ("backend", "mpi"), ("policy", "mlp:")])
+def test_bad_settings_name_the_field(field, value):
+    with pytest.raises(ValueError, match=field):
+        ARSConfig(**{field: value}).validate()
+
+
+def _die_once(marker: str) -> int:
+    """Kill this worker the first time (a crashed simulator); succeed afterwards."""
+    if not Path(marker).exists():
+        Path(marker).write_text("died")
+        os._exit(1)
+    return 7
+
+
+def test_process_backend_survives_a_dead_worker(tmp_path):
+    marker = str(tmp_path / "marker")
+    with rollouts.ProcessBackend(workers=2) as backend:
+        assert backend.map(_die_once, [marker] * 4) == [7, 7, 7, 7]
+
+
+def test_failure_rates_grow_with_noise():
+    report = failure_rates(goal_seeking_policy, env=point_reach, episodes=30, episode_steps=60, backend="serial",
+                           conditions={"none": {}, "action noise": {"action_noise": 3.0},
+                                       "observation noise": {"obs_noise": 10.0}})
+    assert report["none"]["failures"] == 0
+    assert report["action noise"]["failures"] > 0
+    assert report["observation noise"]["failure_rate"] > 0.15
+    assert report["none"]["mean_return"] > report["action noise"]["mean_return"]
+    assert report["none"]["interval95"][1] < report["observation noise"]["interval95"][1]
+    lo, hi = wilson_interval(5, 50)
+    assert lo < 0.1 < hi
+
+
+def test_failure_rates_reject_unknown_conditions():
+    with pytest.raises(ValueError, match="unknown keys"):
+        failure_rates(goal_seeking_policy, env=point_reach, conditions={"x": {"wind": 1.0}}, backend="serial")
+    with pytest.raises(ValueError, match="push disturbances need a MuJoCo env"):
+        failure_rates(goal_seeking_policy, env=point_reach, conditions={"p": {"push": (1.0, 5.0)}},
+                      episodes=1, backend="serial")
