@@ -13,7 +13,8 @@ in task order, so the same seed gives the same result on every backend::
   ``retries`` times, so a long job loses nothing that had finished.
 * ``ray``: Ray tasks, on a local Ray instance (``address=None``) or a cluster
   (``address="ray://host:10001"`` or ``"auto"``). Needs the optional ``ray`` extra.
-  A local instance is started without its dashboard; Ray binds to localhost.
+  A local instance is started on 127.0.0.1 without its dashboard, and its workers get
+  this process's ``sys.path``; on a cluster, pass ``runtime_env`` to ship code.
 
 Simulator objects (Drake systems, MuJoCo models) do not pickle: tasks carry plain
 parameters, and workers build their simulators themselves (see :func:`cached_env`).
@@ -24,6 +25,7 @@ from __future__ import annotations
 import concurrent.futures as cf
 import multiprocessing as mp
 import os
+import sys
 from typing import Any, Callable, Sequence
 
 BACKENDS = ("serial", "processes", "ray")
@@ -112,7 +114,7 @@ class RayBackend(SerialBackend):
 
     name = "ray"
 
-    def __init__(self, workers: int | None = None, address: str | None = None):
+    def __init__(self, workers: int | None = None, address: str | None = None, runtime_env: dict | None = None):
         try:
             import ray
         except ImportError as exc:
@@ -121,9 +123,12 @@ class RayBackend(SerialBackend):
         self._started_here = not ray.is_initialized()
         if self._started_here:
             if address is None:
-                ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
+                # a local instance on loopback only; workers import what this process imports
+                env = runtime_env or {"env_vars": {"PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}}
+                ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False,
+                         _node_ip_address="127.0.0.1", runtime_env=env)
             else:
-                ray.init(address=address, log_to_driver=False)
+                ray.init(address=address, log_to_driver=False, runtime_env=runtime_env)
         self.workers = workers or int(ray.cluster_resources().get("CPU", 1))
         self._remote: dict[Callable, Any] = {}
 
