@@ -26,6 +26,7 @@ test-all: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/dynamics.py
+	$(BIN)/python benchmarks/mesh_dimension.py
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache

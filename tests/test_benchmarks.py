@@ -95,3 +95,19 @@ def test_ssac_baselines_script_runs_a_tiny_budget(tmp_path):
     assert report["stable_baselines3"]["SAC"]["thesis"] == [73.01, 11.41]
     assert math.isfinite(report["stable_baselines3"]["A2C"]["mean_return"])
     assert report["hybridctl"]["SSAC"]["mean_return"] == 90.0
+
+
+def test_mesh_dimension_benchmark_reports_both_methods(tmp_path):
+    """benchmarks/mesh_dimension.py --quick: both counts on the same curve, positive timings (no thresholds)."""
+    out = tmp_path / "mesh.json"
+    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "mesh_dimension.py"), "--quick", "--out", str(out)],
+                          cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    report = json.loads(proc.stdout)
+    assert json.loads(out.read_text()) == report and report["benchmark"] == "mesh_dimension"
+    assert {e["trajectory"] for e in report["entries"]} == {"gait", "random_walk"}
+    for entry in report["entries"]:
+        assert entry["n_dims"] == 17 and entry["n_states"] == 10_000
+        assert _positive_finite(entry["vectorised_s"]) and _positive_finite(entry["dict_s"])
+        assert _positive_finite(entry["speedup_vs_dict"]) and entry["meshes_on_curve"] >= 3
+        assert 0 <= entry["lower"] <= entry["upper"]
