@@ -1,12 +1,13 @@
 """Analysis: the thesis success test and balance maps (Ch. 3); box meshes, mesh dimension and
-variation estimators (Ch. 4)."""
+variation estimators (Ch. 4); absorbing Markov chains and mean first passage time (Ch. 5)."""
 
 from .balance import decision_indices, episode_return, is_balanced, lqr_rollouts_balanced
 from .balance_map import BalanceMap, balance_map, grid_axes
+from .markov import MFPTResult, absorbing_mfpt, check_transition_matrix
 from .mesh import MeshDimension, box_keys, box_mesh_size, count_distinct_rows, mesh_dimension
 from .postprocess import PostProcessor
 from .variation import madogram, power_variation, variation_dimension, variogram
 
 __all__ = ["decision_indices", "episode_return", "is_balanced", "lqr_rollouts_balanced", "BalanceMap",
            "balance_map", "grid_axes", "MeshDimension", "box_keys", "box_mesh_size", "count_distinct_rows",
-           "mesh_dimension", "PostProcessor", "madogram", "power_variation", "variation_dimension", "variogram"]
+           "mesh_dimension", "PostProcessor", "MFPTResult", "absorbing_mfpt", "check_transition_matrix", "madogram", "power_variation", "variation_dimension", "variogram"]
