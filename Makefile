@@ -27,6 +27,7 @@ test-all: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python benchmarks/dynamics.py
 	$(BIN)/python benchmarks/mesh_dimension.py
+	$(BIN)/python benchmarks/mfpt.py
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache

@@ -111,3 +111,16 @@ def test_mesh_dimension_benchmark_reports_both_methods(tmp_path):
         assert _positive_finite(entry["vectorised_s"]) and _positive_finite(entry["dict_s"])
         assert _positive_finite(entry["speedup_vs_dict"]) and entry["meshes_on_curve"] >= 3
         assert 0 <= entry["lower"] <= entry["upper"]
+
+
+def test_mfpt_benchmark_agrees_with_spsolve(tmp_path):
+    """benchmarks/mfpt.py --quick: the Krylov MFPT equals spsolve's on a mesh-like chain (no speed thresholds)."""
+    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "mfpt.py"), "--quick"],
+                          cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    report = json.loads(proc.stdout)
+    (entry,) = report["entries"]
+    assert report["benchmark"] == "mfpt" and entry["states"] == 12 ** 3 + 1
+    assert entry["max_rel_diff_vs_spsolve"] < 1e-8 and entry["krylov_solver"]["converged"]
+    assert _positive_finite(entry["krylov_s"]) and _positive_finite(entry["speedup_vs_spsolve"])
+    assert 1 < entry["mfpt_mean_over_states"] < 1e6 and entry["infinite_states"] == 0
