@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hybridctl.learn import rollouts
+from hybridctl import parallel as rollouts
 from hybridctl.learn.ars import ARS, ARSConfig
 from hybridctl.learn.checkpoint import CheckpointError
 from hybridctl.learn.robustness import failure_rates, wilson_interval

@@ -5,9 +5,13 @@ from .balance import decision_indices, episode_return, is_balanced, lqr_rollouts
 from .balance_map import BalanceMap, balance_map, grid_axes
 from .markov import MFPTResult, absorbing_mfpt, check_transition_matrix
 from .mesh import MeshDimension, box_keys, box_mesh_size, count_distinct_rows, mesh_dimension
+from .poincare import FiniteDisturbances, FunctionMap, GaussianDisturbance, RimlessWheel, SectionMap
 from .postprocess import PostProcessor
+from .reachable import MonteCarloResult, ReachableMesh, build_mesh, mesh_sizes, monte_carlo_mfpt
 from .variation import madogram, power_variation, variation_dimension, variogram
 
 __all__ = ["decision_indices", "episode_return", "is_balanced", "lqr_rollouts_balanced", "BalanceMap",
            "balance_map", "grid_axes", "MeshDimension", "box_keys", "box_mesh_size", "count_distinct_rows",
-           "mesh_dimension", "PostProcessor", "MFPTResult", "absorbing_mfpt", "check_transition_matrix", "madogram", "power_variation", "variation_dimension", "variogram"]
+           "mesh_dimension", "PostProcessor", "MFPTResult", "absorbing_mfpt", "check_transition_matrix",
+           "FiniteDisturbances", "FunctionMap", "GaussianDisturbance", "RimlessWheel", "SectionMap", "MonteCarloResult",
+           "ReachableMesh", "build_mesh", "mesh_sizes", "monte_carlo_mfpt", "madogram", "power_variation", "variation_dimension", "variogram"]

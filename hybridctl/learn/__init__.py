@@ -13,7 +13,7 @@ from .gate import GateConfig, GateNet, fit_gate, gate_metrics, warm_start_gate
 from .sac import (Actor, DeterministicPolicy, EpisodeStaging, ObsTransform, QNetwork, ReplayBuffer, SAC,
                   SACConfig, plot_training_curves, sample_mixed)
 from .robustness import failure_rates
-from .rollouts import ProcessBackend, RayBackend, SerialBackend, make_backend
+from ..parallel import ProcessBackend, RayBackend, SerialBackend, make_backend
 from .ssac import SSAC, GateDataset, SSACConfig
 
 __all__ = ["SAC", "SACConfig", "SSAC", "SSACConfig", "GateDataset", "Actor", "QNetwork", "ObsTransform",

@@ -21,7 +21,7 @@ parameters are flattened into theta.
 >>> agent.predict(obs)                                       # deterministic action
 >>> agent.save("runs/ars-hopper/final"); ARS.load("runs/ars-hopper/final")
 
-Rollouts run on a backend from :mod:`hybridctl.learn.rollouts` ("processes" by
+Rollouts run on a backend from :mod:`hybridctl.parallel` ("processes" by
 default, "serial", or "ray"). Directions and env seeds come from
 ``SeedSequence([seed, epoch, ...])``, and results are combined in task order, so a
 seed gives the same run on every backend, and a resumed run continues exactly.
@@ -47,7 +47,7 @@ from ..analysis.postprocess import KINDS as POSTPROCESS_KINDS
 from ..analysis.postprocess import PostProcessor
 from ..analysis.variation import madogram, variogram
 from . import checkpoint as ckpt
-from .rollouts import BACKENDS, cached_env, make_backend
+from ..parallel import BACKENDS, cached_env, make_backend
 
 
 @dataclass

@@ -18,7 +18,7 @@ from typing import Callable
 import numpy as np
 
 from .ars import ARS, PolicySpec, RolloutTask, make_env, run_episode
-from .rollouts import make_backend
+from ..parallel import make_backend
 from ..analysis.postprocess import PostProcessor
 
 

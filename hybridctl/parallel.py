@@ -1,4 +1,4 @@
-"""Parallel rollouts: one worker interface, three backends (serial, local processes, Ray).
+"""Parallel work (rollouts, mesh expansion): one worker interface, three backends (serial, local processes, Ray).
 
 A backend maps a module-level function over a list of tasks and returns the results
 in task order, so the same seed gives the same result on every backend::

@@ -1,0 +1,145 @@
+"""Poincare (return) maps with disturbances: the interface that reachable-state meshes use (thesis Ch. 5).
+
+A section map takes a state on the Poincare section and one disturbance and returns
+the next state on the section, or failure::
+
+    next_states = section_map.step_many(states, disturbances)   # (m, n) -> (m, n); NaN rows = failure
+    section_map.step(state, disturbance)                           # one state: array, or None = failure
+
+Adapters: :class:`FunctionMap` wraps a plain Python/numpy function;
+:class:`RimlessWheel` is the analytic apex-to-apex map of a rimless wheel on rough
+terrain (Byl & Tedrake 2009), cheap enough for Monte Carlo on the true map.
+Section maps are plain, picklable objects: a map that needs a simulator builds it
+lazily inside whichever process calls it.
+
+Disturbance models give the mesh its finite disturbance set and Monte Carlo its draws:
+:class:`FiniteDisturbances` (a set with weights) and :class:`GaussianDisturbance`
+(a scalar Gaussian, discretised by equal-probability quantiles for the mesh).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import numpy as np
+from scipy.special import ndtri
+
+
+class SectionMap:
+    """Base class: ``step_many`` (vectorised) or ``step`` (one state) -- define either."""
+
+    state_names: tuple[str, ...] = ()
+
+    def step(self, state: np.ndarray, disturbance) -> np.ndarray | None:
+        """Next state on the section after ``disturbance``, or None if the system failed."""
+        out = self.step_many(np.asarray(state, dtype=np.float64)[None, :], [disturbance])[0]
+        return None if np.isnan(out).any() else out
+
+    def step_many(self, states: np.ndarray, disturbances: Sequence) -> np.ndarray:
+        """Next states (NaN rows for failures) of ``states[i]`` under ``disturbances[i]``."""
+        out = np.full(np.shape(states), np.nan)
+        for i, (s, d) in enumerate(zip(states, disturbances)):
+            nxt = self.step(s, d)
+            if nxt is not None:
+                out[i] = nxt
+        return out
+
+
+@dataclass
+class FunctionMap(SectionMap):
+    """A section map from ``fn(state, disturbance) -> next state or None`` (must pickle for workers)."""
+
+    fn: Callable
+    state_names: tuple[str, ...] = ()
+
+    def step(self, state, disturbance):
+        """``fn(state, disturbance)`` as a float array, or None for failure."""
+        out = self.fn(np.asarray(state, dtype=np.float64), disturbance)
+        return None if out is None else np.atleast_1d(np.asarray(out, dtype=np.float64))
+
+
+@dataclass
+class RimlessWheel(SectionMap):
+    """Apex-to-apex map of a rimless wheel rolling down terrain whose slope changes every step.
+
+    State: the angular velocity ``w`` (rad/s) when the stance leg is vertical. Disturbance:
+    the slope ``gamma`` (rad, downhill positive) of the next step. From apex the stance leg
+    rotates by ``alpha + gamma`` to the collision, which keeps ``cos(2 alpha)`` of the angular
+    velocity, and the new stance leg rises by ``alpha - gamma`` to the next apex (Coleman's
+    rimless wheel; Byl & Tedrake 2009, "Metastable walking machines"):
+
+        w'^2 = cos^2(2 alpha) (w^2 + 2 g/l (1 - cos(alpha + gamma))) - 2 g/l (1 - cos(alpha - gamma))
+
+    Failure when ``w'^2 <= 0``: the wheel rolls back before the next apex.
+    """
+
+    half_angle: float = math.pi / 8     # alpha: 8 spokes (hybridctl design choice, as in Byl & Tedrake)
+    g_over_l: float = 9.81              # g / leg length (1 m)
+    state_names: tuple[str, ...] = ("w",)
+
+    def step_many(self, states, disturbances):
+        """Vectorised map; NaN rows for failures."""
+        w = np.asarray(states, dtype=np.float64).reshape(-1)
+        gamma = np.asarray(disturbances, dtype=np.float64).reshape(-1)
+        a, k = self.half_angle, 2.0 * self.g_over_l
+        arg = math.cos(2 * a) ** 2 * (w ** 2 + k * (1 - np.cos(a + gamma))) - k * (1 - np.cos(a - gamma))
+        out = np.sqrt(np.where(arg > 0, arg, np.nan))
+        return out[:, None]
+
+    def fixed_point(self, gamma: float) -> float:
+        """Apex velocity of the period-1 gait on a constant slope ``gamma`` (NaN if none)."""
+        a, k, c2 = self.half_angle, 2.0 * self.g_over_l, math.cos(2 * self.half_angle) ** 2
+        value = (c2 * k * (1 - math.cos(a + gamma)) - k * (1 - math.cos(a - gamma))) / (1 - c2)
+        return math.sqrt(value) if value > 0 else float("nan")
+
+
+@dataclass
+class FiniteDisturbances:
+    """A finite disturbance set with probabilities (uniform by default)."""
+
+    values: Sequence
+    weights: np.ndarray | None = None
+
+    def __post_init__(self):
+        n = len(self.values)
+        if n == 0:
+            raise ValueError("the disturbance set is empty")
+        w = np.full(n, 1.0 / n) if self.weights is None else np.asarray(self.weights, dtype=np.float64)
+        if w.shape != (n,) or np.any(w < 0) or not math.isclose(w.sum(), 1.0, rel_tol=1e-9):
+            raise ValueError(f"disturbance weights must be {n} non-negative numbers summing to 1")
+        self.weights = w
+
+    def finite_set(self) -> "FiniteDisturbances":
+        """Itself."""
+        return self
+
+    def sample(self, rng: np.random.Generator, n: int) -> list:
+        """``n`` draws from the set."""
+        idx = rng.choice(len(self.values), size=n, p=self.weights)
+        return [self.values[i] for i in idx]
+
+
+@dataclass
+class GaussianDisturbance:
+    """A scalar Gaussian disturbance; the mesh uses ``count`` equal-probability quantiles of it."""
+
+    mean: float
+    std: float
+    count: int = 25
+    label: str = field(default="gaussian", repr=False)
+
+    def __post_init__(self):
+        if not (self.std > 0 and self.count >= 1):
+            raise ValueError(f"GaussianDisturbance needs std > 0 and count >= 1, got std={self.std}, "
+                             f"count={self.count}")
+
+    def finite_set(self) -> FiniteDisturbances:
+        """Midpoint quantiles mean + std * Phi^-1((k + 1/2) / count), equal weights."""
+        q = (np.arange(self.count) + 0.5) / self.count
+        return FiniteDisturbances(list(self.mean + self.std * ndtri(q)))
+
+    def sample(self, rng: np.random.Generator, n: int) -> np.ndarray:
+        """``n`` draws from the continuous Gaussian."""
+        return rng.normal(self.mean, self.std, size=n)

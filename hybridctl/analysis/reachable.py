@@ -1,0 +1,308 @@
+"""Reachable-state meshes of a disturbed Poincare map (thesis Ch. 5, Algorithm 7) and Monte Carlo checks.
+
+Starting from seed states, every mesh state is mapped through the section map under
+each disturbance of a finite set; the next state's box key (thesis Alg. 5: rounded
+normalised state / ``box_size``) either names a known mesh state or adds a new one,
+which is expanded in turn (breadth first). Failure is one absorbing state, index 0.
+Each box keeps the first state that reached it as its representative, from which it
+is expanded. The result is a Markov chain: :meth:`ReachableMesh.transition_matrix`
+(CSR, rows sum to 1) and :meth:`ReachableMesh.mfpt` (:func:`~hybridctl.analysis.absorbing_mfpt`).
+
+>>> wheel = RimlessWheel()
+>>> slopes = GaussianDisturbance(mean=0.15, std=0.06, count=25)
+>>> mesh = build_mesh(wheel, seeds=[[wheel.fixed_point(0.15)]], disturbances=slopes, box_size=1e-3)
+>>> mesh.mfpt().mean(mesh.seed_distribution())
+>>> monte_carlo_mfpt(wheel, [[1.29]], slopes, episodes=2000)    # on the true map, with a 95 % interval
+
+Expansion runs in batches of states on a :mod:`hybridctl.parallel` backend ("serial" by
+default here; "processes" or "ray" for simulator-backed maps). Results are merged in
+batch order, so every backend builds the same mesh. With ``checkpoint=PATH`` the mesh
+so far is written atomically every ``checkpoint_every`` batches and ``resume=True``
+continues from it; a worker that dies has its batch rerun by the process backend.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import scipy.sparse as sp
+
+from ..parallel import make_backend
+from .markov import MFPTResult, absorbing_mfpt
+from .poincare import FiniteDisturbances, SectionMap
+
+FAILURE = 0
+
+
+@dataclass
+class ReachableMesh:
+    """Mesh states (representatives; id i is row i - 1 of ``states``), successor ids (0 = failure)."""
+
+    states: np.ndarray            # (n_states, n_dims) representatives
+    successors: np.ndarray        # (n_expanded, n_disturbances) ids in 0..n_states
+    weights: np.ndarray           # disturbance probabilities
+    box_size: float
+    mean: np.ndarray
+    std: np.ndarray
+    seed_ids: np.ndarray
+    complete: bool
+    wall_time: float = 0.0
+    settings: dict = field(default_factory=dict)
+
+    @property
+    def size(self) -> int:
+        """Number of mesh states (the failure state not counted)."""
+        return int(self.states.shape[0])
+
+    def transition_matrix(self) -> sp.csr_matrix:
+        """Stochastic matrix (n_states + 1 square, CSR): T[i, j] = P(next id j | id i); failure 0 absorbing.
+
+        Raises ValueError for an incomplete mesh (stopped at ``max_states``): its unexpanded
+        states have no rows.
+        """
+        if not self.complete:
+            raise ValueError(f"the mesh is incomplete: {self.size - self.successors.shape[0]} of {self.size} states "
+                             f"were never expanded (max_states reached); use a larger box_size or max_states")
+        n, k = self.successors.shape
+        rows = np.repeat(np.arange(1, n + 1), k)
+        vals = np.tile(self.weights, n)
+        T = sp.csr_matrix((np.r_[1.0, vals], (np.r_[0, rows], np.r_[0, self.successors.ravel()])),
+                          shape=(n + 1, n + 1))
+        T.sum_duplicates()
+        return T
+
+    def mfpt(self, method: str = "krylov", **kwargs) -> MFPTResult:
+        """Mean first passage time to failure from every mesh state (index i = state id i)."""
+        return absorbing_mfpt(self.transition_matrix(), FAILURE, method=method, **kwargs)
+
+    def seed_distribution(self) -> np.ndarray:
+        """Uniform weights over the seeds' mesh states (index 0 = failure)."""
+        p = np.zeros(self.size + 1)
+        np.add.at(p, self.seed_ids, 1.0)
+        return p / p.sum()
+
+    def failure_probability(self) -> np.ndarray:
+        """One-step probability of failure from each mesh state (index i - 1 for id i)."""
+        return (self.successors == FAILURE) @ self.weights
+
+    def summary(self) -> dict:
+        """JSON-ready description."""
+        return {"states": self.size, "box_size": self.box_size, "disturbances": int(self.weights.size),
+                "complete": self.complete, "seeds": int(self.seed_ids.size), "wall_time_s": self.wall_time,
+                "transitions_to_failure": int((self.successors == FAILURE).sum()), **self.settings}
+
+
+def _expand(task) -> np.ndarray:
+    """Worker: next states (m, K, n) of a batch of states under every disturbance (NaN = failure)."""
+    section_map, states, values = task
+    m, k = states.shape[0], len(values)
+    flat_states = np.repeat(states, k, axis=0)
+    flat_dist = [values[j] for _ in range(m) for j in range(k)]
+    try:
+        out = np.asarray(section_map.step_many(flat_states, flat_dist), dtype=np.float64)
+    except Exception as exc:  # name the first state that fails, one by one
+        for i, s in enumerate(states):
+            for j, d in enumerate(values):
+                try:
+                    section_map.step_many(s[None, :], [d])
+                except Exception as inner:
+                    raise RuntimeError(f"section map raised at state {s.tolist()} with disturbance {d!r} "
+                                       f"(mesh batch row {i}, disturbance {j}): {type(inner).__name__}: {inner}") from inner
+        raise RuntimeError(f"section map raised on a batch: {type(exc).__name__}: {exc}") from exc
+    if out.shape != flat_states.shape:
+        raise RuntimeError(f"section map returned shape {out.shape} for {flat_states.shape} states")
+    return out.reshape(m, k, -1)
+
+
+class _Keys:
+    """Box keys -> mesh ids (1-based), as in thesis Alg. 5."""
+
+    def __init__(self, box_size: float, mean: np.ndarray, std: np.ndarray):
+        self.box_size, self.mean, self.std = box_size, mean, std
+        self.ids: dict[bytes, int] = {}
+
+    def keys(self, states: np.ndarray) -> list[bytes]:
+        scaled = (states - self.mean) / (self.std * self.box_size)
+        if np.max(np.abs(scaled), initial=0.0) >= 2 ** 62:
+            raise ValueError(f"box_size {self.box_size:g} is too small for these states (keys exceed 2^62)")
+        k = np.ascontiguousarray(np.rint(scaled).astype(np.int64))
+        return [row.tobytes() for row in k]
+
+
+def _save_checkpoint(path: Path, mesh_states: list, successors: list, box_size: float, n_disturbances: int) -> None:
+    """Write the mesh so far to ``path`` (.npz) atomically: a temporary file, then a rename."""
+    tmp = path.with_name(path.name + ".tmp.npz")
+    np.savez(tmp, states=np.array(mesh_states), box_size=box_size, n_disturbances=n_disturbances,
+             successors=np.array(successors, dtype=np.int64).reshape(len(successors), n_disturbances))
+    os.replace(tmp, path)
+
+
+def build_mesh(section_map: SectionMap, seeds, disturbances, box_size: float, mean=None, std=None,
+               max_states: int = 1_000_000, backend: str = "serial", workers: int | None = None,
+               batch_size: int = 256, checkpoint: str | os.PathLike | None = None, checkpoint_every: int = 20,
+               resume: bool = False, progress: bool = True) -> ReachableMesh:
+    """Reachable-state mesh of ``section_map`` from ``seeds`` under ``disturbances`` (thesis Alg. 7).
+
+    ``disturbances``: a :class:`FiniteDisturbances`, anything with ``finite_set()`` (e.g.
+    :class:`GaussianDisturbance`), or a plain sequence (uniform weights). ``box_size``: the
+    side of a box in normalised units, ``(state - mean) / std`` (default mean 0, std 1: the
+    state's own units). ``max_states``: a cap; when reached, building stops and the mesh is
+    marked incomplete. Seeds that fail or are non-finite raise ValueError.
+    """
+    from tqdm.auto import tqdm
+
+    box_size = float(box_size)
+    if not (math.isfinite(box_size) and box_size > 0):
+        raise ValueError(f"box_size must be a finite number > 0, got {box_size!r}")
+    if not (isinstance(max_states, int) and max_states >= 1):
+        raise ValueError(f"max_states must be an integer >= 1, got {max_states!r}")
+    finite = disturbances.finite_set() if hasattr(disturbances, "finite_set") else FiniteDisturbances(list(disturbances))
+    values, weights = list(finite.values), np.asarray(finite.weights)
+    seeds = np.atleast_2d(np.asarray(seeds, dtype=np.float64))
+    if seeds.size == 0 or not np.all(np.isfinite(seeds)):
+        raise ValueError("seeds must be a non-empty array of finite states (one per row)")
+    dim = seeds.shape[1]
+    mean = np.zeros(dim) if mean is None else np.broadcast_to(np.asarray(mean, dtype=np.float64), (dim,)).copy()
+    std = np.ones(dim) if std is None else np.broadcast_to(np.asarray(std, dtype=np.float64), (dim,)).copy()
+    if np.any(std <= 0):
+        raise ValueError(f"std must be > 0 in every coordinate, got {std}")
+    keys = _Keys(box_size, mean, std)
+    settings = {"box_size": box_size, "disturbances": len(values), "max_states": max_states}
+    path = Path(checkpoint) if checkpoint is not None else None
+
+    mesh_states: list[np.ndarray] = []
+    successors: list[np.ndarray] = []
+    if resume and path is not None and path.exists():
+        saved = np.load(path, allow_pickle=False)
+        if float(saved["box_size"]) != box_size or int(saved["n_disturbances"]) != len(values):
+            raise ValueError(f"checkpoint {path} was built with box_size {float(saved['box_size']):g} and "
+                             f"{int(saved['n_disturbances'])} disturbances, not {box_size:g} and {len(values)}")
+        mesh_states = list(saved["states"])
+        successors = list(saved["successors"])
+        for i, k in enumerate(keys.keys(np.array(mesh_states))):
+            keys.ids.setdefault(k, i + 1)
+    seed_ids = []
+    for s, k in zip(seeds, keys.keys(seeds)):
+        if k not in keys.ids:
+            if len(mesh_states) >= max_states:
+                break
+            mesh_states.append(s)
+            keys.ids[k] = len(mesh_states)
+        seed_ids.append(keys.ids[k])
+
+    start = time.perf_counter()
+    complete = True
+    bar = tqdm(total=len(mesh_states), initial=len(successors), desc="mesh", unit="state", disable=not progress)
+    pool = make_backend(backend, workers)
+    try:
+        batches = 0
+        while len(successors) < len(mesh_states):
+            lo = len(successors)
+            hi = min(len(mesh_states), lo + batch_size * getattr(pool, "workers", 1))
+            chunk = np.array(mesh_states[lo:hi])
+            parts = [(section_map, chunk[i:i + batch_size], values) for i in range(0, hi - lo, batch_size)]
+            nxt = np.concatenate(pool.map(_expand, parts))            # (hi - lo, K, dim), in order
+            failed = np.isnan(nxt).any(axis=2)
+            for row, fail_row in zip(nxt, failed):
+                ids = np.zeros(len(values), dtype=np.int64)
+                ok = np.flatnonzero(~fail_row)
+                for j, k in zip(ok, keys.keys(row[ok])):
+                    found = keys.ids.get(k)
+                    if found is None:
+                        if len(mesh_states) >= max_states:
+                            complete = False
+                            break
+                        mesh_states.append(row[j])
+                        found = keys.ids[k] = len(mesh_states)
+                    ids[j] = found
+                if not complete:
+                    break
+                successors.append(ids)
+            bar.total = len(mesh_states)
+            bar.update(len(successors) - bar.n)
+            batches += 1
+            if path is not None and (batches % checkpoint_every == 0 or not complete):
+                _save_checkpoint(path, mesh_states, successors, box_size, len(values))
+            if not complete:
+                break
+    finally:
+        bar.close()
+        pool.close()
+    if path is not None:
+        _save_checkpoint(path, mesh_states, successors, box_size, len(values))
+    return ReachableMesh(np.array(mesh_states).reshape(-1, dim),
+                         np.array(successors, dtype=np.int64).reshape(-1, len(values)), weights, box_size, mean, std,
+                         np.array(seed_ids, dtype=np.int64), complete, time.perf_counter() - start, settings)
+
+
+@dataclass
+class MonteCarloResult:
+    """Steps to failure of Monte Carlo runs on the true map, with a 95 % interval of the mean."""
+
+    steps: np.ndarray
+    censored: int
+    max_steps: int
+
+    @property
+    def mean(self) -> float:
+        """Mean steps to failure (a lower bound when runs were censored at ``max_steps``)."""
+        return float(self.steps.mean())
+
+    @property
+    def interval95(self) -> tuple[float, float]:
+        """Normal-approximation 95 % interval of the mean."""
+        half = 1.96 * self.steps.std(ddof=1) / math.sqrt(self.steps.size) if self.steps.size > 1 else float("inf")
+        return (self.mean - half, self.mean + half)
+
+    def summary(self) -> dict:
+        """JSON-ready summary."""
+        lo, hi = self.interval95
+        return {"episodes": int(self.steps.size), "mean_steps_to_failure": self.mean, "std": float(self.steps.std()),
+                "interval95": [lo, hi], "censored": self.censored, "max_steps": self.max_steps,
+                "note": (f"{self.censored} runs reached max_steps without failing: the mean is a lower bound"
+                         if self.censored else "")}
+
+
+def monte_carlo_mfpt(section_map: SectionMap, starts, disturbances, episodes: int = 1000, max_steps: int = 100_000,
+                     seed: int = 0) -> MonteCarloResult:
+    """Steps until failure on the true map, each step's disturbance drawn from ``disturbances``
+    (``sample(rng, n)``: a Gaussian model draws continuous values, a finite set draws from the set).
+
+    ``starts``: one state, or several drawn uniformly per episode. All episodes advance together
+    through ``section_map.step_many``.
+    """
+    if episodes < 2 or max_steps < 1:
+        raise ValueError(f"episodes must be >= 2 and max_steps >= 1, got {episodes} and {max_steps}")
+    rng = np.random.default_rng(seed)
+    starts = np.atleast_2d(np.asarray(starts, dtype=np.float64))
+    x = starts[rng.integers(0, starts.shape[0], size=episodes)].copy()
+    steps = np.zeros(episodes, dtype=np.int64)
+    alive = np.ones(episodes, dtype=bool)
+    for _ in range(max_steps):
+        idx = np.flatnonzero(alive)
+        if idx.size == 0:
+            break
+        nxt = np.asarray(section_map.step_many(x[idx], list(disturbances.sample(rng, idx.size))), dtype=np.float64)
+        ok = ~np.isnan(nxt).any(axis=1)
+        steps[idx[ok]] += 1
+        x[idx[ok]] = nxt[ok]
+        alive[idx[~ok]] = False
+    # a step that fails is counted as the passage into failure: first passage time = successes + 1
+    passage = steps + (~alive)
+    return MonteCarloResult(passage.astype(np.float64), int(alive.sum()), max_steps)
+
+
+def mesh_sizes(section_map: SectionMap, seeds, disturbances, box_sizes: Sequence[float], **kwargs) -> list[dict]:
+    """Mesh size (and completeness) for each box size: the reachable-mesh curve of thesis Table 5.1."""
+    out = []
+    for d in box_sizes:
+        mesh = build_mesh(section_map, seeds, disturbances, d, progress=False, **kwargs)
+        out.append({"box_size": float(d), "states": mesh.size, "complete": mesh.complete,
+                    "wall_time_s": mesh.wall_time})
+    return out

@@ -1,0 +1,109 @@
+"""Reachable-state meshes (thesis Alg. 7), Poincare maps and Monte Carlo validation (Ch. 5)."""
+
+import math
+
+import numpy as np
+import pytest
+
+from hybridctl.analysis.poincare import FiniteDisturbances, FunctionMap, GaussianDisturbance, RimlessWheel
+from hybridctl.analysis.reachable import build_mesh, mesh_sizes, monte_carlo_mfpt
+from mesh_maps import exploding_map, walk_map
+
+WHEEL = RimlessWheel()
+SLOPES = GaussianDisturbance(mean=0.15, std=0.06, count=25)
+
+
+def test_rimless_wheel_fixed_point_and_failure():
+    w = WHEEL.fixed_point(0.15)
+    assert WHEEL.step([w], 0.15)[0] == pytest.approx(w)
+    assert WHEEL.step([0.3], -0.2) is None                     # too slow for an uphill step: rolls back
+    steeper = WHEEL.step([w], 0.25)[0]
+    assert steeper > w                                          # a steeper step adds energy
+
+
+def test_gaussian_quantiles():
+    finite = GaussianDisturbance(0.0, 1.0, 4).finite_set()
+    np.testing.assert_allclose(finite.values, [-1.1503, -0.3186, 0.3186, 1.1503], atol=1e-4)
+    assert finite.weights.sum() == pytest.approx(1.0)
+
+
+def test_walk_mesh_is_the_known_chain():
+    mesh = build_mesh(FunctionMap(walk_map), seeds=[[3.0]], disturbances=[-1.0, 1.0], box_size=0.5, progress=False)
+    assert mesh.size == 5 and mesh.complete
+    T = mesh.transition_matrix()
+    assert np.allclose(T.sum(axis=1), 1.0) and T[0, 0] == 1.0
+    by_value = {float(s[0]): i + 1 for i, s in enumerate(mesh.states)}
+    assert T[by_value[1.0], 0] == 0.5 and T[by_value[5.0], by_value[5.0]] == 0.5
+    # gambler's ruin with a sticky top at 5 (t_5 = 2 + t_4): t_x - t_(x-1) = 2 (6 - x), so t_1 = 10, t_5 = 30
+    result = mesh.mfpt()
+    for x in range(1, 6):
+        assert result.mfpt[by_value[float(x)]] == pytest.approx(sum(2 * (6 - k) for k in range(1, x + 1)))
+
+
+def test_wheel_mesh_matches_monte_carlo_on_the_same_disturbances():
+    w = WHEEL.fixed_point(0.15)
+    mesh = build_mesh(WHEEL, [[w]], SLOPES, box_size=1e-3, progress=False)
+    mesh_mfpt = mesh.mfpt().mean(mesh.seed_distribution())
+    mc = monte_carlo_mfpt(WHEEL, [[w]], SLOPES.finite_set(), episodes=4000, seed=3)
+    lo, hi = mc.interval95
+    assert mc.censored == 0 and lo <= mesh_mfpt <= hi, (mesh_mfpt, mc.interval95)
+
+
+def test_more_disturbances_approach_the_continuous_distribution():
+    w = WHEEL.fixed_point(0.15)
+    continuous = monte_carlo_mfpt(WHEEL, [[w]], SLOPES, episodes=3000, seed=4)
+    coarse = build_mesh(WHEEL, [[w]], SLOPES, 2e-3, progress=False)
+    fine = build_mesh(WHEEL, [[w]], GaussianDisturbance(0.15, 0.06, 200), 2e-3, progress=False)
+    err = [abs(m.mfpt().mean(m.seed_distribution()) - continuous.mean) for m in (coarse, fine)]
+    assert err[1] < err[0] / 3            # 25 quantiles miss the tails that cause failures
+
+
+def test_box_size_controls_the_mesh_size():
+    rows = mesh_sizes(WHEEL, [[WHEEL.fixed_point(0.15)]], SLOPES, [0.1, 0.01, 0.001])
+    sizes = [r["states"] for r in rows]
+    assert sizes[0] < sizes[1] < sizes[2] and all(r["complete"] for r in rows)
+
+
+def test_processes_backend_builds_the_same_mesh():
+    args = (WHEEL, [[WHEEL.fixed_point(0.15)]], SLOPES, 1e-2)
+    serial = build_mesh(*args, progress=False)
+    parallel = build_mesh(*args, backend="processes", workers=2, batch_size=16, progress=False)
+    np.testing.assert_array_equal(serial.successors, parallel.successors)
+    np.testing.assert_array_equal(serial.states, parallel.states)
+
+
+def test_cap_marks_the_mesh_incomplete_and_resume_finishes_it(tmp_path):
+    ck = tmp_path / "mesh.npz"
+    args = (WHEEL, [[WHEEL.fixed_point(0.15)]], SLOPES, 3e-3)
+    partial = build_mesh(*args, max_states=50, checkpoint=ck, batch_size=8, progress=False)
+    assert not partial.complete and partial.size == 50 and ck.is_file()
+    with pytest.raises(ValueError, match="incomplete"):
+        partial.transition_matrix()
+    resumed = build_mesh(*args, checkpoint=ck, resume=True, batch_size=8, progress=False)
+    fresh = build_mesh(*args, batch_size=8, progress=False)
+    assert resumed.complete and resumed.size == fresh.size
+    np.testing.assert_array_equal(resumed.successors, fresh.successors)
+    with pytest.raises(ValueError, match="box_size"):
+        build_mesh(WHEEL, [[1.29]], SLOPES, 1e-2, checkpoint=ck, resume=True, progress=False)
+
+
+def test_section_map_that_raises_is_named():
+    with pytest.raises(RuntimeError, match=r"raised at state \[3.0\]"):
+        build_mesh(FunctionMap(exploding_map), [[1.0]], [-1.0, 1.0], 0.5, progress=False)
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"seeds": [[np.nan]]}, "finite"),
+    ({"box_size": 0.0}, "box_size"),
+    ({"disturbances": []}, "empty"),
+])
+def test_bad_mesh_input(kwargs, message):
+    args = {"section_map": WHEEL, "seeds": [[1.29]], "disturbances": SLOPES, "box_size": 1e-2, **kwargs}
+    with pytest.raises(ValueError, match=message):
+        build_mesh(**args, progress=False)
+
+
+def test_monte_carlo_reports_censoring():
+    mc = monte_carlo_mfpt(WHEEL, [[WHEEL.fixed_point(0.15)]], SLOPES, episodes=50, max_steps=5, seed=0)
+    assert mc.censored > 0 and "lower bound" in mc.summary()["note"] and mc.steps.max() == 5
+    assert math.isfinite(mc.interval95[0])
