@@ -1,4 +1,5 @@
-"""Drake blocks and diagrams of the switched controller (thesis Ch. 3).
+"""Drake blocks and diagrams of the switched controller (thesis Ch. 3); Poincare sections of Drake
+hybrid systems by witness functions (Ch. 5).
 
 >>> from hybridctl import systems, drake
 >>> acrobot = systems.load("acrobot")
@@ -12,11 +13,13 @@ from .controllers import (AcrobotEnergySwingup, CartpoleEnergySwingup, CostToGoG
                           PendulumEnergySwingup, energy_swingup)
 from .controllers import lqr_basin_level
 from .diagram import CONTROLLERS, HybridDiagram, build_hybrid_diagram, build_named_diagram
+from .sections import DrakeRimlessWheelMap, SectionObserver
 from .simulate import Trajectory, simulate
 
 __all__ = [
     "Gate", "HeldController", "ModeSwitch", "TorchPolicy",
     "AcrobotEnergySwingup", "CartpoleEnergySwingup", "PendulumEnergySwingup", "CostToGoGate",
     "LQRController", "energy_swingup", "lqr_basin_level", "CONTROLLERS", "HybridDiagram",
-    "build_hybrid_diagram", "build_named_diagram", "Trajectory", "simulate",
+    "build_hybrid_diagram", "build_named_diagram", "Trajectory", "simulate", "DrakeRimlessWheelMap",
+    "SectionObserver",
 ]

@@ -1,0 +1,49 @@
+"""Drake hybrid systems as Poincare maps: the RimlessWheel apex map by a witness on an observer."""
+
+import pickle
+
+import numpy as np
+import pytest
+
+from hybridctl.analysis import GaussianDisturbance, RimlessWheel, build_mesh
+from hybridctl.drake import DrakeRimlessWheelMap
+
+
+def test_drake_wheel_matches_the_analytic_map():
+    rng = np.random.default_rng(0)
+    w, slopes = rng.uniform(0.3, 2.5, 12), rng.normal(0.15, 0.06, 12)
+    analytic = RimlessWheel().step_many(w[:, None], slopes)
+    drake = DrakeRimlessWheelMap(max_step=1e-3).step_many(w[:, None], list(slopes))
+    np.testing.assert_array_equal(np.isnan(drake), np.isnan(analytic))
+    np.testing.assert_allclose(drake[~np.isnan(drake)], analytic[~np.isnan(analytic)], atol=1e-7)
+
+
+def test_failure_when_the_wheel_rolls_back():
+    wheel = DrakeRimlessWheelMap()
+    assert wheel.step([0.3], -0.2) is None and RimlessWheel().step([0.3], -0.2) is None
+    assert wheel.step([-1.0], 0.1) is None
+
+
+def test_pickles_without_drake_objects_and_rebuilds():
+    wheel = DrakeRimlessWheelMap()
+    first = wheel.step([1.29], 0.15)
+    clone = pickle.loads(pickle.dumps(wheel))
+    assert clone._parts is None
+    np.testing.assert_array_equal(clone.step([1.29], 0.15), first)
+
+
+def test_drake_mesh_in_worker_processes_equals_the_analytic_mesh():
+    """A coarse mesh built from Drake simulations in 2 processes has the analytic mesh's chain."""
+    slopes = GaussianDisturbance(0.15, 0.06, 7)
+    seed = [[RimlessWheel().fixed_point(0.15)]]
+    analytic = build_mesh(RimlessWheel(), seed, slopes, 0.05, progress=False)
+    drake = build_mesh(DrakeRimlessWheelMap(), seed, slopes, 0.05, backend="processes", workers=2, batch_size=4,
+                       progress=False)
+    np.testing.assert_array_equal(drake.successors, analytic.successors)
+    assert drake.mfpt().mean(drake.seed_distribution()) == pytest.approx(
+        analytic.mfpt().mean(analytic.seed_distribution()), rel=1e-9)
+
+
+def test_spokes_must_be_whole():
+    with pytest.raises(ValueError, match="spokes"):
+        DrakeRimlessWheelMap(half_angle=0.4)
