@@ -14,3 +14,9 @@ def exploding_map(state, step):
     if state[0] == 3.0:
         raise FloatingPointError("simulator blew up")
     return walk_map(state, step)
+
+
+def contracting_plane_map(state, push):
+    """A 2-D contraction with a push on x; fails outside the unit box."""
+    x = np.array([0.8 * state[0] + push, 0.5 * state[1] + 0.3 * state[0]])
+    return None if np.any(np.abs(x) > 1) else x

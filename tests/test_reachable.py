@@ -7,7 +7,7 @@ import pytest
 
 from hybridctl.analysis.poincare import FiniteDisturbances, FunctionMap, GaussianDisturbance, RimlessWheel
 from hybridctl.analysis.reachable import build_mesh, mesh_sizes, monte_carlo_mfpt
-from mesh_maps import exploding_map, walk_map
+from mesh_maps import contracting_plane_map as lambda_free_map, exploding_map, walk_map
 
 WHEEL = RimlessWheel()
 SLOPES = GaussianDisturbance(mean=0.15, std=0.06, count=25)
@@ -107,3 +107,40 @@ def test_monte_carlo_reports_censoring():
     mc = monte_carlo_mfpt(WHEEL, [[WHEEL.fixed_point(0.15)]], SLOPES, episodes=50, max_steps=5, seed=0)
     assert mc.censored > 0 and "lower bound" in mc.summary()["note"] and mc.steps.max() == 5
     assert math.isfinite(mc.interval95[0])
+
+
+def test_cumulative_mass_and_failure_states():
+    from hybridctl.analysis import cumulative_transition_mass, failure_states
+    T = np.array([[1.0, 0, 0, 0], [0.0, 0.5, 0.5, 0], [0.0, 0.5, 0.5, 0], [0.2, 0.8, 0, 0]])
+    x, y = cumulative_transition_mass(T)
+    np.testing.assert_allclose(x, [1 / 3, 2 / 3, 1.0])
+    np.testing.assert_allclose(y, [1.8 / 2.8, 2.8 / 2.8, 1.0])
+    mesh = build_mesh(WHEEL, [[WHEEL.fixed_point(0.15)]], SLOPES, 1e-2, progress=False)
+    red = failure_states(mesh, share=1.0)
+    assert set(red) == set(np.flatnonzero(mesh.failure_probability() > 0))
+    assert len(failure_states(mesh, share=0.5)) < len(red)
+
+
+def test_reachable_dimension_of_the_wheel_is_one():
+    from hybridctl.analysis import reachable_dimension
+    rows = mesh_sizes(WHEEL, [[WHEEL.fixed_point(0.15)]], SLOPES, [0.1, 0.03, 0.01, 0.003, 0.001])
+    assert reachable_dimension(rows) == pytest.approx(1.0, abs=0.05)
+    with pytest.raises(ValueError, match="at least 2"):
+        reachable_dimension(rows[:1])
+
+
+def test_mesh_views_write_pngs(tmp_path):
+    from hybridctl import viz
+    mesh = build_mesh(WHEEL, [[WHEEL.fixed_point(0.15)]], SLOPES, 1e-2, progress=False)
+    T = mesh.transition_matrix()
+    rows = mesh_sizes(WHEEL, [[WHEEL.fixed_point(0.15)]], SLOPES, [0.1, 0.01])
+    for name, call in {"sparsity": lambda p: viz.plot_transition_sparsity(T, path=p),
+                       "mass": lambda p: viz.plot_cumulative_mass(T, path=p),
+                       "states": lambda p: viz.plot_mesh_states(mesh, path=p),
+                       "sizes": lambda p: viz.plot_mesh_sizes(rows, path=p)}.items():
+        call(tmp_path / f"{name}.png")
+        assert (tmp_path / f"{name}.png").stat().st_size > 5000, name
+    # a 2-D map uses principal components
+    two_d = build_mesh(FunctionMap(lambda_free_map), [[0.5, 0.5]], [-0.1, 0.0, 0.1], 0.05, progress=False)
+    viz.plot_mesh_states(two_d, path=tmp_path / "pca.png")
+    assert (tmp_path / "pca.png").stat().st_size > 5000

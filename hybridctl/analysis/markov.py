@@ -218,3 +218,15 @@ def absorbing_mfpt(T, failure: int = 0, method: str = "krylov", rtol: float = 1e
     else:
         mfpt[idx], result.solver = _krylov_solve(A, b, rtol)
     return result
+
+
+def cumulative_transition_mass(T, failure: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Thesis Fig. 5.5: column sums of ``T`` without the failure state, sorted descending and
+    accumulated. Returns (fraction of states, fraction of transition mass); a point (x, y) says
+    that a fraction x of the states receives a fraction y of all transitions."""
+    T = sp.csr_matrix(T)
+    mass = np.asarray(T.sum(axis=0)).ravel()
+    mass = np.sort(np.delete(mass, failure))[::-1]
+    if mass.size == 0 or mass.sum() <= 0:
+        raise ValueError("no transitions between non-failure states")
+    return np.arange(1, mass.size + 1) / mass.size, np.cumsum(mass) / mass.sum()

@@ -173,7 +173,8 @@ def build_mesh(section_map: SectionMap, seeds, disturbances, box_size: float, me
     if np.any(std <= 0):
         raise ValueError(f"std must be > 0 in every coordinate, got {std}")
     keys = _Keys(box_size, mean, std)
-    settings = {"box_size": box_size, "disturbances": len(values), "max_states": max_states}
+    settings = {"box_size": box_size, "disturbances": len(values), "max_states": max_states,
+                "state_names": list(getattr(section_map, "state_names", ()) or [])}
     path = Path(checkpoint) if checkpoint is not None else None
 
     mesh_states: list[np.ndarray] = []
@@ -306,3 +307,36 @@ def mesh_sizes(section_map: SectionMap, seeds, disturbances, box_sizes: Sequence
         out.append({"box_size": float(d), "states": mesh.size, "complete": mesh.complete,
                     "wall_time_s": mesh.wall_time})
     return out
+
+
+def reachable_dimension(rows: list[dict]) -> float:
+    """Dimension of the reachable set: least-squares slope of -log(mesh size) over log(box size)
+    for the complete meshes of :func:`mesh_sizes` (thesis Table 5.2)."""
+    done = [r for r in rows if r["complete"] and r["states"] > 0]
+    if len(done) < 2:
+        raise ValueError(f"need at least 2 complete meshes of different box sizes, got {len(done)}")
+    d = np.log([r["box_size"] for r in done])
+    m = np.log([r["states"] for r in done])
+    return float(np.polyfit(d, -m, 1)[0])
+
+
+def failure_states(mesh: ReachableMesh, share: float = 0.99, start=None) -> np.ndarray:
+    """Mesh rows (0-based) of the fewest states that account for ``share`` of all failures
+    (thesis Fig. 5.6, red). Failures are weighted by each state's one-step failure probability
+    times its expected visits before failure from ``start`` (default: the seeds)."""
+    if not 0 < share <= 1:
+        raise ValueError(f"share must be in (0, 1], got {share!r}")
+    T = mesh.transition_matrix()
+    p0 = mesh.seed_distribution() if start is None else np.asarray(start, dtype=np.float64)
+    idx = np.arange(1, mesh.size + 1)
+    Q = T[idx][:, idx].tocsr()
+    A = (sp.identity(mesh.size, format="csr") - Q).T.tocsc()
+    import scipy.sparse.linalg as spla
+    visits, _ = spla.bicgstab(A, p0[1:], rtol=1e-10, atol=0.0, maxiter=5000)
+    weight = np.maximum(visits, 0) * mesh.failure_probability()
+    if weight.sum() <= 0:
+        return np.zeros(0, dtype=np.int64)
+    order = np.argsort(-weight)
+    cum = np.cumsum(weight[order]) / weight.sum()
+    count = min(int(np.searchsorted(cum, share * (1 - 1e-12)) + 1), int(np.count_nonzero(weight > 0)))
+    return np.sort(order[:count])

@@ -1,4 +1,4 @@
-"""Viewing: meshcat (live and HTML replays) and matplotlib plots.
+"""Viewing: meshcat (live and HTML replays), matplotlib plots, views of reachable meshes.
 
 >>> from hybridctl import viz
 >>> html = viz.replay_html(system, times, states, path="replay.html")
@@ -6,6 +6,8 @@
 """
 
 from .meshcat import add_meshcat, replay_html, start_meshcat
+from .markov import plot_cumulative_mass, plot_mesh_sizes, plot_mesh_states, plot_transition_sparsity
 from .plots import plot_balance_map, plot_trajectory
 
-__all__ = ["start_meshcat", "add_meshcat", "replay_html", "plot_trajectory", "plot_balance_map"]
+__all__ = ["start_meshcat", "add_meshcat", "replay_html", "plot_trajectory", "plot_balance_map",
+           "plot_transition_sparsity", "plot_cumulative_mass", "plot_mesh_states", "plot_mesh_sizes"]

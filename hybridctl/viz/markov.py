@@ -1,0 +1,103 @@
+"""Views of reachable-state meshes and their Markov chains (thesis Figs. 5.4-5.6, Tables 5.1-5.2).
+
+>>> viz.plot_transition_sparsity(mesh.transition_matrix(), path="sparsity.png")     # Fig. 5.4
+>>> viz.plot_cumulative_mass(mesh.transition_matrix(), path="mass.png")             # Fig. 5.5
+>>> viz.plot_mesh_states(mesh, path="states.png")                                   # Fig. 5.6
+>>> viz.plot_mesh_sizes(mesh_sizes(...), path="sizes.png")                          # Table 5.1/5.2
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+
+def _figure(ax, size=(5, 4)):
+    import matplotlib.pyplot as plt
+
+    if ax is not None:
+        return ax.figure, ax, False
+    fig, ax = plt.subplots(figsize=size, constrained_layout=True)
+    return fig, ax, True
+
+
+def _finish(fig, own: bool, path):
+    import matplotlib.pyplot as plt
+
+    if path is not None:
+        fig.savefig(path, dpi=120)
+    if own:
+        plt.close(fig)
+    return fig
+
+
+def plot_transition_sparsity(T, ax=None, path=None, max_points: int = 2_000_000):
+    """Every non-zero T[i, j] as an equal dot (Fig. 5.4); a random subset above ``max_points``."""
+    T = sp.coo_matrix(T)
+    fig, ax, own = _figure(ax)
+    rows, cols = T.row, T.col
+    if rows.size > max_points:
+        keep = np.random.default_rng(0).choice(rows.size, max_points, replace=False)
+        rows, cols = rows[keep], cols[keep]
+    ax.scatter(cols, rows, s=max(0.05, min(4.0, 2e4 / max(rows.size, 1))), c="k", marker=".", linewidths=0)
+    ax.set(xlim=(-0.5, T.shape[1] - 0.5), ylim=(T.shape[0] - 0.5, -0.5), xlabel="next state j", ylabel="state i",
+           title=f"transition matrix: {T.shape[0]} states, {T.nnz} non-zeros")
+    return _finish(fig, own, path)
+
+
+def plot_cumulative_mass(T, failure: int = 0, ax=None, path=None, label=None):
+    """Fraction of states against the fraction of transitions they receive (Fig. 5.5)."""
+    from ..analysis.markov import cumulative_transition_mass
+
+    x, y = cumulative_transition_mass(T, failure)
+    fig, ax, own = _figure(ax)
+    at20 = float(np.interp(0.2, x, y))
+    ax.plot(100 * x, 100 * y, label=label or f"20 % of states receive {100 * at20:.0f} % of transitions")
+    ax.set(xlabel="% of mesh states (most visited first)", ylabel="% of transition mass", xlim=(0, 100), ylim=(0, 101))
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="lower right")
+    return _finish(fig, own, path)
+
+
+def plot_mesh_states(mesh, highlight=None, ax=None, path=None, share: float = 0.99):
+    """Mesh states, the ones behind ``share`` of all failures in red (Fig. 5.6).
+
+    States of two or more dimensions are projected on their first two principal components;
+    one-dimensional states are drawn against their one-step failure probability.
+    """
+    from ..analysis.reachable import failure_states
+
+    red = failure_states(mesh, share) if highlight is None else np.asarray(highlight, dtype=np.int64)
+    fig, ax, own = _figure(ax)
+    x = mesh.states
+    mask = np.zeros(mesh.size, dtype=bool)
+    mask[red] = True
+    if x.shape[1] == 1:
+        xs, ys = x[:, 0], mesh.failure_probability()
+        ax.set(xlabel=(mesh.settings.get("state_names") or ["state"])[0], ylabel="one-step failure probability")
+    else:
+        centred = x - x.mean(axis=0)
+        _, sv, vt = np.linalg.svd(centred / np.where(x.std(axis=0) > 0, x.std(axis=0), 1.0), full_matrices=False)
+        proj = centred / np.where(x.std(axis=0) > 0, x.std(axis=0), 1.0) @ vt[:2].T
+        xs, ys = proj[:, 0], proj[:, 1]
+        explained = (sv[:2] ** 2).sum() / (sv ** 2).sum()
+        ax.set(xlabel="PC 1", ylabel="PC 2", title=f"mesh states on 2 principal components ({explained:.0%} of variance)")
+    ax.scatter(xs[~mask], ys[~mask], s=4, c="tab:blue", label="mesh states")
+    ax.scatter(xs[mask], ys[mask], s=6, c="tab:red", label=f"{mask.sum()} states with {share:.0%} of failures")
+    ax.legend(fontsize=8)
+    return _finish(fig, own, path)
+
+
+def plot_mesh_sizes(rows: list[dict], ax=None, path=None, label=None):
+    """Mesh size against box size (log-log), with the reachable-set dimension (Tables 5.1-5.2)."""
+    from ..analysis.reachable import reachable_dimension
+
+    fig, ax, own = _figure(ax)
+    d = np.array([r["box_size"] for r in rows])
+    m = np.array([r["states"] for r in rows])
+    dim = reachable_dimension(rows)
+    ax.loglog(d, m, "o-", label=label or f"dimension {dim:.2f}")
+    ax.set(xlabel="box size d", ylabel="mesh states")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+    return _finish(fig, own, path)
