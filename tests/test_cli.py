@@ -93,3 +93,36 @@ def test_train_ars_resume_and_init(tmp_path):
 def test_train_ars_bad_arguments(args, message, tmp_path):
     proc = run(*args, "--out", str(tmp_path / "x"), "--quiet", check=False)
     assert proc.returncode != 0 and message in proc.stderr, proc.stderr
+
+
+def test_mesh_writes_matrix_report_and_figures(tmp_path):
+    import scipy.sparse as sp
+    out = tmp_path / "mesh"
+    proc = run("mesh", "rimless-wheel", "--box-size", "0.01", "--monte-carlo", "500", "--sizes", "0.1",
+               "--out", str(out), "--quiet")
+    assert "MFPT from the seed" in proc.stdout
+    report = json.loads((out / "mfpt.json").read_text())
+    T = sp.load_npz(out / "transition_matrix.npz")
+    assert T.shape[0] == report["mesh"]["states"] + 1 and np.allclose(T.sum(axis=1), 1.0)
+    assert report["mfpt"]["from_seed"] > 1 and report["mfpt"]["infinite_states"] == 0
+    mc = report["monte_carlo"]["mesh_disturbance_set"]
+    assert mc["interval95"][0] < mc["mean_steps_to_failure"] < mc["interval95"][1]
+    assert 0.5 < report["reachable_dimension"] < 1.5
+    for name in ("sparsity.png", "cumulative_mass.png", "states.png", "mesh_sizes.png"):
+        assert (out / name).stat().st_size > 5000, name
+
+
+@pytest.mark.parametrize("args, message", [
+    (["mesh", "rimless-wheel", "--slope-mean", "-0.5"], "no rolling gait"),
+    (["mesh", "rimless-wheel", "--box-size", "0"], "must be > 0"),
+    (["mesh", "hopper"], "invalid choice"),
+])
+def test_mesh_bad_arguments(args, message, tmp_path):
+    proc = run(*args, "--out", str(tmp_path / "m"), "--quiet", check=False)
+    assert proc.returncode != 0 and message in proc.stderr, proc.stderr
+
+
+def test_mesh_cap_reports_incomplete(tmp_path):
+    proc = run("mesh", "rimless-wheel", "--max-states", "20", "--out", str(tmp_path / "m"), "--quiet", check=False)
+    assert proc.returncode == 2 and "incomplete" in proc.stdout
+    assert "incomplete" in json.loads((tmp_path / "m" / "mfpt.json").read_text())["error"]

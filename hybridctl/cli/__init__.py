@@ -4,6 +4,7 @@
     hybridctl simulate acrobot --controller energy --x0 -1.5698,0,0,0 --duration 15 --out runs/sim
     hybridctl balance-map acrobot --controller energy --grid 41 --duration 15 --out runs/map
     hybridctl train ssac acrobot --seed 0 --out runs/ssac-acrobot-s0 [--resume] [--set polyak=0.9]
+    hybridctl mesh rimless-wheel --box-size 1e-3 --monte-carlo 2000 --out runs/mesh
     hybridctl demo --out runs/demo
 """
 
@@ -11,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -278,6 +280,72 @@ def _train_ars(args) -> int:
     return 0
 
 
+MESH_MAPS = {"rimless-wheel": "analytic rimless wheel on rough terrain (Byl & Tedrake 2009)",
+             "drake-rimless-wheel": "Drake's RimlessWheel, apex found by a witness function"}
+
+
+def cmd_mesh(args) -> int:
+    """`hybridctl mesh MAP ...`: reachable-state mesh, transition matrix, MFPT report, Monte Carlo, figures."""
+    import scipy.sparse as sp
+
+    from ..analysis import (GaussianDisturbance, RimlessWheel, build_mesh, mesh_sizes, monte_carlo_mfpt,
+                            reachable_dimension)
+    from ..learn.checkpoint import write_json
+    from .. import viz
+
+    if args.map == "rimless-wheel":
+        section_map = RimlessWheel()
+    else:
+        from ..drake import DrakeRimlessWheelMap
+        section_map = DrakeRimlessWheelMap()
+    try:
+        slopes = GaussianDisturbance(args.slope_mean, args.slope_std, args.disturbances)
+    except ValueError as exc:
+        raise SystemExit(f"error: {exc}")
+    seed = RimlessWheel().fixed_point(args.slope_mean)
+    if not math.isfinite(seed):
+        raise SystemExit(f"error: --slope-mean {args.slope_mean} has no rolling gait to seed the mesh from")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    mesh = build_mesh(section_map, [[seed]], slopes, args.box_size, max_states=args.max_states,
+                      backend=args.backend, workers=args.workers, checkpoint=out / "mesh_checkpoint.npz",
+                      resume=args.resume, progress=not args.quiet)
+    report = {"command": args.command_line, "map": args.map, "seed_state": [seed], "mesh": mesh.summary(),
+              "disturbance": {"slope_mean": args.slope_mean, "slope_std": args.slope_std, "count": args.disturbances}}
+    if not mesh.complete:
+        report["error"] = f"mesh incomplete at --max-states {args.max_states}: no transition matrix"
+        write_json(out / "mfpt.json", report)
+        print(report["error"])
+        return 2
+    T = mesh.transition_matrix()
+    sp.save_npz(out / "transition_matrix.npz", T)
+    result = mesh.mfpt()
+    report["mfpt"] = {**result.report(), "from_seed": result.mean(mesh.seed_distribution())}
+    if args.monte_carlo:
+        mc = monte_carlo_mfpt(section_map, [[seed]], slopes, episodes=args.monte_carlo, seed=0)
+        same = monte_carlo_mfpt(section_map, [[seed]], slopes.finite_set(), episodes=args.monte_carlo, seed=0)
+        report["monte_carlo"] = {"continuous_disturbance": mc.summary(), "mesh_disturbance_set": same.summary()}
+    viz.plot_transition_sparsity(T, path=out / "sparsity.png")
+    viz.plot_cumulative_mass(T, path=out / "cumulative_mass.png")
+    viz.plot_mesh_states(mesh, path=out / "states.png")
+    if args.sizes:
+        rows = mesh_sizes(section_map, [[seed]], slopes, sorted(set(args.sizes) | {args.box_size}),
+                          max_states=args.max_states)
+        report["mesh_sizes"] = rows
+        if sum(r["complete"] for r in rows) >= 2:
+            report["reachable_dimension"] = reachable_dimension(rows)
+            viz.plot_mesh_sizes(rows, path=out / "mesh_sizes.png")
+    write_json(out / "mfpt.json", report)
+    line = f"{mesh.size} states; MFPT from the seed {report['mfpt']['from_seed']:.1f} steps, eigen estimate " \
+           f"{report['mfpt']['eigen_estimate']:.1f}"
+    if args.monte_carlo:
+        lo, hi = report["monte_carlo"]["mesh_disturbance_set"]["interval95"]
+        line += f"; Monte Carlo (same disturbances) {report['monte_carlo']['mesh_disturbance_set']['mean_steps_to_failure']:.1f} [{lo:.1f}, {hi:.1f}]"
+    print(line)
+    print(f"wrote {out}/mfpt.json, transition_matrix.npz and figures")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``hybridctl`` command."""
     from ..drake.diagram import CONTROLLERS
@@ -333,6 +401,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--eval-episodes", type=_positive(int), help="episodes in eval.json (default 100; ars 5)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_train)
+
+    p = sub.add_parser("mesh", help="reachable-state mesh and mean first passage time (thesis Ch. 5)")
+    p.add_argument("map", choices=sorted(MESH_MAPS), help="; ".join(f"{k}: {v}" for k, v in MESH_MAPS.items()))
+    p.add_argument("--box-size", type=_positive(float), default=1e-3, help="box side (default 1e-3)")
+    p.add_argument("--slope-mean", type=float, default=0.15, help="mean terrain slope, rad (default 0.15)")
+    p.add_argument("--slope-std", type=_positive(float), default=0.06, help="slope std, rad (default 0.06)")
+    p.add_argument("--disturbances", type=_positive(int), default=25, help="slope quantiles in the mesh (default 25)")
+    p.add_argument("--max-states", type=_positive(int), default=1_000_000, help="cap on mesh states")
+    p.add_argument("--monte-carlo", type=int, default=0, metavar="EPISODES",
+                   help="also estimate the MFPT by Monte Carlo on the true map")
+    p.add_argument("--sizes", type=_positive(float), nargs="*", help="also mesh at these box sizes (Table 5.1)")
+    p.add_argument("--backend", choices=["serial", "processes", "ray"], default="serial")
+    p.add_argument("--workers", type=_positive(int))
+    p.add_argument("--resume", action="store_true", help="continue from out/mesh_checkpoint.npz")
+    p.add_argument("--out", default="runs/mesh", help="output folder")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_mesh)
 
     p = sub.add_parser("demo", help="what `make demo` runs")
     p.add_argument("--out", default="runs/demo")
