@@ -34,6 +34,9 @@ EXPECTED_LINES = {
         "swing-up block: TorchPolicy held for 0.2 s",
         "balanced: True",              # the pretrained SSAC from hanging down, in Drake
     ],
+    "04_reachable_mesh_mfpt.ipynb": [
+        "finest mesh inside the Monte Carlo 95 % interval: True",   # mesh MFPT vs the true map
+    ],
     "03_trajectory_dimension.ipynb": [
         "same curve: True",            # vectorised box count equals the thesis' dict of tuples
     ],
