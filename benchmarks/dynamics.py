@@ -13,10 +13,6 @@ from __future__ import annotations
 
 import argparse
 import datetime as _dt
-import importlib.metadata
-import json
-import os
-import platform
 import statistics
 import sys
 import time
@@ -24,10 +20,12 @@ from pathlib import Path
 
 # Benchmark this checkout, whether or not the package is installed.
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
+from common import emit, machine_info  # noqa: E402
 from hybridctl import systems  # noqa: E402
 
 ACROBOT_BATCHES = (1, 64, 4096)
@@ -40,33 +38,6 @@ def _settings(quick: bool) -> dict:
     """Repeats and seconds per repeat: --quick is for tests (whole run well under 20 s)."""
     return {"repeats": 3, "seconds_per_repeat": 0.02, "gym_steps": 2000} if quick else \
         {"repeats": 7, "seconds_per_repeat": 0.25, "gym_steps": 20000}
-
-
-def _version(dist: str) -> str | None:
-    try:
-        return importlib.metadata.version(dist)
-    except importlib.metadata.PackageNotFoundError:
-        return None
-
-
-def machine_info() -> dict:
-    """Where the numbers come from: platform, cores, load, library versions, torch threads."""
-    info = {
-        "platform": platform.platform(),
-        "machine": platform.machine(),
-        "processor": platform.processor() or None,
-        "python": platform.python_version(),
-        "cpu_count": os.cpu_count(),
-        "cpus_available": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
-        "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
-        "numpy": np.__version__,
-        "torch": torch.__version__,
-        "torch_threads": torch.get_num_threads(),
-        "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(),
-        "drake": _version("drake"),
-        "gymnasium": _version("gymnasium"),
-    }
-    return info
 
 
 def time_calls(fn, seconds: float, repeats: int) -> dict:
@@ -212,12 +183,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if args.threads < 1:
         parser.error("--threads must be >= 1")
-    report = run(quick=args.quick, threads=args.threads)
-    text = json.dumps(report, indent=2, allow_nan=False)
-    print(text)
-    if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text + "\n")
+    emit(run(quick=args.quick, threads=args.threads), args.out)
     return 0
 
 

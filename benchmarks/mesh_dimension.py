@@ -16,7 +16,6 @@ checked), their ratio, the number of meshes on the curve and the dimensions foun
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 import time
@@ -28,7 +27,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import numpy as np  # noqa: E402
 
-from dynamics import machine_info  # noqa: E402  (same machine record as make bench's other script)
+from common import emit, machine_info  # noqa: E402
 from hybridctl.analysis import mesh_dimension  # noqa: E402
 
 DIMS = 17
@@ -95,11 +94,7 @@ def main(argv=None) -> int:
     parser.add_argument("--quick", action="store_true", help="1e4 states only, fewer repeats (for tests)")
     parser.add_argument("--out", type=Path, help="also write the JSON to this file")
     args = parser.parse_args(argv)
-    text = json.dumps(run(args.quick), indent=2, allow_nan=False)
-    print(text)
-    if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text + "\n")
+    emit(run(args.quick), args.out)
     return 0
 
 

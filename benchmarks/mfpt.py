@@ -16,7 +16,6 @@ the others where both ran (max relative difference).
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 import time
@@ -30,7 +29,7 @@ import numpy as np  # noqa: E402
 import scipy.sparse as sp  # noqa: E402
 import scipy.sparse.linalg as spla  # noqa: E402
 
-from dynamics import machine_info  # noqa: E402
+from common import emit, machine_info  # noqa: E402
 from hybridctl.analysis.markov import absorbing_mfpt  # noqa: E402
 
 DISTURBANCES = 25
@@ -109,11 +108,7 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, help="also write the JSON to this file")
     parser.add_argument("--spsolve-max", type=int, default=20_000, help="largest chain given to spsolve")
     args = parser.parse_args(argv)
-    text = json.dumps(run(args.quick, args.spsolve_max), indent=2, allow_nan=False)
-    print(text)
-    if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text + "\n")
+    emit(run(args.quick, args.spsolve_max), args.out)
     return 0
 
 

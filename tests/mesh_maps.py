@@ -1,4 +1,7 @@
-"""Picklable section maps for the reachable-mesh tests (importable by spawned workers)."""
+"""Picklable functions for tests that run in spawned workers (numpy only, so workers start fast)."""
+
+import os
+from pathlib import Path
 
 import numpy as np
 
@@ -20,3 +23,11 @@ def contracting_plane_map(state, push):
     """A 2-D contraction with a push on x; fails outside the unit box."""
     x = np.array([0.8 * state[0] + push, 0.5 * state[1] + 0.3 * state[0]])
     return None if np.any(np.abs(x) > 1) else x
+
+
+def die_once(marker: str) -> int:
+    """Kill this worker the first time (a crashed simulator); succeed afterwards."""
+    if not Path(marker).exists():
+        Path(marker).write_text("died")
+        os._exit(1)
+    return 7

@@ -1,7 +1,6 @@
 """ARS V2-t (thesis Ch. 4): learning, backends, determinism, checkpoints, post-processing, robustness."""
 
 import os
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,6 +9,7 @@ from hybridctl import parallel as rollouts
 from hybridctl.learn.ars import ARS, ARSConfig
 from hybridctl.learn.checkpoint import CheckpointError
 from hybridctl.learn.robustness import failure_rates, wilson_interval
+from mesh_maps import die_once
 from toy_envs import goal_seeking_policy, point_reach, point_reach_nan
 
 SMALL = dict(n_directions=8, top_directions=4, step_size=0.05, noise=0.05, backend="serial", checkpoint_every=2)
@@ -101,18 +101,10 @@ def test_bad_settings_name_the_field(field, value):
         ARSConfig(**{field: value}).validate()
 
 
-def _die_once(marker: str) -> int:
-    """Kill this worker the first time (a crashed simulator); succeed afterwards."""
-    if not Path(marker).exists():
-        Path(marker).write_text("died")
-        os._exit(1)
-    return 7
-
-
 def test_process_backend_survives_a_dead_worker(tmp_path):
     marker = str(tmp_path / "marker")
     with rollouts.ProcessBackend(workers=2) as backend:
-        assert backend.map(_die_once, [marker] * 4) == [7, 7, 7, 7]
+        assert backend.map(die_once, [marker] * 4) == [7, 7, 7, 7]
 
 
 def test_failure_rates_grow_with_noise():
