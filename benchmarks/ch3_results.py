@@ -2,13 +2,18 @@
 
     .venv/bin/python benchmarks/ch3_results.py --runs runs/train --out notebooks/data/ch3 \
         --balance-map ssac-acrobot-s0 ssac-acrobot-s1 --grid 41
+    .venv/bin/python benchmarks/ch3_results.py --import-balance-map ssac-acrobot-s0=runs/balance_map/ssac-acrobot-s0
 
 For every ``hybridctl train`` run folder under ``--runs`` (one with ``eval.json``):
 the command, algorithm, system, seed, env steps, training wall time, the
 deterministic evaluation and the training curve (from ``progress.csv``). With
 ``--balance-map RUN ...`` it also simulates those runs' final checkpoints in the
 Drake diagram over a ``--grid`` x ``--grid`` grid of rest states (thesis Fig. 3.6)
-and stores ``balance_map_RUN.json`` / ``.png`` next to the record.
+and stores ``balance_map_RUN.json`` / ``.png`` next to the record; ``--import-balance-map
+NAME=FOLDER`` takes one that ``hybridctl balance-map`` already wrote.
+
+Runs already in the record whose folders are gone (trained in an earlier session) are
+kept; a run folder present under ``--runs`` replaces its record.
 """
 
 from __future__ import annotations
@@ -76,16 +81,33 @@ def main(argv=None) -> int:
     parser.add_argument("--balance-map", nargs="*", default=[], metavar="RUN")
     parser.add_argument("--grid", type=int, default=41)
     parser.add_argument("--workers", type=int)
+    parser.add_argument("--import-balance-map", nargs="*", default=[], metavar="NAME=FOLDER",
+                        help="record a balance map written by `hybridctl balance-map --out FOLDER`")
     args = parser.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     folders = sorted(p.parent for p in Path(args.runs).glob("*/eval.json"))
-    runs = [read_run(f) for f in folders]
-    record = {"machine": machine(), "collected": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
-              "summary": summarize(runs), "runs": runs, "balance_maps": {}}
+    fresh = [read_run(f) for f in folders]
     old = out / "results.json"
-    if old.is_file():  # keep balance maps computed earlier
-        record["balance_maps"] = json.loads(old.read_text()).get("balance_maps", {})
+    previous = json.loads(old.read_text()) if old.is_file() else {}
+    names = {r["run"] for r in fresh}
+    kept = [r for r in previous.get("runs", []) if r["run"] not in names]
+    runs = sorted(kept + fresh, key=lambda r: (r["algorithm"], r["system"], r["seed"]))
+    record = {"machine": machine(), "collected": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+              "summary": summarize(runs), "runs": runs, "balance_maps": previous.get("balance_maps", {})}
+    for spec in args.import_balance_map:
+        name, sep, folder = spec.partition("=")
+        if not sep:
+            parser.error(f"--import-balance-map expects NAME=FOLDER, got {spec!r}")
+        data = json.loads((Path(folder) / "balance_map.json").read_text())
+        target = out / f"balance_map_{name}"
+        target.mkdir(parents=True, exist_ok=True)
+        for file in ("balance_map.json", "balance_map.png"):
+            (target / file).write_bytes((Path(folder) / file).read_bytes())
+        record["balance_maps"][name] = {"grid": data["grid"][0], "balanced_fraction": data["balanced_fraction"],
+                                        "balanced_count": data["balanced_count"], "wall_time_s": data["wall_time_s"],
+                                        "controller": data["controller"], "folder": target.name}
+        print(f"{name}: {data['balanced_fraction']:.4f} balanced ({data['balanced_count']}/{data['grid'][0] ** 2})")
     from hybridctl.analysis import balance_map
 
     for name in args.balance_map:
