@@ -47,3 +47,22 @@ def test_drake_mesh_in_worker_processes_equals_the_analytic_mesh():
 def test_spokes_must_be_whole():
     with pytest.raises(ValueError, match="spokes"):
         DrakeRimlessWheelMap(half_angle=0.4)
+
+
+def test_compass_gait_has_a_passive_gait_and_falls_uphill():
+    from hybridctl.drake import DrakeCompassGaitMap
+    walker = DrakeCompassGaitMap()
+    gait = walker.gait(steps=40)
+    np.testing.assert_allclose(gait, [-0.0927, 0.4239, -1.9771], atol=2e-3)
+    np.testing.assert_allclose(walker.step(gait, 0.0525), gait, atol=1e-5)     # a fixed point of the map
+    assert walker.step(gait, -0.3) is None                                      # a steep uphill step: falls back
+    clone = pickle.loads(pickle.dumps(walker))
+    np.testing.assert_array_equal(clone.step(gait, 0.06), walker.step(gait, 0.06))
+
+
+def test_map_is_a_pure_function_of_state_and_slope():
+    """Whatever ran before in a process, the same (state, slope) gives bit-identical results."""
+    used = DrakeRimlessWheelMap()
+    for w, g in ((2.0, 0.3), (0.5, 0.0), (1.1, 0.2)):
+        used.step([w], g)
+    np.testing.assert_array_equal(used.step([1.29], 0.1), DrakeRimlessWheelMap().step([1.29], 0.1))

@@ -13,7 +13,7 @@ from .controllers import (AcrobotEnergySwingup, CartpoleEnergySwingup, CostToGoG
                           PendulumEnergySwingup, energy_swingup)
 from .controllers import lqr_basin_level
 from .diagram import CONTROLLERS, HybridDiagram, build_hybrid_diagram, build_named_diagram
-from .sections import DrakeRimlessWheelMap, SectionObserver
+from .sections import DrakeCompassGaitMap, DrakeRimlessWheelMap, SectionObserver
 from .simulate import Trajectory, simulate
 
 __all__ = [
@@ -21,5 +21,5 @@ __all__ = [
     "AcrobotEnergySwingup", "CartpoleEnergySwingup", "PendulumEnergySwingup", "CostToGoGate",
     "LQRController", "energy_swingup", "lqr_basin_level", "CONTROLLERS", "HybridDiagram",
     "build_hybrid_diagram", "build_named_diagram", "Trajectory", "simulate", "DrakeRimlessWheelMap",
-    "SectionObserver",
+    "DrakeCompassGaitMap", "SectionObserver",
 ]
