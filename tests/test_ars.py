@@ -67,6 +67,26 @@ def test_resume_continues_exactly(tmp_path):
     np.testing.assert_array_equal(straight.predict(obs), resumed.predict(obs))
 
 
+def test_resume_after_a_crash_redoes_the_log_rows_past_the_checkpoint(tmp_path):
+    agent = ARS(point_reach, ARSConfig(seed=6, **SMALL)).learn(epochs=3, progress=False, log_dir=tmp_path)
+    assert len((tmp_path / "progress.csv").read_text().splitlines()) == 4       # header + 3 epochs
+    resumed = ARS.load(tmp_path / "checkpoint", env=point_reach)                 # saved at epoch 2
+    assert resumed.epoch == 2
+    resumed.learn(epochs=4, progress=False, log_dir=tmp_path)
+    epochs = [int(float(line.split(",")[0])) for line in (tmp_path / "progress.csv").read_text().splitlines()[1:]]
+    assert epochs == [1, 2, 3, 4]
+    np.testing.assert_array_equal(ARS.load(tmp_path / "final", env=point_reach).theta, resumed.theta)
+
+
+def test_mlp_checkpoint_holds_the_trained_weights(tmp_path):
+    import torch
+    agent = ARS(point_reach, ARSConfig(seed=2, policy="mlp:8", **SMALL)).learn(epochs=2, progress=False)
+    agent.save(tmp_path / "ck")
+    state = torch.load(tmp_path / "ck" / "model.pt", weights_only=True)["module_state"]
+    flat = torch.cat([state[k].reshape(-1) for k in state]).double().numpy()
+    np.testing.assert_allclose(flat, agent.theta)
+
+
 def test_load_rejects_other_checkpoints(tmp_path):
     with pytest.raises(CheckpointError, match="no checkpoint"):
         ARS.load(tmp_path / "missing", env=point_reach)

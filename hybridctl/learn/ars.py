@@ -398,6 +398,8 @@ class ARS:
         own_backend = backend is None
         backend = backend or make_backend(self.config.backend, self.config.workers, self.config.address)
         log_dir = Path(log_dir) if log_dir is not None else None
+        if log_dir is not None:
+            _truncate_csv(log_dir / "progress.csv", self.epoch)   # rows past a resumed checkpoint are redone
         bar = tqdm(total=target, initial=self.epoch, desc=f"ARS {self.env_name}", disable=not progress,
                    unit="epoch")
         try:
@@ -466,7 +468,8 @@ class ARS:
         def write(tmp: Path) -> None:
             tensors = {"theta": torch.as_tensor(self.theta), "stats_sum": torch.as_tensor(self.stats.sum),
                        "stats_sumsq": torch.as_tensor(self.stats.sumsq), "stats_count": self.stats.count}
-            if self.policy.module is not None:
+            if self.policy.module is not None:   # rollouts leave perturbed weights in it: store theta's
+                self.policy.actor(self.theta)
                 tensors["module_state"] = self.policy.module.state_dict()
             torch.save(tensors, tmp / ckpt.MODEL_FILE)
             ckpt.write_json(tmp / ckpt.CONFIG_FILE, {
@@ -505,6 +508,25 @@ class ARS:
         agent.epoch, agent.env_steps = int(progress["epoch"]), int(progress["env_steps"])
         agent.wall_time, agent.history = float(progress["wall_time"]), list(progress.get("history", []))
         return agent
+
+
+def _truncate_csv(path: Path, epoch: int) -> None:
+    """Drop CSV rows with ``epoch`` greater than ``epoch`` (written after the checkpoint being resumed)."""
+    if not path.is_file():
+        return
+    with open(path, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    keep = [r for r in rows if int(float(r["epoch"])) <= epoch]
+    if len(keep) == len(rows):
+        return
+    buffer = io.StringIO()
+    if keep:
+        writer = csv.DictWriter(buffer, fieldnames=list(keep[0]))
+        writer.writeheader()
+        writer.writerows(keep)
+    tmp = path.with_suffix(".csv.tmp")
+    tmp.write_text(buffer.getvalue())
+    tmp.replace(path)
 
 
 def _append_csv(path: Path, row: dict) -> None:
