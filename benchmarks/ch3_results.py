@@ -87,11 +87,13 @@ def main(argv=None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     folders = sorted(p.parent for p in Path(args.runs).glob("*/eval.json"))
-    fresh = [read_run(f) for f in folders]
+    fresh = [{**read_run(f), "machine": machine()} for f in folders]
     old = out / "results.json"
     previous = json.loads(old.read_text()) if old.is_file() else {}
     names = {r["run"] for r in fresh}
     kept = [r for r in previous.get("runs", []) if r["run"] not in names]
+    for r in kept:  # runs collected before runs carried their own machine record
+        r.setdefault("machine", {**previous.get("machine", {}), "note": "collected in an earlier session"})
     runs = sorted(kept + fresh, key=lambda r: (r["algorithm"], r["system"], r["seed"]))
     record = {"machine": machine(), "collected": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
               "summary": summarize(runs), "runs": runs, "balance_maps": previous.get("balance_maps", {})}
