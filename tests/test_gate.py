@@ -67,3 +67,15 @@ def test_fit_gate_bad_input(acrobot):
     bad = np.full((8, 4), np.nan)
     with pytest.raises(FloatingPointError, match="gate loss"):
         fit_gate(gate, bad, np.ones(8, dtype=bool), steps=1)
+
+
+def test_label_horizon_is_a_system_fact():
+    """The spec sets how long the LQR may take to balance a labelled state; the config can override it."""
+    import dataclasses
+    from hybridctl.learn.gate import label_horizon
+    cartpole = systems.load("cartpole")
+    assert label_horizon(systems.load("acrobot"), GateConfig()) == 2.5       # thesis
+    assert label_horizon(cartpole, GateConfig()) == 10.0                      # the slower cart (spec source)
+    assert label_horizon(cartpole, dataclasses.replace(GateConfig(), label_horizon=3.0)) == 3.0
+    near = warm_start_states(cartpole, 400, np.random.default_rng(0))[:200]
+    assert label_states(cartpole, near, GateConfig()).mean() > 0.5            # 88 % measured on 2000 states

@@ -36,7 +36,7 @@ class GateConfig:
     positive_weight: float = 0.01             # thesis eq. 3.3: w in c_w = n_t / n_p * w
     label_eps: float = 0.2                    # implementation notes: gate labels within 0.2 (L2)
     label_lookback: int = 10                  # implementation notes: last 10 states
-    label_horizon: float = 2.5                # implementation notes: 2.5 s LQR rollouts
+    label_horizon: float | None = None        # None: the spec's gate.label_horizon, else 2.5 s (thesis LQR rollouts)
     warm_samples: int = 100_000               # hybridctl: 2.5e7 LQR steps, ~1 min on 2 cores (thesis: 1e6 steps)
     warm_fit_steps: int = 3000                # hybridctl: Adam steps on the warm-start data
     refit_steps: int = 500                    # hybridctl: Adam steps per SSAC refit on all gate data
@@ -121,9 +121,20 @@ def warm_start_states(system: System, n: int, rng: np.random.Generator) -> np.nd
     return system.goal + states
 
 
+THESIS_LABEL_HORIZON = 2.5  # s, implementation notes: the thesis' LQR rollouts for gate labels
+
+
+def label_horizon(system: System, config: GateConfig) -> float:
+    """Seconds of LQR rollout behind a gate label: the config's, else the spec's, else the thesis' 2.5 s."""
+    if config.label_horizon is not None:
+        return float(config.label_horizon)
+    return float(system.spec.get("gate.label_horizon", THESIS_LABEL_HORIZON))
+
+
 def label_states(system: System, states: np.ndarray, config: GateConfig, K=None) -> np.ndarray:
-    """Labels 1 where the saturated LQR from that state balances (config's eps, lookback, horizon)."""
-    return lqr_rollouts_balanced(system, states, config.label_horizon, eps=config.label_eps,
+    """Labels 1 where the saturated LQR from that state balances (config's eps and lookback,
+    :func:`label_horizon` seconds)."""
+    return lqr_rollouts_balanced(system, states, label_horizon(system, config), eps=config.label_eps,
                                  lookback=config.label_lookback, K=K)
 
 
