@@ -10,7 +10,8 @@ base frequency with its own phases, plus 1 % white noise), the kind of set the t
 meshes; ``random_walk``: a 17-D Gaussian random walk (no structure, the hardest case for
 the count). Both at 1e4 and 1e5 states. Each entry: median wall seconds of
 ``mesh_dimension`` with ``method="vectorised"`` and ``method="dict"`` (the same curve,
-checked), their ratio, the number of meshes on the curve and the dimensions found.
+checked), their ratio, the process-CPU seconds of both (steadier on a busy machine), the
+number of meshes on the curve and the dimensions found.
 """
 
 from __future__ import annotations
@@ -47,22 +48,27 @@ def random_walk(n: int, rng: np.random.Generator) -> np.ndarray:
     return rng.normal(size=(n, DIMS)).cumsum(axis=0)
 
 
-def timed(fn, repeats: int) -> tuple[object, list[float]]:
-    """Result of ``fn()`` and the wall seconds of ``repeats`` calls after one warm-up call."""
+def timed(fn, repeats: int) -> tuple[object, list[float], list[float]]:
+    """Result of ``fn()``, and the wall and process-CPU seconds of ``repeats`` calls after a warm-up call.
+
+    CPU seconds count every thread of this process and not other processes, so they move far less
+    than wall seconds when the machine is busy (compare both with the load average).
+    """
     result = fn()
-    times = []
+    wall, cpu = [], []
     for _ in range(repeats):
-        start = time.perf_counter()
+        start, cpu_start = time.perf_counter(), time.process_time()
         fn()
-        times.append(time.perf_counter() - start)
-    return result, times
+        wall.append(time.perf_counter() - start)
+        cpu.append(time.process_time() - cpu_start)
+    return result, wall, cpu
 
 
 def bench_one(kind: str, n: int, repeats: int, dict_repeats: int) -> dict:
     """One trajectory: vectorised vs dict mesh dimension, same curve required."""
     states = {"gait": gait, "random_walk": random_walk}[kind](n, np.random.default_rng(0))
-    fast, fast_times = timed(lambda: mesh_dimension(states), repeats)
-    slow, slow_times = timed(lambda: mesh_dimension(states, method="dict"), dict_repeats)
+    fast, fast_times, fast_cpu = timed(lambda: mesh_dimension(states), repeats)
+    slow, slow_times, slow_cpu = timed(lambda: mesh_dimension(states, method="dict"), dict_repeats)
     if not np.array_equal(fast.sizes, slow.sizes):
         raise AssertionError(f"{kind} n={n}: vectorised and dict mesh sizes differ")
     fast_s, slow_s = statistics.median(fast_times), statistics.median(slow_times)
@@ -70,6 +76,7 @@ def bench_one(kind: str, n: int, repeats: int, dict_repeats: int) -> dict:
             "lower": fast.lower, "upper": fast.upper,
             "vectorised_s": fast_s, "vectorised_min_s": min(fast_times), "vectorised_max_s": max(fast_times),
             "dict_s": slow_s, "speedup_vs_dict": slow_s / fast_s,
+            "vectorised_cpu_s": statistics.median(fast_cpu), "dict_cpu_s": statistics.median(slow_cpu),
             "repeats": {"vectorised": repeats, "dict": dict_repeats}}
 
 
