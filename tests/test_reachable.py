@@ -144,3 +144,15 @@ def test_mesh_views_write_pngs(tmp_path):
     two_d = build_mesh(FunctionMap(lambda_free_map), [[0.5, 0.5]], [-0.1, 0.0, 0.1], 0.05, progress=False)
     viz.plot_mesh_states(two_d, path=tmp_path / "pca.png")
     assert (tmp_path / "pca.png").stat().st_size > 5000
+
+
+def test_mesh_save_and_load_round_trip(tmp_path):
+    from hybridctl.analysis import ReachableMesh
+    mesh = build_mesh(WHEEL, [[WHEEL.fixed_point(0.15)]], SLOPES, 1e-2, progress=False)
+    again = ReachableMesh.load(mesh.save(tmp_path / "mesh.npz"))
+    np.testing.assert_array_equal(again.successors, mesh.successors)
+    assert (again.transition_matrix() != mesh.transition_matrix()).nnz == 0
+    assert again.settings["state_names"] == ["w"] and again.complete
+    np.savez(tmp_path / "other.npz", x=np.zeros(3))
+    with pytest.raises(ValueError, match="not a mesh file"):
+        ReachableMesh.load(tmp_path / "other.npz")

@@ -91,6 +91,33 @@ class ReachableMesh:
         """One-step probability of failure from each mesh state (index i - 1 for id i)."""
         return (self.successors == FAILURE) @ self.weights
 
+    def save(self, path: str | os.PathLike) -> Path:
+        """Write the mesh to one ``.npz`` file (atomically; read back with :meth:`load`, no pickle)."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + ".tmp.npz")
+        np.savez(tmp, states=self.states, successors=self.successors, weights=self.weights,
+                 box_size=self.box_size, mean=self.mean, std=self.std, seed_ids=self.seed_ids,
+                 complete=self.complete, wall_time=self.wall_time,
+                 state_names=np.array(self.settings.get("state_names") or [], dtype=str))
+        os.replace(tmp, path)
+        return path
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "ReachableMesh":
+        """A mesh written by :meth:`save`."""
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"no mesh file at {path}")
+        data = np.load(path, allow_pickle=False)
+        missing = {"states", "successors", "weights", "box_size"} - set(data.files)
+        if missing:
+            raise ValueError(f"{path} is not a mesh file: missing {sorted(missing)}")
+        settings = {"box_size": float(data["box_size"]), "disturbances": int(data["weights"].size),
+                    "state_names": [str(n) for n in data["state_names"]]}
+        return cls(data["states"], data["successors"], data["weights"], float(data["box_size"]), data["mean"],
+                   data["std"], data["seed_ids"], bool(data["complete"]), float(data["wall_time"]), settings)
+
     def summary(self) -> dict:
         """JSON-ready description."""
         return {"states": self.size, "box_size": self.box_size, "disturbances": int(self.weights.size),

@@ -319,6 +319,7 @@ def cmd_mesh(args) -> int:
         return 2
     T = mesh.transition_matrix()
     sp.save_npz(out / "transition_matrix.npz", T)
+    mesh.save(out / "mesh.npz")
     result = mesh.mfpt()
     report["mfpt"] = {**result.report(), "from_seed": result.mean(mesh.seed_distribution())}
     if args.monte_carlo:
@@ -342,7 +343,7 @@ def cmd_mesh(args) -> int:
         lo, hi = report["monte_carlo"]["mesh_disturbance_set"]["interval95"]
         line += f"; Monte Carlo (same disturbances) {report['monte_carlo']['mesh_disturbance_set']['mean_steps_to_failure']:.1f} [{lo:.1f}, {hi:.1f}]"
     print(line)
-    print(f"wrote {out}/mfpt.json, transition_matrix.npz and figures")
+    print(f"wrote {out}/mfpt.json, transition_matrix.npz, mesh.npz (ReachableMesh.load) and figures")
     return 0
 
 
