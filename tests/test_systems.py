@@ -172,3 +172,15 @@ def test_bad_states_and_actions_raise_value_error(x, u, message):
         system.step(x, u)
     with pytest.raises(ValueError, match=message):
         system.derivatives(x, u)
+
+
+def test_tip_height_centered_penalises_only_the_cart():
+    """tip_height_centered = tip height - 0.1 x^2 over positions that are not angles."""
+    import torch
+    cartpole = systems.load("cartpole", **{"reward.kind": "tip_height_centered"})
+    plain = systems.load("cartpole")
+    x = torch.tensor([[2.0, np.pi, 0.3, -1.0], [0.0, 0.2, 0.0, 0.0]], dtype=torch.float64)
+    torch.testing.assert_close(cartpole.reward(x), plain.reward(x) - 0.1 * x[:, 0] ** 2)
+    acrobot = systems.load("acrobot", **{"reward.kind": "tip_height_centered"})
+    xa = torch.tensor([[1.0, 0.3, 2.0, -1.0]], dtype=torch.float64)
+    torch.testing.assert_close(acrobot.reward(xa), systems.load("acrobot").reward(xa))   # no cart: unchanged

@@ -48,7 +48,7 @@ from .gate import GateConfig, GateNet, fit_gate, label_states, warm_start_gate
 from .sac import SAC, SACConfig
 
 GATE_DATA_FILE = "gate_data.pt"
-REWARDS = ("tip_height", "quadratic")
+from ..systems.spec import REWARD_KINDS as REWARDS  # one list of reward kinds, in the spec module
 
 # the thesis' own values where hybridctl's defaults differ (SSACConfig comments say why)
 PAPER = {"polyak": 0.995, "obs_transform": "none", "gate_relabel_per_refit": 0, "gate_class_weight_from": "all"}
@@ -65,7 +65,8 @@ class SSACConfig(SACConfig):
     #                                      return 88.2 (0.9 + angle_sincos) vs 23.3 (thesis values)
     obs_transform: str = "angle_sincos"  # hybridctl (thesis: raw state); the envs do not wrap angles
     needle_prob: float = 0.5             # thesis Sec. 3.3 p_d = 0.5 (author code 0.2)
-    reward: str = "tip_height"           # thesis eq. 3.1; "quadratic": author script -0.1 |q - q_goal|^2
+    reward: str = "tip_height"           # thesis eq. 3.1; "quadratic": author script -0.1 |q - q_goal|^2;
+    #                                      "tip_height_centered": minus 0.1 x_cart^2 (System.reward)
     gate_refit_every: int = 50_000       # thesis appendix: gate refit every 5e4 steps (author code 2.5e4)
     gate_refit_steps: int = 2000         # hybridctl: Adam steps per refit (~2 s), minibatches from all of D_g
     gate_warm_samples: int = 100_000     # hybridctl: LQR-labelled warm-start states (2.5e7 LQR steps;

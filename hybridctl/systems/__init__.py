@@ -156,13 +156,22 @@ class System:
         return err
 
     def reward(self, x):
-        """Per-decision reward of states x: tip height (thesis eq. 3.1) or the quadratic variant.
+        """Per-decision reward of states x: tip height (thesis eq. 3.1) or a variant.
 
         ``quadratic`` is the author's SSAC script: -0.1 * |x - goal|^2 over positions.
+        ``tip_height_centered`` (hybridctl) is tip height - 0.1 * |error|^2 over the positions
+        that are not angles (a cart's position): on a cart-pole, tip height alone pays as much
+        for a pole held up over a cart driving away as over one at the goal. It equals tip
+        height on systems whose positions are all angles (acrobot, pendulum).
         """
         if self.reward_kind == "tip_height":
             return self.dynamics.tip_height(x)
         err = self.state_error(x)[..., : self.n_states // 2]
+        if self.reward_kind == "tip_height_centered":
+            linear = [i for i in range(self.n_states // 2) if i not in self.angle_indices]
+            if not linear:
+                return self.dynamics.tip_height(x)
+            return self.dynamics.tip_height(x) - 0.1 * (err[..., linear] ** 2).sum(-1)
         return -0.1 * (err * err).sum(-1)
 
     def sample_initial_states(self, n: int, generator: np.random.Generator | None = None) -> np.ndarray:

@@ -21,7 +21,7 @@ SPEC_DIR = Path(__file__).resolve().parents[2] / "systems"
 MODELS_DIR = Path(__file__).resolve().parents[2] / "models"
 
 INTEGRATORS = ("euler", "runge_kutta2")
-REWARD_KINDS = ("tip_height", "quadratic")
+REWARD_KINDS = ("tip_height", "quadratic", "tip_height_centered")
 
 _PI_EXPR = re.compile(r"^\s*(-)?\s*(?:(\d+(?:\.\d*)?)\s*\*\s*)?pi\s*(?:/\s*(\d+(?:\.\d*)?))?\s*$")
 
