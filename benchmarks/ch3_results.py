@@ -37,9 +37,32 @@ def machine() -> dict:
             "torch": torch.__version__, "torch_threads_per_run": 1}
 
 
+def evaluate_stopped(folder: Path, reason: str) -> None:
+    """Write eval.json for a run stopped before its budget: its newest checkpoint, evaluated like
+    ``hybridctl train`` does (100 deterministic episodes, numpy seed 12345)."""
+    import torch
+
+    from hybridctl.learn import SAC, SSAC
+    from hybridctl.learn.checkpoint import newest_checkpoint, read_json, write_json
+
+    torch.set_num_threads(1)
+    found = newest_checkpoint([folder / "checkpoint", folder / "final"])
+    if found is None:
+        raise SystemExit(f"error: no checkpoint under {folder}")
+    algo = {"SAC": SAC, "SSAC": SSAC}[read_json(found / "config.json")["algorithm"]]
+    agent = algo.load(found)
+    result = agent.evaluate(episodes=100)
+    result.update({"command": f"stopped run; newest checkpoint {found}", "env_steps": agent.num_timesteps,
+                   "train_wall_time_s": agent.wall_time, "stopped": reason,
+                   "train_mean_return_last100": agent.mean_return, "train_success_rate_last100": agent.success_rate})
+    write_json(folder / "eval.json", result)
+    print(f"{folder.name}: evaluated {found.name} at {agent.num_timesteps} steps: {result['mean_return']:.2f}")
+
+
 def read_run(folder: Path) -> dict:
     """One run's record: config, evaluation, training curve."""
-    meta = json.loads((folder / "final" / "config.json").read_text())
+    meta_dir = folder / "final" if (folder / "final").is_dir() else folder / "checkpoint"
+    meta = json.loads((meta_dir / "config.json").read_text())
     result = json.loads((folder / "eval.json").read_text())
     curve = []
     if (folder / "progress.csv").is_file():
@@ -51,6 +74,7 @@ def read_run(folder: Path) -> dict:
     cfg = meta["config"]
     return {"run": folder.name, "algorithm": meta["algorithm"], "system": meta["system"]["name"],
             "seed": cfg["seed"], "command": result.get("command"), "env_steps": result["env_steps"],
+            "stopped": result.get("stopped"),
             "train_wall_time_s": result.get("train_wall_time_s"),
             "eval": {k: result[k] for k in ("episodes", "seed", "mean_return", "std_return", "min_return",
                                             "success_rate")},
@@ -81,11 +105,16 @@ def main(argv=None) -> int:
     parser.add_argument("--balance-map", nargs="*", default=[], metavar="RUN")
     parser.add_argument("--grid", type=int, default=41)
     parser.add_argument("--workers", type=int)
+    parser.add_argument("--evaluate-stopped", nargs="*", default=[], metavar="RUN",
+                        help="evaluate the newest checkpoint of runs stopped before their budget")
+    parser.add_argument("--stopped-reason", default="stopped before its budget (machine time)")
     parser.add_argument("--import-balance-map", nargs="*", default=[], metavar="NAME=FOLDER",
                         help="record a balance map written by `hybridctl balance-map --out FOLDER`")
     args = parser.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    for name in args.evaluate_stopped:
+        evaluate_stopped(Path(args.runs) / name, args.stopped_reason)
     folders = sorted(p.parent for p in Path(args.runs).glob("*/eval.json"))
     fresh = [{**read_run(f), "machine": machine()} for f in folders]
     old = out / "results.json"
