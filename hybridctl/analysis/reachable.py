@@ -34,7 +34,8 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..parallel import make_backend
-from .markov import MFPTResult, absorbing_mfpt
+from .markov import MFPTResult, _krylov_solve, absorbing_mfpt, states_that_can_fail_surely
+from .mesh import box_keys
 from .poincare import FiniteDisturbances, SectionMap
 
 FAILURE = 0
@@ -155,10 +156,10 @@ class _Keys:
         self.ids: dict[bytes, int] = {}
 
     def keys(self, states: np.ndarray) -> list[bytes]:
-        scaled = (states - self.mean) / (self.std * self.box_size)
-        if np.max(np.abs(scaled), initial=0.0) >= 2 ** 62:
-            raise ValueError(f"box_size {self.box_size:g} is too small for these states (keys exceed 2^62)")
-        k = np.ascontiguousarray(np.rint(scaled).astype(np.int64))
+        """One hashable key per state: the box-mesh rule of :func:`~hybridctl.analysis.mesh.box_keys`."""
+        if len(states) == 0:
+            return []
+        k = np.ascontiguousarray(box_keys(states, self.box_size, self.mean, self.std))
         return [row.tobytes() for row in k]
 
 
@@ -350,16 +351,19 @@ def reachable_dimension(rows: list[dict]) -> float:
 def failure_states(mesh: ReachableMesh, share: float = 0.99, start=None) -> np.ndarray:
     """Mesh rows (0-based) of the fewest states that account for ``share`` of all failures
     (thesis Fig. 5.6, red). Failures are weighted by each state's one-step failure probability
-    times its expected visits before failure from ``start`` (default: the seeds)."""
+    times its expected visits before failure from ``start`` (default: the seeds). States that can
+    avoid failure forever have no finite visit count; they are weighted by their failure probability."""
     if not 0 < share <= 1:
         raise ValueError(f"share must be in (0, 1], got {share!r}")
     T = mesh.transition_matrix()
     p0 = mesh.seed_distribution() if start is None else np.asarray(start, dtype=np.float64)
-    idx = np.arange(1, mesh.size + 1)
-    Q = T[idx][:, idx].tocsr()
-    A = (sp.identity(mesh.size, format="csr") - Q).T.tocsc()
-    import scipy.sparse.linalg as spla
-    visits, _ = spla.bicgstab(A, p0[1:], rtol=1e-10, atol=0.0, maxiter=5000)
+    sure = states_that_can_fail_surely(T, FAILURE)[1:]          # (I - Q) is invertible only on these
+    visits = np.ones(mesh.size)   # states that can avoid failure forever: ranked by failure probability alone
+    idx = np.flatnonzero(sure)
+    if idx.size and p0[1:][idx].sum() > 0:
+        Q = T[idx + 1][:, idx + 1].tocsr()
+        A = (sp.identity(idx.size, format="csr") - Q).T.tocsr()
+        visits[idx], _ = _krylov_solve(A, p0[1:][idx], rtol=1e-10)   # expected visits before failure
     weight = np.maximum(visits, 0) * mesh.failure_probability()
     if weight.sum() <= 0:
         return np.zeros(0, dtype=np.int64)

@@ -44,7 +44,7 @@ import torch
 
 from ..analysis.mesh import mesh_dimension
 from ..analysis.postprocess import KINDS as POSTPROCESS_KINDS
-from ..analysis.postprocess import PostProcessor
+from ..analysis.postprocess import MIN_POINTS, PostProcessor
 from ..analysis.variation import madogram, variogram
 from . import checkpoint as ckpt
 from ..parallel import BACKENDS, cached_env, make_backend
@@ -257,7 +257,7 @@ def measure_dimensions(states: np.ndarray, transient_steps: int = 200) -> dict:
     """Raw (unclipped) lower/upper mesh dimension, madogram and variogram of the states after the
     transient (thesis Table 4.1 metrics); None where the episode is too short to measure."""
     tail = states[transient_steps:]
-    if tail.shape[0] < 10:
+    if tail.shape[0] < MIN_POINTS:
         return {"mesh_lower": None, "mesh_upper": None, "madogram": None, "variogram": None}
     md = mesh_dimension(tail)
     return {"mesh_lower": md.lower, "mesh_upper": md.upper, "madogram": madogram(tail), "variogram": variogram(tail)}
