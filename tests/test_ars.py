@@ -146,3 +146,15 @@ def test_failure_rates_reject_unknown_conditions():
     with pytest.raises(ValueError, match="push disturbances need a MuJoCo env"):
         failure_rates(goal_seeking_policy, env=point_reach, conditions={"p": {"push": (1.0, 5.0)}},
                       episodes=1, backend="serial")
+
+
+@pytest.mark.parametrize("policy", ["linear", "mlp:8"])
+def test_frozen_policy_pickles_and_acts_like_predict(policy):
+    import pickle
+    agent = ARS(point_reach, ARSConfig(seed=2, policy=policy, **SMALL)).learn(epochs=2, progress=False)
+    frozen = pickle.loads(pickle.dumps(agent.frozen_policy()))
+    obs = np.random.default_rng(0).normal(size=(5, agent.policy.obs_dim))
+    for o in obs:
+        np.testing.assert_allclose(frozen(o), agent.predict(o), rtol=0, atol=1e-12)
+    agent.learn(epochs=3, progress=False)                 # later training does not move a frozen copy
+    assert not np.allclose(frozen(obs[0]), agent.predict(obs[0]))

@@ -156,3 +156,16 @@ def test_mesh_save_and_load_round_trip(tmp_path):
     np.savez(tmp_path / "other.npz", x=np.zeros(3))
     with pytest.raises(ValueError, match="not a mesh file"):
         ReachableMesh.load(tmp_path / "other.npz")
+
+
+def test_monte_carlo_chunks_give_the_same_result_on_every_backend():
+    w = WHEEL.fixed_point(0.15)
+    serial = monte_carlo_mfpt(WHEEL, [[w]], SLOPES, episodes=400, seed=5, chunks=4)
+    parallel = monte_carlo_mfpt(WHEEL, [[w]], SLOPES, episodes=400, seed=5, chunks=4, backend="processes", workers=2)
+    np.testing.assert_array_equal(serial.steps, parallel.steps)
+    one = monte_carlo_mfpt(WHEEL, [[w]], SLOPES, episodes=400, seed=5)
+    assert one.steps.size == serial.steps.size == 400
+    # different streams, same distribution: the two means agree within their intervals
+    assert serial.interval95[0] < one.mean < serial.interval95[1] or one.interval95[0] < serial.mean < one.interval95[1]
+    with pytest.raises(ValueError, match="chunks"):
+        monte_carlo_mfpt(WHEEL, [[w]], SLOPES, episodes=10, chunks=11)

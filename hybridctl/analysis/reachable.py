@@ -299,20 +299,47 @@ class MonteCarloResult:
 
 
 def monte_carlo_mfpt(section_map: SectionMap, starts, disturbances, episodes: int = 1000, max_steps: int = 100_000,
-                     seed: int = 0) -> MonteCarloResult:
+                     seed: int = 0, chunks: int = 1, backend: str = "serial", workers: int | None = None,
+                     progress: bool = False) -> MonteCarloResult:
     """Steps until failure on the true map, each step's disturbance drawn from ``disturbances``
     (``sample(rng, n)``: a Gaussian model draws continuous values, a finite set draws from the set).
 
-    ``starts``: one state, or several drawn uniformly per episode. All episodes advance together
-    through ``section_map.step_many``.
+    ``starts``: one state, or several drawn uniformly per episode. The episodes are split into
+    ``chunks`` groups (each with its own random stream from ``SeedSequence(seed)``); a group's
+    episodes advance together through ``section_map.step_many``. Groups run on ``backend``
+    ("serial", "processes", "ray"), so for simulator-backed maps use several chunks and
+    processes; the result depends on ``seed`` and ``chunks`` only, not on the backend.
     """
     if episodes < 2 or max_steps < 1:
         raise ValueError(f"episodes must be >= 2 and max_steps >= 1, got {episodes} and {max_steps}")
-    rng = np.random.default_rng(seed)
+    if not (isinstance(chunks, int) and 1 <= chunks <= episodes):
+        raise ValueError(f"chunks must be an integer in [1, episodes={episodes}], got {chunks!r}")
     starts = np.atleast_2d(np.asarray(starts, dtype=np.float64))
-    x = starts[rng.integers(0, starts.shape[0], size=episodes)].copy()
-    steps = np.zeros(episodes, dtype=np.int64)
-    alive = np.ones(episodes, dtype=bool)
+    sizes = [len(part) for part in np.array_split(np.arange(episodes), chunks)]
+    streams = [np.random.default_rng(seed)] if chunks == 1 else \
+        [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(chunks)]
+    tasks = [(section_map, starts, disturbances, n, max_steps, rng) for n, rng in zip(sizes, streams)]
+    pool = make_backend(backend, workers)
+    try:
+        if progress and chunks > 1:
+            from tqdm.auto import tqdm
+            parts = []
+            for task in tqdm(tasks, desc="monte carlo", unit="chunk"):
+                parts.extend(pool.map(_monte_carlo_chunk, [task]))
+        else:
+            parts = pool.map(_monte_carlo_chunk, tasks)
+    finally:
+        pool.close()
+    passage = np.concatenate([p[0] for p in parts])
+    return MonteCarloResult(passage.astype(np.float64), int(sum(p[1] for p in parts)), max_steps)
+
+
+def _monte_carlo_chunk(task) -> tuple[np.ndarray, int]:
+    """Worker: first passage times of ``n`` episodes (and how many were censored)."""
+    section_map, starts, disturbances, n, max_steps, rng = task
+    x = starts[rng.integers(0, starts.shape[0], size=n)].copy()
+    steps = np.zeros(n, dtype=np.int64)
+    alive = np.ones(n, dtype=bool)
     for _ in range(max_steps):
         idx = np.flatnonzero(alive)
         if idx.size == 0:
@@ -323,8 +350,7 @@ def monte_carlo_mfpt(section_map: SectionMap, starts, disturbances, episodes: in
         x[idx[ok]] = nxt[ok]
         alive[idx[~ok]] = False
     # a step that fails is counted as the passage into failure: first passage time = successes + 1
-    passage = steps + (~alive)
-    return MonteCarloResult(passage.astype(np.float64), int(alive.sum()), max_steps)
+    return steps + (~alive), int(alive.sum())
 
 
 def mesh_sizes(section_map: SectionMap, seeds, disturbances, box_sizes: Sequence[float], **kwargs) -> list[dict]:

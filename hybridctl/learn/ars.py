@@ -168,6 +168,24 @@ class PolicySpec:
         return act
 
 
+class FrozenPolicy:
+    """A fixed ARS policy with frozen observation normalisation: ``policy(obs) -> action`` (pickles)."""
+
+    def __init__(self, spec: PolicySpec, theta: np.ndarray, obs_mean: np.ndarray, obs_std: np.ndarray):
+        self.spec, self.theta = spec, np.asarray(theta, dtype=np.float64)
+        self.obs_mean, self.obs_std = np.asarray(obs_mean, dtype=np.float64), np.asarray(obs_std, dtype=np.float64)
+        self._actor = None
+
+    def __getstate__(self):
+        return {**self.__dict__, "_actor": None}   # closures do not pickle: rebuilt on first call
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        """The action for one observation (clipped to the action bounds)."""
+        if self._actor is None:
+            self._actor = self.spec.actor(self.theta)
+        return self._actor((np.asarray(obs, dtype=np.float64) - self.obs_mean) / self.obs_std)
+
+
 # ----------------------------------------------------------------------------- one rollout (runs in workers)
 
 def make_env(env: str | Callable[[], gym.Env], env_kwargs: dict | None = None,
@@ -426,6 +444,11 @@ class ARS:
         return self
 
     # -- use ---------------------------------------------------------------------------------
+    def frozen_policy(self) -> "FrozenPolicy":
+        """The current policy with its normalisation, as a plain picklable callable obs -> action
+        (for section maps and other code that runs the policy in worker processes)."""
+        return FrozenPolicy(self.policy, self.theta.copy(), self.stats.mean.copy(), self.stats.std.copy())
+
     def predict(self, obs: np.ndarray, deterministic: bool = True) -> np.ndarray:
         """The policy's action for ``obs`` (ARS policies are deterministic)."""
         return self.policy.actor(self.theta)((np.asarray(obs, dtype=np.float64) - self.stats.mean) / self.stats.std)
