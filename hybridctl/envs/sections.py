@@ -1,0 +1,136 @@
+"""Apex-to-apex Poincare map of a gymnasium MuJoCo hopper under a policy (thesis Ch. 5).
+
+The section is the apex of the torso height: the first control step at which the
+torso's vertical velocity turns from positive to non-positive. A state on the section
+is the simulator state there without the forward position (``Hopper-v5``: ``qpos[1:]``
+and ``qvel``, 11 numbers; the dynamics do not depend on the forward position). It is
+the env's observation except that the observation clips velocities to [-10, 10]; the
+section keeps them unclipped so that a state restores the simulator exactly. One
+transition: put the simulator in that state (forward position 0), apply the push
+``(fx, fz)`` in newtons to the torso for one env step, then run the policy until the
+next apex. Failure: the env terminates (Hopper-v5: torso below 0.7 m, tilted more
+than 0.2 rad, or any state beyond 100) or no apex comes within ``timeout_steps``.
+
+>>> agent = ARS.load("models/policies/ars-hopper")
+>>> section = HopperApexMap(agent.frozen_policy())
+>>> seeds = section.apex_states(steps=1000)                  # apexes of one unpushed run
+>>> mesh = build_mesh(section, seeds, x_pushes(15.0, 25), box_size=0.5, mean=..., std=..., backend="processes")
+
+The env is built lazily in each process that steps the map, so the map pickles to workers.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import gymnasium as gym
+import numpy as np
+
+from ..analysis.poincare import FiniteDisturbances, SectionMap
+from ..parallel import cached_env
+
+TORSO_BODY = 1        # MuJoCo body id of the torso (body 0 is the world)
+HEIGHT, VZ = 1, 1     # qpos[1]: torso height; qvel[1]: its vertical velocity
+
+
+@dataclass
+class HopperApexMap(SectionMap):
+    """Apex-to-apex map of a planar MuJoCo hopper (``Hopper-v5`` by default) under ``policy``.
+
+    ``policy``: a picklable callable observation -> action (e.g. ``ARS.frozen_policy()``).
+    Disturbance: a push ``(fx, fz)`` in N on the torso for one env step (a scalar is
+    ``fx``). ``timeout_steps``: env steps allowed to reach the next apex.
+    """
+
+    policy: Callable[[np.ndarray], np.ndarray]
+    env_id: str = "Hopper-v5"
+    timeout_steps: int = 300
+    env_kwargs: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        if not callable(self.policy):
+            raise ValueError(f"policy must be a callable observation -> action, got {type(self.policy).__name__}")
+        if not (isinstance(self.timeout_steps, int) and self.timeout_steps >= 2):
+            raise ValueError(f"timeout_steps must be an integer >= 2, got {self.timeout_steps!r}")
+
+    @property
+    def state_names(self) -> tuple[str, ...]:
+        """Hopper-v5 observation names."""
+        return ("z", "torso", "thigh", "leg", "foot", "vx", "vz", "w_torso", "w_thigh", "w_leg", "w_foot")
+
+    def _env(self) -> gym.Env:
+        def make():
+            env = gym.make(self.env_id, **self.env_kwargs).unwrapped
+            env.reset(seed=0)
+            return env
+        return cached_env(("apex-map", self.env_id, repr(sorted(self.env_kwargs.items()))), make)
+
+    def _set_state(self, env, state: np.ndarray) -> None:
+        nq = env.model.nq
+        qpos = np.concatenate([[0.0], state[:nq - 1]])
+        env.set_state(qpos, state[nq - 1:])
+
+    def step(self, state, disturbance):
+        """The next apex state after a push at this apex, or None for failure."""
+        env = self._env()
+        state = np.asarray(state, dtype=np.float64)
+        self._set_state(env, state)
+        push = np.atleast_1d(np.asarray(disturbance, dtype=np.float64))
+        force = np.array([push[0], 0.0, push[1] if push.size > 1 else 0.0])
+        obs, rising = env._get_obs(), False   # the policy sees the env's own (clipped) observation
+        for k in range(self.timeout_steps):
+            env.data.xfrc_applied[TORSO_BODY, :3] = force if k == 0 else 0.0
+            obs, _, terminated, _, _ = env.step(self.policy(obs))
+            if terminated or not np.all(np.isfinite(obs)):
+                env.data.xfrc_applied[TORSO_BODY, :3] = 0.0
+                return None
+            vz = env.data.qvel[VZ]
+            if vz > 0:
+                rising = True
+            elif rising:
+                return self._state(env)
+        return None
+
+    @staticmethod
+    def _state(env) -> np.ndarray:
+        return np.concatenate([env.data.qpos[1:], env.data.qvel]).astype(np.float64)
+
+    def apex_states(self, steps: int = 1000, skip: int = 3, seed: int = 0) -> np.ndarray:
+        """Apex states of one unpushed run from the env's reset (``seed``), skipping the first
+        ``skip`` apexes (the start transient): seeds for a mesh or starts for Monte Carlo."""
+        env = self._env()
+        obs, _ = env.reset(seed=seed)
+        apexes, rising = [], False
+        for _ in range(steps):
+            obs, _, terminated, _, _ = env.step(self.policy(obs))
+            if terminated:
+                break
+            if env.data.qvel[VZ] > 0:
+                rising = True
+            elif rising:
+                apexes.append(self._state(env))
+                rising = False
+        if len(apexes) <= skip:
+            raise ValueError(f"the policy reached {len(apexes)} apexes in {steps} steps from reset (seed {seed}); "
+                             f"need more than skip={skip}: is it hopping?")
+        return np.array(apexes[skip:])
+
+
+def x_pushes(magnitude: float = 15.0, count: int = 25) -> FiniteDisturbances:
+    """``count`` pushes along x evenly spaced in [-magnitude, magnitude] N (thesis Ch. 5: 15 N, 25)."""
+    if not (magnitude > 0 and isinstance(count, int) and count >= 1):
+        raise ValueError(f"magnitude must be > 0 and count an integer >= 1, got {magnitude!r}, {count!r}")
+    return FiniteDisturbances([np.array([f, 0.0]) for f in np.linspace(-magnitude, magnitude, count)])
+
+
+def random_pushes(count: int = 100, low: float = 5.0, high: float = 15.0, seed: int = 0) -> FiniteDisturbances:
+    """``count`` pushes of magnitude U(low, high) N at an angle U(0, 2 pi) in the x-z plane (thesis Ch. 5)."""
+    if not (0 <= low <= high and isinstance(count, int) and count >= 1):
+        raise ValueError(f"need 0 <= low <= high and an integer count >= 1, got {low!r}, {high!r}, {count!r}")
+    rng = np.random.default_rng(seed)
+    size, angle = rng.uniform(low, high, count), rng.uniform(0, 2 * np.pi, count)
+    return FiniteDisturbances([np.array([m * np.cos(a), m * np.sin(a)]) for m, a in zip(size, angle)])
+
+
+__all__ = ["HopperApexMap", "x_pushes", "random_pushes"]
