@@ -83,6 +83,7 @@ def test_cap_marks_the_mesh_incomplete_and_resume_finishes_it(tmp_path):
     fresh = build_mesh(*args, batch_size=8, progress=False)
     assert resumed.complete and resumed.size == fresh.size
     np.testing.assert_array_equal(resumed.successors, fresh.successors)
+    assert resumed.wall_time >= float(np.load(ck)["wall_time"]) >= partial.wall_time > 0   # the parts add up
     with pytest.raises(ValueError, match="box_size"):
         build_mesh(WHEEL, [[1.29]], SLOPES, 1e-2, checkpoint=ck, resume=True, progress=False)
 

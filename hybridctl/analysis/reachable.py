@@ -163,10 +163,11 @@ class _Keys:
         return [row.tobytes() for row in k]
 
 
-def _save_checkpoint(path: Path, mesh_states: list, successors: list, box_size: float, n_disturbances: int) -> None:
+def _save_checkpoint(path: Path, mesh_states: list, successors: list, box_size: float, n_disturbances: int,
+                     wall_time: float = 0.0) -> None:
     """Write the mesh so far to ``path`` (.npz) atomically: a temporary file, then a rename."""
     tmp = path.with_name(path.name + ".tmp.npz")
-    np.savez(tmp, states=np.array(mesh_states), box_size=box_size, n_disturbances=n_disturbances,
+    np.savez(tmp, states=np.array(mesh_states), box_size=box_size, n_disturbances=n_disturbances, wall_time=wall_time,
              successors=np.array(successors, dtype=np.int64).reshape(len(successors), n_disturbances))
     os.replace(tmp, path)
 
@@ -207,12 +208,14 @@ def build_mesh(section_map: SectionMap, seeds, disturbances, box_size: float, me
 
     mesh_states: list[np.ndarray] = []
     successors: list[np.ndarray] = []
+    earlier = 0.0
     if resume and path is not None and path.exists():
         saved = np.load(path, allow_pickle=False)
         if float(saved["box_size"]) != box_size or int(saved["n_disturbances"]) != len(values):
             raise ValueError(f"checkpoint {path} was built with box_size {float(saved['box_size']):g} and "
                              f"{int(saved['n_disturbances'])} disturbances, not {box_size:g} and {len(values)}")
         mesh_states = list(saved["states"])
+        earlier = float(saved["wall_time"]) if "wall_time" in saved.files else 0.0   # time of the earlier parts
         successors = list(saved["successors"])
         for i, k in enumerate(keys.keys(np.array(mesh_states))):
             keys.ids.setdefault(k, i + 1)
@@ -257,17 +260,19 @@ def build_mesh(section_map: SectionMap, seeds, disturbances, box_size: float, me
             bar.update(len(successors) - bar.n)
             batches += 1
             if path is not None and (batches % checkpoint_every == 0 or not complete):
-                _save_checkpoint(path, mesh_states, successors, box_size, len(values))
+                _save_checkpoint(path, mesh_states, successors, box_size, len(values),
+                                 earlier + time.perf_counter() - start)
             if not complete:
                 break
     finally:
         bar.close()
         pool.close()
     if path is not None:
-        _save_checkpoint(path, mesh_states, successors, box_size, len(values))
+        _save_checkpoint(path, mesh_states, successors, box_size, len(values),
+                                 earlier + time.perf_counter() - start)
     return ReachableMesh(np.array(mesh_states).reshape(-1, dim),
                          np.array(successors, dtype=np.int64).reshape(-1, len(values)), weights, box_size, mean, std,
-                         np.array(seed_ids, dtype=np.int64), complete, time.perf_counter() - start, settings)
+                         np.array(seed_ids, dtype=np.int64), complete, earlier + time.perf_counter() - start, settings)
 
 
 @dataclass
@@ -323,9 +328,11 @@ def monte_carlo_mfpt(section_map: SectionMap, starts, disturbances, episodes: in
     try:
         if progress and chunks > 1:
             from tqdm.auto import tqdm
-            parts = []
-            for task in tqdm(tasks, desc="monte carlo", unit="chunk"):
-                parts.extend(pool.map(_monte_carlo_chunk, [task]))
+            parts, step = [], max(1, getattr(pool, "workers", 1))   # one batch of chunks per round of workers
+            with tqdm(total=len(tasks), desc="monte carlo", unit="chunk") as bar:
+                for i in range(0, len(tasks), step):
+                    parts.extend(pool.map(_monte_carlo_chunk, tasks[i:i + step]))
+                    bar.update(len(tasks[i:i + step]))
         else:
             parts = pool.map(_monte_carlo_chunk, tasks)
     finally:
