@@ -158,3 +158,17 @@ def test_frozen_policy_pickles_and_acts_like_predict(policy):
         np.testing.assert_allclose(frozen(o), agent.predict(o), rtol=0, atol=1e-12)
     agent.learn(epochs=3, progress=False)                 # later training does not move a frozen copy
     assert not np.allclose(frozen(obs[0]), agent.predict(obs[0]))
+
+
+def test_a_fresh_run_in_a_used_log_dir_starts_a_clean_log(tmp_path):
+    import csv
+    for _ in range(2):      # the second run must find a log with its header, not a headerless one
+        ARS(point_reach, ARSConfig(seed=0, **SMALL)).learn(epochs=2, progress=False, log_dir=tmp_path)
+    with open(tmp_path / "progress.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [int(r["epoch"]) for r in rows] == [1, 2]
+    (tmp_path / "progress.csv").write_text("1,2,3\n4,5,6\n")
+    agent = ARS(point_reach, ARSConfig(seed=0, **SMALL)).learn(epochs=2, progress=False, log_dir=tmp_path / "b")
+    agent.save(tmp_path / "checkpoint")
+    with pytest.raises(ValueError, match="no 'epoch' column"):
+        ARS.load(tmp_path / "checkpoint", env=point_reach).learn(epochs=3, progress=False, log_dir=tmp_path)

@@ -36,9 +36,11 @@ EXPECTED_LINES = {
     ],
     "04_reachable_mesh_mfpt.ipynb": [
         "finest mesh inside the Monte Carlo 95 % interval: True",   # mesh MFPT vs the true map
+        "hopper record: notebooks/data/ch5/hopper.json",            # the shipped Ch. 5 hopper record is read
     ],
     "03_trajectory_dimension.ipynb": [
         "same curve: True",            # vectorised box count equals the thesis' dict of tuples
+        "MuJoCo record: notebooks/data/ch4/results.json",   # the shipped Table 4.1 / 4.4 record is read
     ],
 }
 

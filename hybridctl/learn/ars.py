@@ -537,16 +537,24 @@ def _truncate_csv(path: Path, epoch: int) -> None:
     """Drop CSV rows with ``epoch`` greater than ``epoch`` (written after the checkpoint being resumed)."""
     if not path.is_file():
         return
+    if epoch == 0:          # a fresh run: an old log in the folder is replaced, not read
+        path.unlink()
+        return
     with open(path, newline="") as fh:
-        rows = list(csv.DictReader(fh))
+        reader = csv.DictReader(fh)
+        rows = list(reader)
+        if "epoch" not in (reader.fieldnames or []):
+            raise ValueError(f"{path} has no 'epoch' column: not an ARS progress log; move it or pick another log_dir")
     keep = [r for r in rows if int(float(r["epoch"])) <= epoch]
     if len(keep) == len(rows):
         return
+    if not keep:            # nothing left: no file, so the next row writes the header
+        path.unlink()
+        return
     buffer = io.StringIO()
-    if keep:
-        writer = csv.DictWriter(buffer, fieldnames=list(keep[0]))
-        writer.writeheader()
-        writer.writerows(keep)
+    writer = csv.DictWriter(buffer, fieldnames=list(keep[0]))
+    writer.writeheader()
+    writer.writerows(keep)
     tmp = path.with_suffix(".csv.tmp")
     tmp.write_text(buffer.getvalue())
     tmp.replace(path)

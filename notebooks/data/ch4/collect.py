@@ -60,6 +60,8 @@ def main() -> int:
     parser.add_argument("--robust-episodes", type=int, default=10)
     parser.add_argument("--robust-steps", type=int, default=2000)
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--reuse-evaluations", action="store_true",
+                        help="keep the runs' evaluations (and their wall time) of the existing record; redo Table 4.4")
     parser.add_argument("--out", default=str(Path(__file__).with_name("results.json")))
     args = parser.parse_args()
     start = time.perf_counter()
@@ -74,6 +76,11 @@ def main() -> int:
                              "(thesis Sec. 4.2.8), eval seed 12345",
                   "robustness": f"{args.robust_episodes} episodes of {args.robust_steps} steps per seed and "
                                 f"condition (thesis: 10,000 steps); thesis Table 4.4 noise levels"}}
+    earlier = json.loads(Path(args.out).read_text()) if args.reuse_evaluations and Path(args.out).is_file() else None
+    if earlier is not None:
+        record["runs"], record["evaluation_wall_time_s"] = earlier["runs"], earlier.get("evaluation_wall_time_s",
+                                                                                          earlier.get("wall_time_s"))
+        runs = []
     with make_backend("processes", args.workers) as pool:
         for run in runs:
             env_id, seed = run.name.rsplit("-s", 1)
@@ -82,6 +89,7 @@ def main() -> int:
                     print(f"{run.name}/{variant}", flush=True)
                     record["runs"][f"{run.name}/{variant}"] = {"env": env_id, "seed": int(seed), "variant": variant,
                                                                 **evaluate_run(run / variant, pool)}
+    record.setdefault("evaluation_wall_time_s", time.perf_counter() - start)
     for env_id in sorted({r["env"] for r in record["runs"].values()}):
         record["table41"][env_id] = {}
         for variant in VARIANTS:
@@ -96,7 +104,7 @@ def main() -> int:
         action, obs, push = TABLE44[env_id]
         conditions = {f"action noise {action}": {"action_noise": action}, f"observation noise {obs}": {"obs_noise": obs},
                       f"push {push[1]} N at rate {push[0]}": {"push": push}}
-        table = {}
+        table, per_seed = {}, {}
         for variant in ("identity", "mesh-lower", "mesh-upper"):
             counts = {name: [0, 0] for name in conditions}
             for key, r in record["runs"].items():
@@ -108,7 +116,9 @@ def main() -> int:
                 for name, c in rep.items():
                     counts[name][0] += c["failures"]
                     counts[name][1] += c["episodes"]
-            table[variant] = {name: {"failures": f, "episodes": n, "failure_rate": f / n if n else None}
+                    per_seed.setdefault(variant, {}).setdefault(name, {})[r["seed"]] = c["failures"]
+            table[variant] = {name: {"failures": f, "episodes": n, "failure_rate": f / n if n else None,
+                                     "failures_per_seed": per_seed.get(variant, {}).get(name, {})}
                               for name, (f, n) in counts.items()}
         record["table44"][env_id] = table
         print(env_id, json.dumps(table), flush=True)
