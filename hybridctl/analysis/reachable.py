@@ -268,8 +268,7 @@ def build_mesh(section_map: SectionMap, seeds, disturbances, box_size: float, me
         bar.close()
         pool.close()
     if path is not None:
-        _save_checkpoint(path, mesh_states, successors, box_size, len(values),
-                                 earlier + time.perf_counter() - start)
+        _save_checkpoint(path, mesh_states, successors, box_size, len(values), earlier + time.perf_counter() - start)
     return ReachableMesh(np.array(mesh_states).reshape(-1, dim),
                          np.array(successors, dtype=np.int64).reshape(-1, len(values)), weights, box_size, mean, std,
                          np.array(seed_ids, dtype=np.int64), complete, earlier + time.perf_counter() - start, settings)
