@@ -156,8 +156,12 @@ def test_frozen_policy_pickles_and_acts_like_predict(policy):
     obs = np.random.default_rng(0).normal(size=(5, agent.policy.obs_dim))
     for o in obs:
         np.testing.assert_allclose(frozen(o), agent.predict(o), rtol=0, atol=1e-12)
+    in_process = agent.frozen_policy()
+    before = in_process(obs[0])
     agent.learn(epochs=3, progress=False)                 # later training does not move a frozen copy
     assert not np.allclose(frozen(obs[0]), agent.predict(obs[0]))
+    np.testing.assert_array_equal(in_process(obs[0]), before)   # not even one sharing this process
+    np.testing.assert_allclose(agent.predict(obs[0]), agent.frozen_policy()(obs[0]), rtol=0, atol=1e-12)
 
 
 def test_a_fresh_run_in_a_used_log_dir_starts_a_clean_log(tmp_path):

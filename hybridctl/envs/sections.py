@@ -78,19 +78,27 @@ class HopperApexMap(SectionMap):
         self._set_state(env, state)
         push = np.atleast_1d(np.asarray(disturbance, dtype=np.float64))
         force = np.array([push[0], 0.0, push[1] if push.size > 1 else 0.0])
-        obs, rising = env._get_obs(), False   # the policy sees the env's own (clipped) observation
-        for k in range(self.timeout_steps):
-            env.data.xfrc_applied[TORSO_BODY, :3] = force if k == 0 else 0.0
+        state, _, _ = self._run_to_apex(env, env._get_obs(), self.timeout_steps, force)
+        return state
+
+    def _run_to_apex(self, env, obs: np.ndarray, limit: int, force: np.ndarray | None = None):
+        """Run the policy from ``obs`` (the env's own, clipped observation) until the torso height
+        peaks, with ``force`` on the torso during the first step: (apex state or None for failure /
+        no apex within ``limit`` steps, last observation, steps taken)."""
+        rising = False
+        for k in range(limit):
+            if force is not None and k == 0:
+                env.data.xfrc_applied[TORSO_BODY, :3] = force
             obs, _, terminated, _, _ = env.step(self.policy(obs))
-            if terminated or not np.all(np.isfinite(obs)):
+            if k == 0:
                 env.data.xfrc_applied[TORSO_BODY, :3] = 0.0
-                return None
-            vz = env.data.qvel[VZ]
-            if vz > 0:
+            if terminated or not np.all(np.isfinite(obs)):
+                return None, obs, k + 1
+            if env.data.qvel[VZ] > 0:
                 rising = True
             elif rising:
-                return self._state(env)
-        return None
+                return self._state(env), obs, k + 1
+        return None, obs, limit
 
     @staticmethod
     def _state(env) -> np.ndarray:
@@ -101,16 +109,13 @@ class HopperApexMap(SectionMap):
         ``skip`` apexes (the start transient): seeds for a mesh or starts for Monte Carlo."""
         env = self._env()
         obs, _ = env.reset(seed=seed)
-        apexes, rising = [], False
-        for _ in range(steps):
-            obs, _, terminated, _, _ = env.step(self.policy(obs))
-            if terminated:
+        apexes, left = [], steps
+        while left > 0:
+            state, obs, used = self._run_to_apex(env, obs, left)
+            left -= used
+            if state is None:
                 break
-            if env.data.qvel[VZ] > 0:
-                rising = True
-            elif rising:
-                apexes.append(self._state(env))
-                rising = False
+            apexes.append(state)
         if len(apexes) <= skip:
             raise ValueError(f"the policy reached {len(apexes)} apexes in {steps} steps from reset (seed {seed}); "
                              f"need more than skip={skip}: is it hopping?")

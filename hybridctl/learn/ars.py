@@ -29,6 +29,7 @@ seed gives the same run on every backend, and a resumed run continues exactly.
 
 from __future__ import annotations
 
+import copy
 import csv
 import dataclasses
 import io
@@ -172,7 +173,9 @@ class FrozenPolicy:
     """A fixed ARS policy with frozen observation normalisation: ``policy(obs) -> action`` (pickles)."""
 
     def __init__(self, spec: PolicySpec, theta: np.ndarray, obs_mean: np.ndarray, obs_std: np.ndarray):
-        self.spec, self.theta = spec, np.asarray(theta, dtype=np.float64)
+        # a torch policy gets its own module: the trainer's module is overwritten by every rollout
+        self.spec = copy.deepcopy(spec) if spec.module is not None else spec
+        self.theta = np.asarray(theta, dtype=np.float64)
         self.obs_mean, self.obs_std = np.asarray(obs_mean, dtype=np.float64), np.asarray(obs_std, dtype=np.float64)
         self._actor = None
 
@@ -451,7 +454,13 @@ class ARS:
 
     def predict(self, obs: np.ndarray, deterministic: bool = True) -> np.ndarray:
         """The policy's action for ``obs`` (ARS policies are deterministic)."""
-        return self.policy.actor(self.theta)((np.asarray(obs, dtype=np.float64) - self.stats.mean) / self.stats.std)
+        frozen = getattr(self, "_predictor", None)
+        # reuse the frozen policy while theta and the normalisation are unchanged (building a torch
+        # policy's actor loads its weights, too slow to repeat every step)
+        if frozen is None or not (np.array_equal(frozen.theta, self.theta) and np.array_equal(
+                frozen.obs_mean, self.stats.mean) and np.array_equal(frozen.obs_std, self.stats.std)):
+            frozen = self._predictor = self.frozen_policy()
+        return frozen(obs)
 
     def evaluate(self, episodes: int | None = None, seed: int = 12345, episode_steps: int | None = None,
                  postprocess: str = "identity", backend=None, keep_states: bool = False, measure: bool = False,

@@ -46,9 +46,10 @@ import torch
 from . import checkpoint as ckpt
 from .gate import GateConfig, GateNet, fit_gate, label_states, warm_start_gate
 from .sac import SAC, SACConfig
+from ..systems.spec import REWARD_KINDS
 
 GATE_DATA_FILE = "gate_data.pt"
-from ..systems.spec import REWARD_KINDS as REWARDS  # one list of reward kinds, in the spec module
+REWARDS = REWARD_KINDS  # one list of reward kinds, in the spec module
 
 # the thesis' own values where hybridctl's defaults differ (SSACConfig comments say why)
 PAPER = {"polyak": 0.995, "obs_transform": "none", "gate_relabel_per_refit": 0, "gate_class_weight_from": "all"}

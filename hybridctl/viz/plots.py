@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import sys
+import textwrap
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -130,7 +131,6 @@ def plot_balance_map(th1_values, th2_values, balanced, path: str | Path | None =
     ax.set_ylabel("initial th2 [rad]")
     ax.set_aspect("equal" if _span(th1) and _span(th2) else "auto")
     heading = title or "balance map"
-    import textwrap
     full = f"{heading}: {100 * fraction:.1f}% balanced ({balanced.sum()}/{balanced.size})"
     ax.set_title("\n".join(textwrap.wrap(full, 48)), fontsize=10)  # controller paths make long titles
     fig.tight_layout()
