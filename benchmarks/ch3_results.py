@@ -139,7 +139,7 @@ def main(argv=None) -> int:
                                         "balanced_count": data["balanced_count"], "wall_time_s": data["wall_time_s"],
                                         "controller": data["controller"], "folder": target.name}
         print(f"{name}: {data['balanced_fraction']:.4f} balanced ({data['balanced_count']}/{data['grid'][0] ** 2})")
-    from hybridctl.analysis import balance_map
+    from hybridctl.experiments import balance_map
 
     for name in args.balance_map:
         run = next(r for r in runs if r["run"] == name)

@@ -169,7 +169,7 @@ def test_meshcat_viewer_does_not_change_the_run():
 
 
 def test_balance_map_workers_keep_the_systems_overrides():
-    from hybridctl.analysis import balance_map
+    from hybridctl.experiments import balance_map
     system = systems.load("pendulum", limit=0.01)   # too weak to swing up or hold
     weak = balance_map(system, grid=2, workers=2, progress=False)
     strong = balance_map("pendulum", grid=2, workers=1, progress=False)

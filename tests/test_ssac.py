@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from hybridctl import drake, systems
+from hybridctl import drake, experiments, systems
 from hybridctl.cli import main as cli_main
 from hybridctl.envs import SwitchedVectorEnv
 from hybridctl.learn import (SAC, SSAC, CheckpointError, GateConfig, GateDataset, GateNet, SSACConfig,
@@ -168,7 +168,7 @@ def test_load_errors(tmp_path, warm):
     with pytest.raises(CheckpointError, match="written by SAC"):
         SSAC.load(tmp_path / "sac")
     with pytest.raises(ValueError, match="without a gate"):
-        drake.build_named_diagram(systems.load("acrobot"), f"ssac:{tmp_path / 'sac'}")
+        experiments.build_named_diagram(systems.load("acrobot"), f"ssac:{tmp_path / 'sac'}")
 
 
 def test_nan_loss_stops_and_keeps_the_last_checkpoint(tmp_path, warm):
@@ -194,7 +194,7 @@ def test_drake_diagram_from_checkpoint_equals_the_switched_env(tmp_path, warm):
     agent = SSAC(SwitchedVectorEnv(system, 1, gate=gate), gate_data=warm[1:], **TINY)
     agent.save(tmp_path / "ck")
     policy, loaded_gate, _ = load_controller(tmp_path / "ck", system)
-    diagram = drake.build_named_diagram(system, f"ssac:{tmp_path / 'ck'}")
+    diagram = experiments.build_named_diagram(system, f"ssac:{tmp_path / 'ck'}")
     x0 = np.array([1.2, -0.4, 0.5, -1.0])
     traj = drake.simulate(diagram, x0, duration=4.0)
     env = SwitchedVectorEnv(system, 1, gate=loaded_gate)

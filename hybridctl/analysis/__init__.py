@@ -2,7 +2,6 @@
 variation estimators (Ch. 4); absorbing Markov chains and mean first passage time (Ch. 5)."""
 
 from .balance import decision_indices, episode_return, is_balanced, lqr_rollouts_balanced
-from .balance_map import BalanceMap, balance_map, grid_axes
 from .markov import MFPTResult, absorbing_mfpt, check_transition_matrix, cumulative_transition_mass
 from .mesh import MeshDimension, box_keys, box_mesh_size, count_distinct_rows, mesh_dimension
 from .poincare import FiniteDisturbances, FunctionMap, GaussianDisturbance, RimlessWheel, SectionMap
@@ -11,8 +10,8 @@ from .reachable import (MonteCarloResult, ReachableMesh, build_mesh, failure_sta
                         reachable_dimension)
 from .variation import madogram, power_variation, variation_dimension, variogram
 
-__all__ = ["decision_indices", "episode_return", "is_balanced", "lqr_rollouts_balanced", "BalanceMap",
-           "balance_map", "grid_axes", "MeshDimension", "box_keys", "box_mesh_size", "count_distinct_rows",
+__all__ = ["decision_indices", "episode_return", "is_balanced", "lqr_rollouts_balanced", 
+           "MeshDimension", "box_keys", "box_mesh_size", "count_distinct_rows",
            "mesh_dimension", "PostProcessor", "MFPTResult", "absorbing_mfpt", "check_transition_matrix",
            "FiniteDisturbances", "FunctionMap", "GaussianDisturbance", "RimlessWheel", "SectionMap", "MonteCarloResult",
            "ReachableMesh", "build_mesh", "mesh_sizes", "monte_carlo_mfpt", "cumulative_transition_mass",

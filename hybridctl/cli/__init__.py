@@ -72,7 +72,8 @@ def run_simulation(system_name: str, controller: str, x0: str | None, duration: 
     """Simulate, then write trajectory.npz, summary.json, plot.png and replay.html into ``out``."""
     import matplotlib.pyplot as plt
 
-    from ..drake import build_named_diagram, simulate
+    from ..drake import simulate
+    from ..experiments import build_named_diagram
     from ..learn.checkpoint import CheckpointError
     from ..viz import plot_trajectory, replay_html
 
@@ -111,7 +112,7 @@ def cmd_simulate(args) -> int:
 
 def cmd_balance_map(args) -> int:
     """`hybridctl balance-map SYSTEM ...`"""
-    from ..analysis import balance_map
+    from ..experiments import balance_map
     from ..learn.checkpoint import CheckpointError
     system = _load_system(args.system)
     try:
@@ -143,7 +144,7 @@ def cmd_demo(args) -> int:
           f"(thesis max 100), LQR from t={summary['first_balance_time']} s, "
           f"{summary['realtime_factor']:.0f}x real time")
     print(f"  open {out / 'acrobot' / 'replay.html'} in a browser to watch it")
-    from ..analysis import balance_map
+    from ..experiments import balance_map
     result = balance_map("acrobot", controller, grid=args.grid, progress=not args.quiet)
     result.meta["command"] = args.command_line
     bm = result.save(out / "balance_map")
@@ -349,7 +350,7 @@ def cmd_mesh(args) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``hybridctl`` command."""
-    from ..drake.diagram import CONTROLLERS
+    from ..experiments import CONTROLLERS
 
     parser = argparse.ArgumentParser(prog="hybridctl", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)

@@ -12,14 +12,14 @@ from .blocks import Gate, HeldController, ModeSwitch, TorchPolicy
 from .controllers import (AcrobotEnergySwingup, CartpoleEnergySwingup, CostToGoGate, LQRController,
                           PendulumEnergySwingup, energy_swingup)
 from .controllers import lqr_basin_level
-from .diagram import CONTROLLERS, HybridDiagram, build_hybrid_diagram, build_named_diagram
+from .diagram import HybridDiagram, build_hybrid_diagram
 from .sections import DrakeCompassGaitMap, DrakeRimlessWheelMap, SectionObserver
 from .simulate import Trajectory, simulate
 
 __all__ = [
     "Gate", "HeldController", "ModeSwitch", "TorchPolicy",
     "AcrobotEnergySwingup", "CartpoleEnergySwingup", "PendulumEnergySwingup", "CostToGoGate",
-    "LQRController", "energy_swingup", "lqr_basin_level", "CONTROLLERS", "HybridDiagram",
-    "build_hybrid_diagram", "build_named_diagram", "Trajectory", "simulate", "DrakeRimlessWheelMap",
+    "LQRController", "energy_swingup", "lqr_basin_level", "HybridDiagram",
+    "build_hybrid_diagram", "Trajectory", "simulate", "DrakeRimlessWheelMap",
     "DrakeCompassGaitMap", "SectionObserver",
 ]

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -14,6 +12,7 @@ from pydrake.systems.analysis import ResetIntegratorFromFlags, Simulator
 from pydrake.systems.framework import EventStatus
 
 from ..analysis.balance import decision_indices, episode_return, is_balanced
+from .. import io
 from ..systems import System
 
 _DRAKE_INTEGRATOR = {"euler": "explicit_euler", "runge_kutta2": "runge_kutta2"}
@@ -84,25 +83,11 @@ class Trajectory:
         """Write ``trajectory.npz`` (t, x, u, gate, probability) and ``summary.json`` atomically."""
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
-        _atomic_write(out / "trajectory.npz", lambda f: np.savez(f, t=self.t, x=self.x, u=self.u,
+        io.atomic_write(out / "trajectory.npz", lambda f: np.savez(f, t=self.t, x=self.x, u=self.u,
                                                                   gate=self.gate, probability=self.probability))
         summary = self.summary()
-        _atomic_write(out / "summary.json", lambda f: f.write(json.dumps(summary, indent=2).encode()))
+        io.atomic_write(out / "summary.json", lambda f: f.write(json.dumps(summary, indent=2).encode()))
         return summary
-
-
-def _atomic_write(path: Path, write) -> None:
-    """Write through a temporary file in the same folder, then rename (no half-written files)."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-        os.chmod(tmp, 0o644)  # mkstemp creates 0600; outputs are meant to be shared
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def _validate_x0(x0, n: int) -> np.ndarray:

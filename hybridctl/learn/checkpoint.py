@@ -32,6 +32,8 @@ from typing import Any, Callable, Iterable
 import numpy as np
 import torch
 
+from .. import io as _io
+
 MODEL_FILE = "model.pt"
 CONFIG_FILE = "config.json"
 NORMALIZATION_FILE = "normalization.json"
@@ -55,83 +57,21 @@ def versions() -> dict[str, str]:
             "gymnasium": gymnasium.__version__, "python": platform.python_version()}
 
 
-def to_jsonable(value: Any) -> Any:
-    """numpy scalars/arrays, tuples, Paths and non-finite floats -> plain JSON values."""
-    if isinstance(value, dict):
-        return {str(k): to_jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [to_jsonable(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return to_jsonable(value.tolist())
-    if isinstance(value, torch.Tensor):
-        return to_jsonable(value.detach().cpu().tolist())
-    if isinstance(value, np.generic):
-        return to_jsonable(value.item())
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, Path):
-        return str(value)
-    return value
-
-
-def _fsync_file(path: Path) -> None:
-    with open(path, "rb") as fh:
-        os.fsync(fh.fileno())
-
-
-def _fsync_dir(path: Path) -> None:
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except OSError:  # pragma: no cover - platforms without directory fds
-        return
-    try:
-        os.fsync(fd)
-    except OSError:  # pragma: no cover
-        pass
-    finally:
-        os.close(fd)
-
-
 def write_json(path: Path, data: dict) -> None:
-    """Write ``data`` as indented JSON (numpy and torch values converted)."""
-    Path(path).write_text(json.dumps(to_jsonable(data), indent=2) + "\n")
+    """Atomically write ``data`` as indented JSON (numpy and torch values converted)."""
+    _io.write_json(path, data)
 
 
 def read_json(path: Path) -> dict:
     """Read a JSON file, naming it in the error when it is not valid JSON."""
     try:
-        return json.loads(Path(path).read_text())
-    except json.JSONDecodeError as exc:
-        raise CheckpointError(f"{path} is not valid JSON: {exc}") from exc
+        return _io.read_json(path)
+    except _io.FileFormatError as exc:
+        raise CheckpointError(str(exc)) from exc
 
 
-def write_checkpoint_dir(path: str | os.PathLike, write_files: Callable[[Path], None]) -> Path:
-    """Atomically (re)place the directory ``path`` with what ``write_files(tmp_dir)`` writes.
-
-    ``write_files`` gets an empty temporary directory next to ``path``. If it raises,
-    the temporary directory is removed and an existing ``path`` is left untouched.
-    """
-    target = Path(path)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f"{target.name}.tmp-", dir=target.parent))
-    try:
-        write_files(tmp)
-        for item in tmp.rglob("*"):
-            if item.is_file():
-                _fsync_file(item)
-        _fsync_dir(tmp)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    backup = None
-    if target.exists():
-        backup = target.parent / f"{target.name}.bak-{uuid.uuid4().hex[:8]}"
-        os.replace(target, backup)
-    os.replace(tmp, target)
-    _fsync_dir(target.parent)
-    if backup is not None:
-        shutil.rmtree(backup, ignore_errors=True)
-    return target
+write_checkpoint_dir = _io.atomic_directory
+to_jsonable = _io.to_jsonable
 
 
 def resolve_checkpoint_dir(path: str | os.PathLike) -> Path:

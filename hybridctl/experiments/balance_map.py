@@ -1,4 +1,8 @@
-"""Balance maps (thesis Fig. 3.6): does the controller balance from each rest state of a grid?"""
+"""Balance maps (thesis Fig. 3.6): does the controller balance from each rest state of a grid?
+
+Each grid start is simulated in Drake by a named controller (:mod:`.controllers`) in local worker
+processes, each building its own diagram.
+"""
 
 from __future__ import annotations
 
@@ -12,7 +16,11 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from .. import io
+from ..drake import simulate
 from ..systems import System, load
+from ..viz import plot_balance_map
+from .controllers import build_named_diagram
 
 
 @dataclass
@@ -50,14 +58,12 @@ class BalanceMap:
 
     def save(self, out_dir: str | Path) -> dict:
         """Write ``balance_map.json`` and ``balance_map.png`` into ``out_dir``."""
-        from ..drake.simulate import _atomic_write
-        from ..viz import plot_balance_map
         import matplotlib.pyplot as plt
 
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
         summary = self.summary()
-        _atomic_write(out / "balance_map.json", lambda f: f.write(json.dumps(summary, indent=1).encode()))
+        io.atomic_write_text(out / "balance_map.json", json.dumps(summary, indent=1))
         fig = plot_balance_map(self.values1, self.values2, self.balanced, path=out / "balance_map.png",
                                title=f"{self.system}, {self.controller}, {self.duration:g} s")
         plt.close(fig)
@@ -97,8 +103,6 @@ def _simulate_chunk(args) -> list[tuple[int, bool, float, bool]]:
     import torch
 
     torch.set_num_threads(1)
-    from ..drake import build_named_diagram, simulate
-
     spec_name, overrides, controller, duration, starts = args
     system = load(spec_name, **overrides)
     diagram = build_named_diagram(system, controller)
@@ -131,7 +135,6 @@ def balance_map(system: System | str, controller: str = "energy", grid: int = 41
     if duration <= 0:
         raise ValueError(f"duration must be > 0, got {duration}")
     (a1, a2), (r1, r2) = grid_axes(system, axes, ranges)
-    from ..drake import build_named_diagram
     build_named_diagram(system, controller, log=False)  # bad names/checkpoints fail here, not in a worker
     values1, values2 = np.linspace(*r1, grid), np.linspace(*r2, grid)
     starts = []
