@@ -17,11 +17,19 @@ from typing import Any
 import numpy as np
 import torch
 
+from . import control
 from .dynamics import ChainDynamics, ChainParams
-from .spec import SpecError, Spec, known_systems, read_spec
-from . import plants as _plants
+from .spec import (GateSection, InitialStateSection, SpecError, Spec, SuccessSection, SwingupSection, known_systems,
+                   read_spec, typed_sections)
 
-__all__ = ["System", "load", "known_systems", "SpecError", "Spec", "check_array"]
+__all__ = ["System", "load", "known_systems", "SpecError", "Spec", "check_array", "control", "GateSection",
+           "SuccessSection", "InitialStateSection", "SwingupSection"]
+
+
+def _plants():
+    """The Drake plant builders, imported on first use: ``import hybridctl.systems`` stays free of pydrake."""
+    from . import plants
+    return plants
 
 
 def check_array(name: str, value, width: int, dtype_float: bool = True) -> None:
@@ -46,6 +54,10 @@ class System:
     ``dt``, ``integrator``, ``control_period``, ``swingup_period``,
     ``episode_duration``, ``action_limit``, ``angle_indices``, ``Q``, ``R``,
     ``success_eps``, ``success_lookback``, ``chain`` (ChainParams), ``dynamics``.
+
+    Typed spec sections: ``gate`` (:class:`GateSection`: on, off, cost_scale,
+    label_horizon, warm_near, warm_far), ``success`` (eps, lookback),
+    ``initial_state`` (nominal, low, high) and ``swingup`` (controller, gains).
     """
 
     def __init__(self, spec: Spec):
@@ -68,8 +80,14 @@ class System:
         self._angle_index = np.asarray(self.angle_indices, dtype=np.int64)
         self.Q = np.atleast_2d(spec.get("lqr.Q"))
         self.R = np.atleast_2d(spec.get("lqr.R"))
-        self.success_eps = float(spec.get("success.eps"))
-        self.success_lookback = int(spec.get("success.lookback"))
+        sections = typed_sections(spec)
+        self.gate: GateSection = sections["gate"]
+        self.success: SuccessSection = sections["success"]
+        self.initial_state: InitialStateSection = sections["initial_state"]
+        self.swingup: SwingupSection = sections["swingup"]
+        self.success_eps = self.success.eps
+        self.success_lookback = self.success.lookback
+        self.description: str = spec.get("system.description", "")
         self.reward_kind: str = spec.get("reward.kind")
         self.chain = self._chain_params()
         self.dynamics = ChainDynamics(self.chain)
@@ -150,10 +168,7 @@ class System:
             goal = torch.as_tensor(self.goal, dtype=x.dtype, device=x.device)
         else:
             goal = self.goal
-        err = x - goal
-        idx = self._angle_index
-        err[..., idx] = (err[..., idx] + np.pi) % (2 * np.pi) - np.pi
-        return err
+        return control.wrap_angles(x - goal, self._angle_index)
 
     def reward(self, x):
         """Per-decision reward of states x: tip height (thesis eq. 3.1) or a variant.
@@ -179,8 +194,7 @@ class System:
         if n < 1:
             raise ValueError(f"n must be >= 1, got {n}")
         rng = generator if generator is not None else np.random.default_rng()
-        low, high = self.spec.get("initial_state.low"), self.spec.get("initial_state.high")
-        return self.spec.get("initial_state.nominal") + rng.uniform(low, high, size=(n, self.n_states))
+        return self.initial_state.sample(n, rng)
 
     # --------------------------------------------------------------------- Drake
     def drake_plant(self):
@@ -189,27 +203,33 @@ class System:
         AcrobotPlant and PendulumPlant keep parameters in the Context: create contexts
         with :meth:`drake_context`, which writes the spec's parameters.
         """
-        plant, _ = _plants.make_plant(self)
+        plant, _ = _plants().make_plant(self)
         return plant
 
     def drake_context(self, plant):
         """A Context of ``plant`` (from :meth:`drake_plant`) holding the spec's parameters."""
         context = plant.CreateDefaultContext()
-        _plants.make_plant_parameter_setter(self, plant)(context)
+        _plants().make_plant_parameter_setter(self, plant)(context)
         return context
 
     def to_drake_state(self, x: np.ndarray) -> np.ndarray:
         """Our state convention -> the Drake plant's (differs only in the acrobot's th1)."""
-        return np.asarray(x, dtype=float) + _plants.drake_state_offset(self)
+        return np.asarray(x, dtype=float) + self.drake_state_offset()
 
     def from_drake_state(self, x_drake: np.ndarray) -> np.ndarray:
         """The Drake plant's state convention -> ours."""
-        return np.asarray(x_drake, dtype=float) - _plants.drake_state_offset(self)
+        return np.asarray(x_drake, dtype=float) - self.drake_state_offset()
+
+    def drake_state_offset(self) -> np.ndarray:
+        """x_drake - x: Drake's AcrobotPlant measures the first link angle from hanging down."""
+        offset = np.zeros(self.n_states)
+        offset[int(self.chain.has_cart)] = self.chain.angle_offset
+        return offset
 
     def drake_derivatives(self, plant, context, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """Time derivatives from the Drake plant at one state (our convention) and input."""
         context.SetContinuousState(self.to_drake_state(x))
-        _plants.actuation_port(plant).FixValue(context, np.asarray(u, dtype=float))
+        _plants().actuation_port(plant).FixValue(context, np.asarray(u, dtype=float))
         return plant.EvalTimeDerivatives(context).CopyToVector()
 
     def lqr(self, Q: np.ndarray | None = None, R: np.ndarray | None = None):
@@ -233,7 +253,7 @@ class System:
             context = self.drake_context(plant)
             context.SetContinuousState(self.to_drake_state(self.goal))
             u0 = np.zeros(self.n_actions)
-            port = _plants.actuation_port(plant)
+            port = _plants().actuation_port(plant)
             port.FixValue(context, u0)
             xdot = plant.EvalTimeDerivatives(context).CopyToVector()
             if np.abs(xdot).max() > 1e-8:

@@ -150,11 +150,8 @@ def _set_acrobot_params_object(system: "HybridSystem", params) -> None:
 
 
 def drake_state_offset(system: "HybridSystem") -> np.ndarray:
-    """x_drake - x: the plant measures the first link angle from hanging down."""
-    offset = np.zeros(system.n_states)
-    c = int(system.chain.has_cart)
-    offset[c] = system.chain.angle_offset
-    return offset
+    """x_drake - x (see ``System.drake_state_offset``)."""
+    return system.drake_state_offset()
 
 
 def make_plant_parameter_setter(system: "HybridSystem", plant) -> Callable[[Context], None]:

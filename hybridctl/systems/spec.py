@@ -248,3 +248,89 @@ def validate(spec: Spec) -> None:
     if not 0.0 < off < on < 1.0:
         raise spec.error("gate.on", f"needs 0 < gate.off < gate.on < 1, got off={off}, on={on}")
     _require_positive(spec, "gate.cost_scale")
+    if spec.has("gate.label_horizon"):
+        _require_positive(spec, "gate.label_horizon")
+    for key in ("gate.warm_near", "gate.warm_far"):
+        if spec.has(key):
+            value = np.asarray(spec.get(key))
+            if value.shape != (n,) or not np.all(np.isfinite(value)) or np.any(value <= 0):
+                raise spec.error(key, f"must be {n} finite numbers > 0 (a spread per state), got {spec.get(key)!r}")
+
+
+# ----------------------------------------------------------------- typed sections
+# What the rest of hybridctl reads from a spec, as typed, validated values: code
+# outside ``systems`` reads ``system.gate.on``, never ``spec.get("gate.on")``.
+
+THESIS_LABEL_HORIZON = 2.5
+"""s: the thesis labels gate data by 2.5 s LQR rollouts (implementation notes, Ch. 3).
+The default of ``gate.label_horizon`` for a spec that does not set it."""
+
+
+@dataclass(frozen=True)
+class GateSection:
+    """``[gate]``: hysteresis thresholds, gate-label horizon, cost-to-go scale, warm-start spreads.
+
+    ``warm_near`` / ``warm_far`` are None when the spec gives none (no gate learning then).
+    """
+
+    on: float
+    off: float
+    cost_scale: float
+    label_horizon: float
+    warm_near: np.ndarray | None
+    warm_far: np.ndarray | None
+
+    def spread(self, which: str) -> np.ndarray:
+        """``warm_near`` or ``warm_far``; ValueError naming the key when the spec has none."""
+        value = getattr(self, which)
+        if value is None:
+            raise ValueError(f"gate learning needs 'gate.{which}' (a spread per state) in the system's spec")
+        return value
+
+
+@dataclass(frozen=True)
+class SuccessSection:
+    """``[success]``: the thesis success test's eps and lookback b (eq. 3.2)."""
+
+    eps: float
+    lookback: int
+
+
+@dataclass(frozen=True)
+class InitialStateSection:
+    """``[initial_state]``: x0 = nominal + U(low, high), elementwise."""
+
+    nominal: np.ndarray
+    low: np.ndarray
+    high: np.ndarray
+
+    def sample(self, n: int, rng: np.random.Generator) -> np.ndarray:
+        """n initial states (n, len(nominal)) drawn with ``rng``."""
+        return self.nominal + rng.uniform(self.low, self.high, size=(n, len(self.nominal)))
+
+
+@dataclass(frozen=True)
+class SwingupSection:
+    """``[swingup]``: the hand-designed swing-up's name (None when the spec has none) and gains."""
+
+    controller: str | None
+    gains: dict
+
+
+def typed_sections(spec: Spec) -> dict:
+    """The typed sections of a validated spec: gate, success, initial_state, swingup."""
+    def optional_spread(key):
+        return np.asarray(spec.get(key), dtype=float).copy() if spec.has(key) else None
+
+    gate = GateSection(
+        on=float(spec.get("gate.on")), off=float(spec.get("gate.off")),
+        cost_scale=float(spec.get("gate.cost_scale")),
+        label_horizon=float(spec.get("gate.label_horizon", THESIS_LABEL_HORIZON)),
+        warm_near=optional_spread("gate.warm_near"), warm_far=optional_spread("gate.warm_far"))
+    success = SuccessSection(eps=float(spec.get("success.eps")), lookback=int(spec.get("success.lookback")))
+    initial = InitialStateSection(*(np.asarray(spec.get(f"initial_state.{k}"), dtype=float).copy()
+                                    for k in ("nominal", "low", "high")))
+    gains = {k.split(".", 1)[1]: float(v) for k, v in spec.values.items()
+             if k.startswith("swingup.") and k != "swingup.controller"}
+    swingup = SwingupSection(controller=spec.get("swingup.controller", None), gains=gains)
+    return {"gate": gate, "success": success, "initial_state": initial, "swingup": swingup}
