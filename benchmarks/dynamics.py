@@ -118,8 +118,7 @@ def bench_drake() -> dict:
         system = systems.load("acrobot")
         # Hanging down, nudged 1e-3 rad as in `make demo`: the exact bottom is an
         # equilibrium where the swing-up outputs zero, which would time an idle loop.
-        x0 = np.asarray(system.spec.get("initial_state.nominal"), dtype=float)
-        x0[system.angle_indices[0]] += 1e-3
+        x0 = system.nudged_nominal_state()
         start = time.perf_counter()
         diagram = drake.build_hybrid_diagram(system)
         build = time.perf_counter() - start

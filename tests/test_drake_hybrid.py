@@ -8,7 +8,7 @@ from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource, LogVectorOutput
 
 from hybridctl import drake, systems
-from hybridctl.drake.controllers import lqr_basin_level
+from hybridctl.systems.control import lqr_basin_level
 
 HANGING = {"acrobot": [-np.pi / 2 + 1e-3, 0, 0, 0], "cartpole": [0.1, 0.05, 0, 0], "pendulum": [0.05, 0.0]}
 
@@ -34,7 +34,7 @@ def test_gate_hysteresis_switches_on_above_on_and_off_below_off():
 
 
 def test_gate_mode_lives_in_context_and_resets():
-    gate = drake.Gate(lambda x: [0.95], n_states=1, period=0.01)
+    gate = drake.Gate(lambda x: [0.95], n_states=1, period=0.01, on=0.9, off=0.5)
     context = gate.CreateDefaultContext()
     gate.get_input_port(0).FixValue(context, [0.0])
     simulator = Simulator(gate, context)

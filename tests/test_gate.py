@@ -31,7 +31,7 @@ def test_labels_from_lqr_rollouts(acrobot):
 def test_warm_start_states_cover_near_and_far(acrobot):
     states = warm_start_states(acrobot, 1000, np.random.default_rng(0))
     err = np.abs(acrobot.state_error(states))
-    near, far = np.asarray(acrobot.spec.get("gate.warm_near")), np.asarray(acrobot.spec.get("gate.warm_far"))
+    near, far = acrobot.gate.warm_near, acrobot.gate.warm_far
     assert np.all(err[:500] <= near + 1e-12) and np.any(err[500:, 3] > near[3])
     assert np.all(err <= far + 1e-9)
 

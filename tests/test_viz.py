@@ -30,7 +30,7 @@ def meshcat():
 def swing(system, duration=2.0, rate=100.0):
     """times, states of a made-up motion about the hanging pose that moves every coordinate."""
     times = np.arange(0.0, duration, 1.0 / rate)
-    states = np.tile(np.asarray(system.spec.get("initial_state.nominal"), dtype=float), (len(times), 1))
+    states = np.tile(system.initial_state.nominal, (len(times), 1))
     n_q = system.n_states // 2
     for i in range(n_q):
         states[:, i] += 0.5 * np.sin(2 * np.pi * times / duration + i)

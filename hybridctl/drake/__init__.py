@@ -9,9 +9,9 @@ hybrid systems by witness functions (Ch. 5).
 """
 
 from .blocks import Gate, HeldController, ModeSwitch, TorchPolicy
-from .controllers import (AcrobotEnergySwingup, CartpoleEnergySwingup, CostToGoGate, LQRController,
-                          PendulumEnergySwingup, energy_swingup)
-from .controllers import lqr_basin_level
+from ..systems.control import CostToGoGate, lqr_basin_level
+from .controllers import (AcrobotEnergySwingup, CartpoleEnergySwingup, LQRController, PendulumEnergySwingup,
+                          energy_swingup)
 from .diagram import HybridDiagram, build_hybrid_diagram
 from .sections import DrakeCompassGaitMap, DrakeRimlessWheelMap, SectionObserver
 from .simulate import Trajectory, simulate

@@ -15,6 +15,8 @@ import numpy as np
 import torch
 from pydrake.systems.framework import BasicVector, Context, DiscreteValues, LeafSystem
 
+from ..systems import control
+
 ArrayFn = Callable[[np.ndarray], np.ndarray]
 
 
@@ -111,9 +113,11 @@ class Gate(LeafSystem):
     new Context starts in swing-up (thesis: reset to swing-up at episode start).
 
     Ports: input ``state``; outputs ``mode`` (1) and ``probability`` (1).
+    ``on`` and ``off`` have no defaults: a system's are ``system.gate.on`` / ``.off``
+    (``build_hybrid_diagram`` passes them).
     """
 
-    def __init__(self, classifier, n_states: int, period: float, on: float = 0.9, off: float = 0.5,
+    def __init__(self, classifier, n_states: int, period: float, *, on: float, off: float,
                  name: str = "gate"):
         super().__init__()
         if not 0.0 < off < on < 1.0:
@@ -130,12 +134,8 @@ class Gate(LeafSystem):
         self.set_name(name)
 
     def next_mode(self, mode: float, probability: float) -> float:
-        """Hysteresis: on above ``on``, off below ``off``, otherwise unchanged."""
-        if probability > self.on:
-            return 1.0
-        if probability < self.off:
-            return 0.0
-        return mode
+        """Hysteresis (:func:`hybridctl.systems.control.hysteresis`): on above ``on``, off below ``off``."""
+        return float(control.hysteresis(float(probability), float(mode), self.on, self.off))
 
     def _update(self, context: Context, discrete_state: DiscreteValues) -> None:
         x = self.get_input_port(0).Eval(context)

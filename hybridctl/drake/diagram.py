@@ -18,8 +18,10 @@ from pydrake.systems.primitives import AffineSystem, LogVectorOutput, Saturation
 
 from ..systems import System
 from ..systems import plants as _plants
+from ..systems.control import CostToGoGate
+from ..viz.meshcat import add_meshcat
 from .blocks import Gate, HeldController, ModeSwitch, TorchPolicy
-from .controllers import CostToGoGate, LQRController, energy_swingup
+from .controllers import LQRController, energy_swingup
 
 
 class HybridDiagram(Diagram):
@@ -74,8 +76,8 @@ def _swingup_block(system: System, swingup, period: float | None):
 
 
 def _gate_block(system: System, gate, on: float | None, off: float | None):
-    on = float(system.spec.get("gate.on") if on is None else on)
-    off = float(system.spec.get("gate.off") if off is None else off)
+    on = system.gate.on if on is None else float(on)
+    off = system.gate.off if off is None else float(off)
     if isinstance(gate, Gate):
         return gate
     if gate is None or gate == "cost":
@@ -109,14 +111,13 @@ def build_hybrid_diagram(system: System, swingup=None, gate=None, *, balance=Non
     builder = DiagramBuilder()
     handle, scene_graph = _plants.add_plant(system, builder, with_geometry=meshcat is not None)
     if meshcat is not None:
-        from ..viz import add_meshcat
         # Publish events end integration steps: keep them on the dt grid (about 30 fps)
         # so a fixed-step run with the viewer equals one without it.
         frames = max(1, int(np.ceil((1 / 30) / system.dt - 1e-9)))
         add_meshcat(builder, scene_graph, meshcat, publish_period=frames * system.dt)
 
     # The Drake plant measures the acrobot's th1 from hanging down: convert once.
-    offset = _plants.drake_state_offset(system)
+    offset = system.drake_state_offset()
     state_port = handle.state_output
     if np.any(offset):
         n = system.n_states

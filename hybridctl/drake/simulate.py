@@ -11,13 +11,13 @@ import numpy as np
 from pydrake.systems.analysis import ResetIntegratorFromFlags, Simulator
 from pydrake.systems.framework import EventStatus
 
-from ..analysis.balance import decision_indices, episode_return, is_balanced
 from .. import io
 from ..systems import System
+from ..systems.control import DIVERGENCE_BOUND
+from ..systems.success import decision_indices, episode_return, is_balanced
 
 _DRAKE_INTEGRATOR = {"euler": "explicit_euler", "runge_kutta2": "runge_kutta2"}
 # A state this large means the simulation has left any physical regime.
-DIVERGENCE_BOUND = 1e6
 
 
 @dataclass

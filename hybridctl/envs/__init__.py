@@ -12,8 +12,8 @@ Importing this module registers one gymnasium id per system spec,
 
 import gymnasium as gym
 
-from ..analysis import is_balanced
 from ..systems import known_systems
+from ..systems.success import is_balanced
 from .postprocess import DimensionReward
 from .single import STATE_BOUND, SwingupEnv, env_id
 from .switched import SwitchedVectorEnv

@@ -18,11 +18,12 @@ from gymnasium import spaces
 from gymnasium.envs.registration import EnvSpec
 
 from .. import systems
-from ..analysis import is_balanced
-from ..systems import System
+from ..systems import System, control
+from ..systems.success import is_balanced
 
-STATE_BOUND = 1e6
-"""States with a coordinate beyond +-STATE_BOUND (or non-finite) count as diverged."""
+STATE_BOUND = control.DIVERGENCE_BOUND
+"""States with a coordinate beyond +-STATE_BOUND (or non-finite) count as diverged
+(``hybridctl.systems.control.DIVERGENCE_BOUND``)."""
 
 
 def resolve_system(system: str | System, **spec_overrides: Any) -> System:
@@ -62,7 +63,7 @@ def advance(system: System, x: torch.Tensor, u: torch.Tensor, substeps: int) -> 
     x0, diverged = x, torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)
     for _ in range(substeps):
         x = system.step_unchecked(x, u)
-        diverged = diverged | ~(x.abs() <= STATE_BOUND).all(-1)
+        diverged = diverged | control.is_diverged(x)
         x = torch.where(diverged[:, None], x0, x)
     return x, diverged
 

@@ -14,8 +14,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..systems import System
-from .single import STATE_BOUND
+from ..systems import System, control
 from .vector import TorchVectorEnv
 
 
@@ -41,8 +40,8 @@ class SwitchedVectorEnv(TorchVectorEnv):
                  gate_on: float | None = None, gate_off: float | None = None, **kwargs):
         super().__init__(system, num_envs, **kwargs)
         sys_ = self.system
-        self.gate_on = float(sys_.spec.get("gate.on") if gate_on is None else gate_on)
-        self.gate_off = float(sys_.spec.get("gate.off") if gate_off is None else gate_off)
+        self.gate_on = sys_.gate.on if gate_on is None else float(gate_on)
+        self.gate_off = sys_.gate.off if gate_off is None else float(gate_off)
         if not 0.0 < self.gate_off < self.gate_on < 1.0:
             raise ValueError(f"need 0 < gate_off < gate_on < 1, got off={self.gate_off}, on={self.gate_on}")
         K = sys_.lqr()[0] if K is None else np.atleast_2d(np.asarray(K, dtype=float))
@@ -61,8 +60,8 @@ class SwitchedVectorEnv(TorchVectorEnv):
         self.gate = gate
 
     def lqr(self, x: torch.Tensor) -> torch.Tensor:
-        """u = -K (x - goal), angles wrapped (batched)."""
-        return -(self.system.state_error(x) @ self._K.T)
+        """u = -K (x - goal), angles wrapped (batched): :func:`hybridctl.systems.control.lqr_command`."""
+        return control.lqr_command(self.system.state_error(x), self._K)
 
     def _restart(self, rows: torch.Tensor, x0=None) -> None:
         super()._restart(rows, x0)
@@ -80,11 +79,11 @@ class SwitchedVectorEnv(TorchVectorEnv):
             for k in range(self.substeps):
                 if k % self.gate_stride == 0:
                     p = self.gate(x.to(self._gate_dtype())).reshape(-1).to(self.dtype)
-                    mode = torch.where(p > self.gate_on, True, torch.where(p < self.gate_off, False, mode))
-                    command = torch.where(mode[:, None], self.lqr(x), u).clamp(-limit, limit)
+                    mode = control.hysteresis(p, mode, self.gate_on, self.gate_off)
+                    command = control.saturate(torch.where(mode[:, None], self.lqr(x), u), limit)
                 lqr_steps += mode.to(self.dtype)
                 x = system.step_unchecked(x, command)
-                diverged = diverged | ~(x.abs() <= STATE_BOUND).all(-1)
+                diverged = diverged | control.is_diverged(x)
                 x = torch.where(diverged[:, None], x0, x)
         self._mode = mode
         self._infos = {"lqr_fraction": lqr_steps / self.substeps, "lqr_at_start": start_mode,

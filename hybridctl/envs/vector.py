@@ -16,8 +16,8 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from ..analysis import is_balanced
 from ..systems import System
+from ..systems.success import is_balanced
 from .single import STATE_BOUND, advance, check_state, decision_schedule, resolve_system
 
 

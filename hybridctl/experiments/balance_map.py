@@ -79,8 +79,7 @@ def grid_axes(system: System, axes: tuple[int, int] | None = None,
     for a system varying fewer, its first angle over +-pi and that angle's velocity
     over +-2pi.
     """
-    nominal = system.spec.get("initial_state.nominal")
-    low, high = system.spec.get("initial_state.low"), system.spec.get("initial_state.high")
+    nominal, low, high = system.initial_state.nominal, system.initial_state.low, system.initial_state.high
     if axes is None:
         varying = [i for i in range(system.n_states) if high[i] > low[i]]
         if len(varying) >= 2:
@@ -140,7 +139,7 @@ def balance_map(system: System | str, controller: str = "energy", grid: int = 41
     starts = []
     for i, v1 in enumerate(values1):
         for j, v2 in enumerate(values2):
-            x0 = np.array(system.spec.get("initial_state.nominal"), dtype=float)
+            x0 = system.initial_state.nominal.copy()
             x0[a1], x0[a2] = v1, v2
             starts.append((i * grid + j, x0))
     workers = max(1, min(os.cpu_count() or 1, len(starts)) if workers is None else int(workers))

@@ -88,6 +88,7 @@ class System:
         self.success_eps = self.success.eps
         self.success_lookback = self.success.lookback
         self.description: str = spec.get("system.description", "")
+        self.drake_model: str | None = spec.get("model.drake", None)  # name of a pydrake.examples plant, if any
         self.reward_kind: str = spec.get("reward.kind")
         self.chain = self._chain_params()
         self.dynamics = ChainDynamics(self.chain)
@@ -195,6 +196,16 @@ class System:
             raise ValueError(f"n must be >= 1, got {n}")
         rng = generator if generator is not None else np.random.default_rng()
         return self.initial_state.sample(n, rng)
+
+    def nudged_nominal_state(self, nudge: float = 1e-3) -> np.ndarray:
+        """The spec's nominal initial state (hanging down) with its first angle moved by ``nudge`` rad.
+
+        The exact bottom is an equilibrium where energy swing-ups output zero; the demo,
+        the command line's default start and the benchmarks start here instead.
+        """
+        x0 = self.initial_state.nominal.copy()
+        x0[self.angle_indices[0]] += nudge
+        return x0
 
     # --------------------------------------------------------------------- Drake
     def drake_plant(self):

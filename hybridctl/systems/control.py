@@ -26,11 +26,16 @@ import torch
 if TYPE_CHECKING:  # pragma: no cover
     from . import System
 
-__all__ = ["DIVERGENCE_BOUND", "wrap_angles", "lqr_command", "cost_to_go", "hysteresis", "saturate",
+__all__ = ["DIVERGENCE_BOUND", "wrap_angle", "wrap_angles", "lqr_command", "cost_to_go", "hysteresis", "saturate",
            "is_diverged", "CostToGoGate", "lqr_rollouts_balanced", "lqr_basin_level"]
 
 DIVERGENCE_BOUND = 1e6
 """States with a coordinate beyond +-DIVERGENCE_BOUND (or non-finite) count as diverged."""
+
+
+def wrap_angle(angle):
+    """An angle (float, numpy or torch) wrapped to [-pi, pi)."""
+    return (angle + np.pi) % (2 * np.pi) - np.pi
 
 
 def wrap_angles(err, angle_indices):
@@ -38,7 +43,7 @@ def wrap_angles(err, angle_indices):
 
     Returns ``err``. Callers that must keep their input pass a copy (``System.state_error`` does).
     """
-    err[..., angle_indices] = (err[..., angle_indices] + np.pi) % (2 * np.pi) - np.pi
+    err[..., angle_indices] = wrap_angle(err[..., angle_indices])
     return err
 
 

@@ -127,7 +127,7 @@ def _camera_pose(system: "System") -> RigidTransform:
     swing them towards -x, so they are viewed from +y (a mirror image of the
     Drake scene, the same picture as our model's).
     """
-    if system.spec.get("model.drake") in ("acrobot", "pendulum"):
+    if system.drake_model in ("acrobot", "pendulum"):
         return RigidTransform(RotationMatrix.MakeZRotation(np.pi), [0.0, 1.0, 0.0])
     return RigidTransform([0.0, -1.0, 0.0])
 

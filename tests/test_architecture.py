@@ -1,0 +1,129 @@
+"""The layer rule of ARCHITECTURE.md, checked on the source: no module imports from a room above its own.
+
+Rooms, bottom to top (one level per line; rooms on one level never import each other):
+
+    io, parallel
+    systems
+    analysis
+    viz
+    drake, envs
+    learn
+    experiments
+    cli
+
+Every ``import`` and ``from ... import`` is checked, also those inside functions (a lazy
+import hides a cycle, it does not remove it).
+"""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+import hybridctl
+
+PACKAGE_DIR = Path(hybridctl.__file__).resolve().parent
+LEVELS = {"io": 0, "parallel": 0, "systems": 1, "analysis": 2, "viz": 3, "drake": 4, "envs": 4, "learn": 5,
+          "experiments": 6, "cli": 7}
+
+
+def module_name(path: Path) -> str:
+    """'hybridctl.envs.single' for .../hybridctl/envs/single.py (packages without '__init__')."""
+    parts = list(path.relative_to(PACKAGE_DIR.parent).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+def imported_modules(source: str, module: str, is_package: bool) -> list[tuple[int, str]]:
+    """(line, absolute module) for every import in ``source``, relative ones resolved.
+
+    ``from X import name`` yields ``X.name`` (the name may be a submodule) and the room
+    is decided by the first component after ``hybridctl``, so both forms count.
+    """
+    package = module if is_package else module.rpartition(".")[0]
+    found = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Import):
+            found += [(node.lineno, alias.name) for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")
+                base = base[: len(base) - (node.level - 1)]
+                target = ".".join(base + ([node.module] if node.module else []))
+            else:
+                target = node.module or ""
+            found += [(node.lineno, f"{target}.{alias.name}") for alias in node.names]
+    return found
+
+
+def room(module: str) -> str | None:
+    """The room of a hybridctl module ('hybridctl.learn.sac' -> 'learn'); None outside hybridctl
+    or for the package root itself (which holds only ``__version__``)."""
+    parts = module.split(".")
+    if parts[0] != "hybridctl" or len(parts) < 2 or parts[1] not in LEVELS:
+        return None
+    return parts[1]
+
+
+def violations(source: str, module: str, is_package: bool = False) -> list[str]:
+    """Imports in ``source`` (the module ``module``) that go up or sideways between rooms."""
+    own = room(module)
+    if own is None:
+        return []
+    bad = []
+    for line, target in imported_modules(source, module, is_package):
+        other = room(target)
+        if other is None or other == own:
+            continue
+        if LEVELS[other] >= LEVELS[own]:
+            direction = "sideways" if LEVELS[other] == LEVELS[own] else "up"
+            bad.append(f"{module}:{line} imports {target} ({own} -> {other}, {direction})")
+    return bad
+
+
+def all_modules() -> list[Path]:
+    return sorted(PACKAGE_DIR.rglob("*.py"))
+
+
+def test_every_module_belongs_to_a_room():
+    homeless = [module_name(p) for p in all_modules()
+                if module_name(p) != "hybridctl" and room(module_name(p)) is None]
+    assert not homeless, f"modules outside the rooms of ARCHITECTURE.md: {homeless}"
+
+
+def test_no_module_imports_from_a_room_above_its_own():
+    bad = []
+    for path in all_modules():
+        bad += violations(path.read_text(), module_name(path), path.name == "__init__.py")
+    assert not bad, "imports against the layer rule:\n" + "\n".join(bad)
+
+
+@pytest.mark.parametrize("source, module, expected", [
+    ("from ..learn import SAC\n", "hybridctl.drake.diagram", "drake -> learn, up"),
+    ("def f():\n    from ..learn import load_controller\n", "hybridctl.drake.diagram", "drake -> learn, up"),
+    ("import hybridctl.drake\n", "hybridctl.envs.single", "envs -> drake, sideways"),
+    ("from .. import experiments\n", "hybridctl.analysis.mesh", "analysis -> experiments, up"),
+    ("from ..systems import System\n", "hybridctl.drake", None),
+])
+def test_the_checker_finds_upward_lazy_and_sideways_imports(source, module, expected):
+    found = violations(source, module, is_package=module.count(".") == 1)
+    if expected is None:
+        assert found == []
+    else:
+        assert len(found) == 1 and expected in found[0]
+
+
+@pytest.mark.parametrize("module, forbidden", [
+    ("hybridctl.envs", "pydrake"),
+    ("hybridctl.systems", "pydrake"),
+    ("hybridctl.analysis.poincare", "scipy.sparse"),
+])
+def test_light_rooms_do_not_load_heavy_dependencies(module, forbidden):
+    code = f"import sys, {module}; print({forbidden!r} in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False", f"import {module} loaded {forbidden}"
