@@ -32,7 +32,7 @@ def _plants():
     return plants
 
 
-def check_array(name: str, value, width: int, dtype_float: bool = True) -> None:
+def check_array(name: str, value, width: int) -> None:
     """Raise ValueError naming ``name`` if ``value`` is not (width,) or (B, width) and finite."""
     shape = tuple(value.shape)
     if len(shape) not in (1, 2) or shape[-1] != width:

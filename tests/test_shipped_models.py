@@ -1,0 +1,45 @@
+"""The pretrained checkpoints under models/policies/ keep giving their recorded numbers.
+
+A refactor that changes a control law, the switched env or the checkpoint format shows up here
+first: the SSAC acrobot must reproduce the evaluation recorded when it was trained.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+POLICIES = ROOT / "models" / "policies"
+
+
+def recorded_ssac_eval() -> dict:
+    """The record of the shipped SSAC acrobot (seed 0, 2e6 steps) in notebooks/data/ch3/results.json."""
+    record = json.loads((ROOT / "notebooks" / "data" / "ch3" / "results.json").read_text())
+    (run,) = [r for r in record["runs"] if r.get("run") == "ssac-acrobot-s0"]
+    return run["eval"]
+
+
+def test_shipped_ssac_acrobot_reproduces_its_recorded_evaluation():
+    from hybridctl.learn import SSAC
+
+    torch.set_num_threads(1)  # the record was made with one torch thread
+    recorded = recorded_ssac_eval()
+    result = SSAC.load(POLICIES / "ssac-acrobot").evaluate(episodes=recorded["episodes"], seed=recorded["seed"])
+    assert result["mean_return"] == pytest.approx(recorded["mean_return"], abs=1e-9)
+    assert result["success_rate"] == recorded["success_rate"] == 1.0
+
+
+def test_shipped_ars_hopper_loads_with_its_normalisation():
+    from hybridctl.learn import ARS
+
+    pytest.importorskip("mujoco", reason="the ARS hopper runs on gymnasium's MuJoCo Hopper-v5 (mujoco extra)")
+    agent = ARS.load(POLICIES / "ars-hopper")
+    obs = np.zeros(11)
+    action = agent.predict(obs, deterministic=True)
+    assert np.shape(action) == (3,) and np.all(np.isfinite(action))
+    assert np.all(np.asarray(agent.stats.std) > 0)
