@@ -34,12 +34,25 @@ def test_shipped_ssac_acrobot_reproduces_its_recorded_evaluation():
     assert result["success_rate"] == recorded["success_rate"] == 1.0
 
 
-def test_shipped_ars_hopper_loads_with_its_normalisation():
+def test_shipped_ars_hopper_reproduces_its_recorded_return():
     from hybridctl.learn import ARS
 
     pytest.importorskip("mujoco", reason="the ARS hopper runs on gymnasium's MuJoCo Hopper-v5 (mujoco extra)")
+    record = json.loads((ROOT / "notebooks" / "data" / "ch4" / "results.json").read_text())
+    recorded = next(run for key, run in _walk(record) if key == "Hopper-v5-s1/identity")
+    torch.set_num_threads(1)
     agent = ARS.load(POLICIES / "ars-hopper")
-    obs = np.zeros(11)
-    action = agent.predict(obs, deterministic=True)
-    assert np.shape(action) == (3,) and np.all(np.isfinite(action))
+    result = agent.evaluate(episodes=len(recorded["returns"]))
+    assert result["mean_return"] == pytest.approx(recorded["return"], abs=1e-6)
     assert np.all(np.asarray(agent.stats.std) > 0)
+
+
+def _walk(tree):
+    """(key, value) of every dict entry in a nested JSON tree."""
+    if isinstance(tree, dict):
+        for key, value in tree.items():
+            yield key, value
+            yield from _walk(value)
+    elif isinstance(tree, list):
+        for value in tree:
+            yield from _walk(value)
