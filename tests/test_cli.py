@@ -140,7 +140,7 @@ def parse(*argv):
     (["train", "ssac", "acrobot", "--init", "runs/x"], "--init applies to ars only"),
     (["train", "ssac", "acrobot", "--postprocess", "madogram"], "--postprocess applies to ars only"),
     (["train", "ars", "Pendulum-v1", "--variant", "paper"], "--variant applies to ssac only"),
-    (["train", "ars", "Pendulum-v1", "--polyak", "0.9"], "--polyak applies to ssac, sac only"),
+    (["train", "ars", "Pendulum-v1", "--polyak", "0.9"], "--polyak applies to sac, ssac only"),
     (["train", "sac", "acrobot", "--gate-lr", "0.1"], "--gate-lr applies to ssac only"),
 ])
 def test_train_rejects_another_learners_flag_with_usage(argv, hint, capsys):

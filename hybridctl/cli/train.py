@@ -57,8 +57,9 @@ CONFIG_DEST = "config:"
 def field_comments(config_class: type) -> dict[str, str]:
     """Field name -> the comment after it in the class source (continuation lines joined).
 
-    A subclass's comment replaces its base's for a field it redefines. Empty when the
-    source cannot be read (e.g. a frozen executable).
+    A subclass's comment replaces its base's for a field it redefines. A field without a
+    comment maps to ""; the dict is empty when the source cannot be read (e.g. a frozen
+    executable).
     """
     names = {f.name for f in dataclasses.fields(config_class)}
     comments: dict[str, str] = {}
@@ -76,7 +77,7 @@ def field_comments(config_class: type) -> dict[str, str]:
             head = body.strip().split(":", 1)[0].strip()
             if line.startswith("    ") and not line.startswith("     ") and head in names and ":" in body:
                 current = head
-                comments[current] = comment.strip() if hash_ else ""
+                comments[current] = comment.strip() if hash_ else comments.get(head, "")
             elif current and stripped.startswith("#") and line.partition("#")[2].startswith("  ") \
                     and not stripped.lstrip("# ").startswith("---"):
                 comments[current] = (comments[current] + " " + stripped.lstrip("# ").strip()).strip()
@@ -251,24 +252,30 @@ def _unknown_flag_hint(algorithm: str, options: dict[str, set[str]]) -> Callable
     return hint
 
 
-def add_common_flags(parser: argparse.ArgumentParser, algorithm: str) -> None:
-    """The run flags every learner takes, plus ``--variant`` (ssac) and ``--init`` (ars)."""
+def add_common_flags(parser: argparse.ArgumentParser, algorithm: str) -> set[str]:
+    """The run flags every learner takes, plus ``--variant`` (ssac) and ``--init`` (ars); return their
+    option strings."""
     run = parser.add_argument_group("run")
-    run.add_argument("--out", metavar="DIR", help="run folder (default runs/train/ALGO-SYSTEM-sSEED)")
-    run.add_argument("--resume", action="store_true", help="continue from the run folder's newest checkpoint")
-    run.add_argument("--eval-episodes", type=positive(int), metavar="N",
-                     help="episodes in eval.json (default " + ("5" if algorithm == "ars" else "100") + ")")
-    run.add_argument("--set", action="append", metavar="KEY=VALUE",
-                     help="override a config field, e.g. --set polyak=0.9 (repeatable; value read as JSON)")
+    actions = [
+        run.add_argument("--out", metavar="DIR", help="run folder (default runs/train/ALGO-SYSTEM-sSEED)"),
+        run.add_argument("--resume", action="store_true", help="continue from the run folder's newest checkpoint"),
+        run.add_argument("--eval-episodes", type=positive(int), metavar="N",
+                         help="episodes in eval.json (default " + ("5" if algorithm == "ars" else "100") + ")"),
+        run.add_argument("--set", action="append", metavar="KEY=VALUE",
+                         help="override a config field, e.g. --set polyak=0.9 (repeatable; value read as JSON)"),
+    ]
     if algorithm == "ssac":
-        run.add_argument("--variant", choices=SSAC_VARIANTS, default="hybridctl",
-                         help="SSAC settings: hybridctl's defaults, the thesis' throughout (paper), or the "
-                              "author's code (author); field flags change the chosen preset")
+        actions.append(run.add_argument(
+            "--variant", choices=SSAC_VARIANTS, default="hybridctl",
+            help="SSAC settings: hybridctl's defaults, the thesis' throughout (paper), or the author's code "
+                 "(author); field flags change the chosen preset"))
     if algorithm == "ars":
-        run.add_argument("--init", metavar="CHECKPOINT", help="start from this checkpoint's policy and normalisation (the thesis "
-                         "trains 750 identity epochs, then 250 with post-processing)")
+        actions.append(run.add_argument(
+            "--init", metavar="CHECKPOINT", help="start from this checkpoint's policy and normalisation (the "
+            "thesis trains 750 identity epochs, then 250 with post-processing)"))
     add_quiet_flag(run)
     add_debug_flag(run)
+    return {s for action in actions for s in action.option_strings}
 
 
 def add_parser(sub) -> None:
@@ -279,7 +286,7 @@ def add_parser(sub) -> None:
     learners = p.add_subparsers(dest="algorithm", required=True, metavar="{" + ",".join(ALGORITHMS) + "}",
                                 parser_class=CommandParser)
     parsers, options = {}, {}
-    for algorithm in ("ssac", "sac", "ars"):
+    for algorithm in ALGORITHMS:
         config_name = ALGORITHMS[algorithm].config_class.__name__
         q = learners.add_parser(
             algorithm, help=TITLES[algorithm], description=TITLES[algorithm] + ".",
@@ -287,9 +294,7 @@ def add_parser(sub) -> None:
             epilog=f"Every {config_name} field is a flag. With --resume the checkpoint's settings hold"
                    + (" (except --steps)." if algorithm != "ars" else "; given flags replace them."))
         q.add_argument("system", help=SYSTEM_HELP[algorithm])
-        add_common_flags(q, algorithm)
-        options[algorithm] = add_config_flags(q, algorithm) | {
-            s for action in q._actions for s in action.option_strings}
+        options[algorithm] = add_common_flags(q, algorithm) | add_config_flags(q, algorithm)
         q.set_defaults(func=run_train)
         parsers[algorithm] = q
     for algorithm, q in parsers.items():
