@@ -1,7 +1,7 @@
 """The ``hybridctl`` command line.
 
     hybridctl systems
-    hybridctl simulate acrobot --controller energy --x0 -1.5698,0,0,0 --duration 15 --out runs/sim
+    hybridctl simulate acrobot --controller energy --x0=-1.5698,0,0,0 --duration 15 --out runs/sim
     hybridctl balance-map acrobot --controller energy --grid 41 --duration 15 --out runs/map
     hybridctl train ssac acrobot --seed 0 --out runs/train/ssac-acrobot-s0 [--resume] [--polyak 0.9]
     hybridctl mesh rimless-wheel --box-size 1e-3 --monte-carlo 2000 --out runs/mesh
