@@ -126,3 +126,181 @@ def test_mesh_cap_reports_incomplete(tmp_path):
     proc = run("mesh", "rimless-wheel", "--max-states", "20", "--out", str(tmp_path / "m"), "--quiet", check=False)
     assert proc.returncode == 2 and "incomplete" in proc.stdout
     assert "incomplete" in json.loads((tmp_path / "m" / "mfpt.json").read_text())["error"]
+
+
+# ---------------------------------------------------------------- the command package, in-process
+
+def parse(*argv):
+    from hybridctl.cli import build_parser
+    return build_parser().parse_args(list(argv))
+
+
+@pytest.mark.parametrize("argv, hint", [
+    (["train", "sac", "acrobot", "--epochs", "3"], "--epochs applies to ars only"),
+    (["train", "ssac", "acrobot", "--init", "runs/x"], "--init applies to ars only"),
+    (["train", "ssac", "acrobot", "--postprocess", "madogram"], "--postprocess applies to ars only"),
+    (["train", "ars", "Pendulum-v1", "--variant", "paper"], "--variant applies to ssac only"),
+    (["train", "ars", "Pendulum-v1", "--polyak", "0.9"], "--polyak applies to sac, ssac only"),
+    (["train", "sac", "acrobot", "--gate-lr", "0.1"], "--gate-lr applies to ssac only"),
+])
+def test_train_rejects_another_learners_flag_with_usage(argv, hint, capsys):
+    with pytest.raises(SystemExit) as exc:
+        parse(*argv)
+    err = capsys.readouterr().err
+    assert exc.value.code == 2
+    assert err.startswith(f"usage: hybridctl train {argv[1]} SYSTEM") and hint in err
+
+
+def test_train_help_comes_from_the_config_fields(capsys):
+    with pytest.raises(SystemExit) as exc:
+        parse("train", "sac", "--help")
+    text = " ".join(capsys.readouterr().out.split())
+    assert exc.value.code == 0
+    assert "--polyak X" in text and "default: 0.995" in text and 'appendix "Polyak constant"' in text
+    assert "--steps N, --total-steps N" in text and "--save-replay, --no-save-replay" in text
+    assert "--obs-transform {none,angle_sincos}" in text and "--epochs" not in text
+    with pytest.raises(SystemExit):
+        parse("train", "ssac", "--help")
+    text = " ".join(capsys.readouterr().out.split())
+    assert "--variant {hybridctl,paper,author}" in text
+    assert "(default: 0.9; --variant paper: 0.995; --variant author: 0.995)" in text
+    with pytest.raises(SystemExit):
+        parse("train", "ars", "--help")
+    text = " ".join(capsys.readouterr().out.split())
+    assert "--postprocess {identity,mesh-lower,mesh-upper,mesh-mean,madogram,variogram}" in text
+    assert "--init CHECKPOINT" in text and "--steps" not in text and "--variant" not in text
+
+
+def test_every_config_field_has_a_flag_that_parses_its_default():
+    import dataclasses
+
+    from hybridctl.cli import train
+    from hybridctl.experiments import ALGORITHMS
+
+    for algorithm, learner in ALGORITHMS.items():
+        argv, expected = [], {}
+        for f in dataclasses.fields(learner.config_class):
+            if f.name in train.NOT_FLAGS.get(algorithm, ()):
+                continue
+            flag = "--" + f.name.replace("_", "-")
+            if isinstance(f.default, bool):
+                argv.append(flag if f.default else "--no-" + flag[2:])
+            else:
+                argv.append(f"{flag}={'none' if f.default is None else f.default}")
+            expected[f.name] = f.default
+        assert train.config_settings(parse("train", algorithm, "x", *argv)) == expected, algorithm
+
+
+def test_train_field_flags_parse_to_typed_settings():
+    from hybridctl.cli.train import config_settings
+
+    args = parse("train", "sac", "acrobot", "--set", "polyak=0.8", "--set", "obs_transform=angle_sincos",
+                 "--polyak", "0.9", "--steps", "2e6", "--alpha", "auto", "--target-entropy", "none",
+                 "--no-tensorboard", "--seed", "3")
+    assert config_settings(args) == {"polyak": 0.9, "obs_transform": "angle_sincos", "total_steps": 2_000_000,
+                                     "alpha": "auto", "target_entropy": None, "tensorboard": False, "seed": 3}
+    assert config_settings(parse("train", "sac", "acrobot", "--alpha", "0.1")) == {"alpha": 0.1}
+    assert config_settings(parse("train", "ssac", "acrobot")) == {}  # only what was given
+    args = parse("train", "ars", "Hopper-v5", "--epochs", "4", "--backend", "serial", "--workers", "2",
+                 "--postprocess", "mesh-lower", "--episode-steps", "none", "--eval-episodes", "2")
+    assert config_settings(args) == {"epochs": 4, "backend": "serial", "workers": 2, "postprocess": "mesh-lower",
+                                     "episode_steps": None}
+    assert args.eval_episodes == 2 and args.init is None and not args.resume
+    for bad in (["--steps", "0"], ["--steps", "1.5"], ["--obs-transform", "cos"], ["--polyak", "high"]):
+        with pytest.raises(SystemExit):
+            parse("train", "sac", "acrobot", *bad)
+
+
+def test_cli_errors_one_line_exit_codes_and_debug(capsys):
+    import argparse
+
+    from hybridctl.cli._common import cli_errors
+    from hybridctl.learn import CheckpointError
+    from hybridctl.systems import load
+
+    def command(exc):
+        @cli_errors
+        def fail(args):
+            if callable(exc):
+                exc()
+            raise exc
+        return fail
+
+    plain, debug = argparse.Namespace(), argparse.Namespace(debug=True)
+    for exc, message in [(ValueError("bad value"), "error: bad value"),
+                         (lambda: load("acrobott"), "error: unknown system 'acrobott'; known systems: acrobot"),
+                         (CheckpointError("no checkpoint at x"), "error: no checkpoint at x"),
+                         (FileNotFoundError("missing.json"), "error: missing.json")]:
+        with pytest.raises(SystemExit) as caught:
+            command(exc)(plain)
+        err = capsys.readouterr().err
+        assert caught.value.code == 2 and err.startswith(message) and err.count("\n") == 1, err
+        assert str(caught.value).startswith(message)
+    assert command(FloatingPointError("loss became nan"))(plain) == 3
+    assert capsys.readouterr().err == "error: loss became nan\n"
+    with pytest.raises(ValueError, match="bad value"):
+        command(ValueError("bad value"))(debug)
+    with pytest.raises(FloatingPointError):
+        command(FloatingPointError("nan"))(debug)
+    with pytest.raises(ZeroDivisionError):  # a bug is not an expected error: its traceback shows
+        command(ZeroDivisionError("bug"))(plain)
+
+
+def test_debug_flag_shows_the_traceback(tmp_path):
+    quiet = run("simulate", "acrobot", "--x0", "1,2", "--out", str(tmp_path), check=False)
+    assert quiet.returncode == 2 and quiet.stderr.startswith("error: --x0 needs 4 values")
+    assert "Traceback" not in quiet.stderr
+    for argv in (["--debug", "simulate", "acrobot", "--x0", "1,2"], ["simulate", "acrobot", "--x0", "1,2", "--debug"]):
+        loud = run(*argv, "--out", str(tmp_path), check=False)
+        assert loud.returncode != 0 and "Traceback" in loud.stderr and "--x0 needs 4 values" in loud.stderr
+
+
+def test_train_sac_set_flags_resume_in_process(tmp_path, capsys):
+    from hybridctl.cli import main
+
+    out = tmp_path / "sac"
+    tiny = ["--num-envs", "8", "--exploration-steps", "400", "--steps-per-update", "200", "--updates-per-round", "1",
+            "--replay-batch-size", "128", "--minibatch-size", "64", "--buffer-size", "20000",
+            "--needle-buffer-size", "5000", "--log-every", "400", "--checkpoint-every", "400", "--no-tensorboard",
+            "--eval-episodes", "3", "--quiet", "--out", str(out)]
+    assert main(["train", "sac", "acrobot", "--set", "polyak=0.9", "--set", "obs_transform=angle_sincos",
+                 "--steps", "400", *tiny]) == 0
+    assert "SAC on acrobot: 400 env steps, seed 0" in capsys.readouterr().out
+    config = json.loads((out / "final" / "config.json").read_text())["config"]
+    assert (config["polyak"], config["obs_transform"], config["tensorboard"]) == (0.9, "angle_sincos", False)
+    assert main(["train", "sac", "acrobot", "--steps", "800", "--resume", *tiny]) == 0
+    printed = capsys.readouterr().out
+    assert "resuming" in printed and "deterministic return over 3 episodes" in printed
+    result = json.loads((out / "eval.json").read_text())
+    assert result["env_steps"] == 800 and result["episodes"] == 3 and "--resume" in result["command"]
+
+
+def test_workflows_run_from_python_as_from_the_cli(tmp_path):
+    """The experiments functions behind simulate, demo and mesh, called as a notebook would."""
+    from hybridctl import experiments, systems
+
+    acrobot = systems.load("acrobot")
+    start = experiments.nudged_nominal_state(acrobot)
+    assert start == pytest.approx(acrobot.initial_state.nominal + np.array([1e-3, 0, 0, 0]))
+    assert start[0] == pytest.approx(-1.5698, abs=1e-4)  # the demo's former --x0
+    summary = experiments.simulate_and_write("pendulum", "energy", tmp_path / "sim", x0=[0.05, 0.0], duration=1.0,
+                                             html=False)
+    assert summary["samples"] == 101 and summary["controller"] == "energy" and "command" not in summary
+    assert {p.name for p in (tmp_path / "sim").iterdir()} == {"trajectory.npz", "summary.json", "plot.png"}
+    assert experiments.PRETRAINED_ACROBOT.is_dir()
+    with pytest.raises(ValueError, match="no rolling gait"):
+        experiments.mesh_report("rimless-wheel", tmp_path / "m", slope_mean=-0.5)
+    with pytest.raises(ValueError, match="unknown map"):
+        experiments.mesh_report("hopper", tmp_path / "m")
+    with pytest.raises(ValueError, match="--variant applies to ssac only"):
+        experiments.make_config("sac", variant="paper")
+    assert experiments.make_config("ssac", variant="paper", seed=2).polyak == 0.995
+
+
+def test_command_modules_read_typed_spec_sections():
+    """cli and the workflows read ``system.initial_state`` / ``.description``, not ``spec.get("...")``."""
+    package = ROOT / "hybridctl"
+    files = [*sorted((package / "cli").glob("*.py"))]
+    files += [package / "experiments" / f"{name}.py" for name in ("simulation", "demo", "mesh_report", "training")]
+    for path in files:
+        assert "spec.get(" not in path.read_text(), path

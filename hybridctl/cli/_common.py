@@ -1,0 +1,127 @@
+"""What every command shares: the parser class, argument types and the error handler.
+
+``cli_errors`` turns the errors a user can cause (an unknown system, a bad value, a missing
+or unreadable checkpoint or file) into one ``error: ...`` line on stderr and exit code 2
+(as argparse does for a bad flag: ``SystemExit(2)``); a diverged training run
+(FloatingPointError) returns exit code 3. ``hybridctl --debug ...`` re-raises instead, to
+show the traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import sys
+from typing import Callable
+
+from ..io import FileFormatError
+from ..learn.checkpoint import CheckpointError
+from ..systems.spec import SpecError
+
+USAGE_ERROR = 2
+"""Exit code of a command stopped by a bad argument, file or checkpoint (argparse uses it too)."""
+DIVERGED = 3
+"""Exit code of a training run stopped by a non-finite loss."""
+
+EXPECTED_ERRORS = (SpecError, FileFormatError, CheckpointError, FileNotFoundError, KeyError, ValueError)
+"""Errors that mean "the input was wrong", reported as one line instead of a traceback."""
+
+
+def error_message(exc: BaseException) -> str:
+    """The one-line text of an expected error (a KeyError without its quotes)."""
+    if isinstance(exc, KeyError) and exc.args:
+        return str(exc.args[0])
+    return str(exc) or type(exc).__name__
+
+
+class CommandError(SystemExit):
+    """How ``cli_errors`` stops a command after printing its error: exit code 2, ``str()`` the message.
+
+    A SystemExit, as argparse's usage errors, so that ``main([...])`` called in-process stops
+    the same way for a bad flag and for a bad value, and the message can be matched.
+    """
+
+    def __init__(self, message: str):
+        super().__init__(message)
+        self.code = USAGE_ERROR
+
+
+def cli_errors(command: Callable[[argparse.Namespace], int]) -> Callable[[argparse.Namespace], int]:
+    """Decorate a command ``f(args) -> exit code``: an expected error prints ``error: ...`` on
+    stderr and raises :class:`CommandError` (exit code 2, no traceback).
+
+    FloatingPointError (training diverged) prints ``error: ...`` and returns 3. With
+    ``args.debug`` every error propagates with its traceback.
+    """
+    @functools.wraps(command)
+    def run(args: argparse.Namespace) -> int:
+        try:
+            return command(args)
+        except FloatingPointError as exc:
+            if getattr(args, "debug", False):
+                raise
+            print(f"error: {error_message(exc)}", file=sys.stderr)
+            return DIVERGED
+        except EXPECTED_ERRORS as exc:
+            if getattr(args, "debug", False):
+                raise
+            message = f"error: {error_message(exc)}"
+            print(message, file=sys.stderr)
+            raise CommandError(message) from None
+    return run
+
+
+class CommandParser(argparse.ArgumentParser):
+    """An ArgumentParser that rejects unknown arguments itself, with its own usage line.
+
+    argparse hands a sub-command's unknown arguments up to the top-level parser, which
+    reports them under the top-level usage; this parser reports them at once, under the
+    sub-command's usage, followed by ``unknown_flag_hint(flag)`` for each unknown flag
+    (e.g. "--epochs applies to ars only").
+    """
+
+    unknown_flag_hint: Callable[[str], str | None] | None = None
+
+    def parse_known_args(self, args=None, namespace=None):
+        """Parse like ArgumentParser, but exit with a usage error on any unknown argument."""
+        namespace, extras = super().parse_known_args(args, namespace)
+        if extras:
+            message = "unrecognized arguments: " + " ".join(extras)
+            if self.unknown_flag_hint is not None:
+                hints = [self.unknown_flag_hint(item.split("=", 1)[0]) for item in extras if item.startswith("--")]
+                hints = [h for h in hints if h]
+                if hints:
+                    message += " (" + "; ".join(hints) + ")"
+            self.error(message)
+        return namespace, extras
+
+
+def positive(kind: type) -> Callable[[str], float | int]:
+    """An argparse type: ``kind(text)``, rejected unless > 0 ("must be > 0, got ...")."""
+    def parse(text: str):
+        value = kind(text)
+        if value <= 0:
+            raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+        return value
+    parse.__name__ = kind.__name__  # argparse names the type in "invalid int value"
+    return parse
+
+
+def add_debug_flag(parser: argparse.ArgumentParser, top_level: bool = False) -> None:
+    """``--debug``: show the traceback of an error instead of a one-line message.
+
+    On a sub-command its default is suppressed, so that ``hybridctl --debug CMD`` and
+    ``hybridctl CMD --debug`` both work.
+    """
+    parser.add_argument("--debug", action="store_true", default=False if top_level else argparse.SUPPRESS,
+                        help="show the full traceback of an error instead of a one-line message")
+
+
+def add_quiet_flag(parser: argparse.ArgumentParser) -> None:
+    """``--quiet``: no progress bar."""
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def command_line(argv: list[str]) -> str:
+    """The command as typed, recorded in outputs (``"hybridctl simulate acrobot ..."``)."""
+    return "hybridctl " + " ".join(argv)

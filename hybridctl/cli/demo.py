@@ -1,0 +1,29 @@
+"""``hybridctl demo`` (what ``make demo`` runs): the pretrained SSAC acrobot, its replay and a balance map."""
+
+from __future__ import annotations
+
+import argparse
+
+from ..experiments import run_demo
+from ..experiments.demo import DEMO_GRID
+from ._common import add_debug_flag, add_quiet_flag, cli_errors, positive
+from .simulate import start_live_view
+
+
+def add_parser(sub) -> None:
+    """Register ``demo`` on the top-level sub-parsers."""
+    p = sub.add_parser("demo", help="what `make demo` runs")
+    p.add_argument("--out", default="runs/demo")
+    p.add_argument("--grid", type=positive(int), default=DEMO_GRID, help=f"balance-map grid (default {DEMO_GRID})")
+    p.add_argument("--meshcat", action="store_true", help="also show the run live in meshcat")
+    add_quiet_flag(p)
+    add_debug_flag(p)
+    p.set_defaults(func=run_demo_command)
+
+
+@cli_errors
+def run_demo_command(args: argparse.Namespace) -> int:
+    """Run the demo, printing its account as it goes; exit 1 when the acrobot did not balance."""
+    live = start_live_view() if args.meshcat else None
+    result = run_demo(args.out, grid=args.grid, meshcat=live, progress=not args.quiet, command=args.command_line)
+    return 0 if result["simulation"]["balanced"] else 1

@@ -1,0 +1,57 @@
+"""``hybridctl mesh MAP``: reachable-state mesh and mean first passage time (thesis Ch. 5)."""
+
+from __future__ import annotations
+
+import argparse
+
+from ..experiments import MESH_MAPS, mesh_report
+from ._common import USAGE_ERROR, add_debug_flag, add_quiet_flag, cli_errors, positive
+
+
+def add_parser(sub) -> None:
+    """Register ``mesh`` on the top-level sub-parsers."""
+    p = sub.add_parser("mesh", help="reachable-state mesh and mean first passage time (thesis Ch. 5)")
+    p.add_argument("map", choices=sorted(MESH_MAPS), help="; ".join(f"{k}: {v}" for k, v in MESH_MAPS.items()))
+    p.add_argument("--box-size", type=positive(float), default=1e-3, help="box side (default 1e-3)")
+    p.add_argument("--slope-mean", type=float, default=0.15, help="mean terrain slope, rad (default 0.15)")
+    p.add_argument("--slope-std", type=positive(float), default=0.06, help="slope std, rad (default 0.06)")
+    p.add_argument("--disturbances", type=positive(int), default=25, help="slope quantiles in the mesh (default 25)")
+    p.add_argument("--max-states", type=positive(int), default=1_000_000, help="cap on mesh states")
+    p.add_argument("--monte-carlo", type=int, default=0, metavar="EPISODES",
+                   help="also estimate the MFPT by Monte Carlo on the true map")
+    p.add_argument("--sizes", type=positive(float), nargs="*", help="also mesh at these box sizes (Table 5.1)")
+    p.add_argument("--backend", choices=["serial", "processes", "ray"], default="serial")
+    p.add_argument("--workers", type=positive(int))
+    p.add_argument("--resume", action="store_true", help="continue from out/mesh_checkpoint.npz")
+    p.add_argument("--out", default="runs/mesh", help="output folder")
+    add_quiet_flag(p)
+    add_debug_flag(p)
+    p.set_defaults(func=run_mesh)
+
+
+def result_line(report: dict) -> str:
+    """One line: mesh states, MFPT from the seed, eigen estimate and the Monte Carlo interval."""
+    mfpt = report["mfpt"]
+    line = f"{report['mesh']['states']} states; MFPT from the seed {mfpt['from_seed']:.1f} steps, eigen estimate " \
+           f"{mfpt['eigen_estimate']:.1f}"
+    if "monte_carlo" in report:
+        same = report["monte_carlo"]["mesh_disturbance_set"]
+        lo, hi = same["interval95"]
+        line += f"; Monte Carlo (same disturbances) {same['mean_steps_to_failure']:.1f} [{lo:.1f}, {hi:.1f}]"
+    return line
+
+
+@cli_errors
+def run_mesh(args: argparse.Namespace) -> int:
+    """Build the mesh and write the MFPT report and figures; exit 2 when the mesh hit --max-states."""
+    report = mesh_report(args.map, args.out, box_size=args.box_size, slope_mean=args.slope_mean,
+                         slope_std=args.slope_std, disturbances=args.disturbances, max_states=args.max_states,
+                         monte_carlo=args.monte_carlo, sizes=args.sizes, backend=args.backend,
+                         workers=args.workers, resume=args.resume, progress=not args.quiet,
+                         command=args.command_line)
+    if "error" in report:
+        print(report["error"])
+        return USAGE_ERROR
+    print(result_line(report))
+    print(f"wrote {args.out}/mfpt.json, transition_matrix.npz, mesh.npz (ReachableMesh.load) and figures")
+    return 0

@@ -1,0 +1,72 @@
+"""``hybridctl simulate SYSTEM``: one run of a system under a named controller, written to a folder."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+
+from ..experiments import CONTROLLERS, simulate_and_write
+from ..systems import System, load
+from ._common import add_debug_flag, cli_errors, positive
+
+SUMMARY_KEYS = ("system", "balanced", "return", "diverged", "first_balance_time", "wall_time_s")
+"""The summary fields ``simulate`` prints."""
+
+
+def controller_help() -> str:
+    """The ``--controller`` help: every named controller with what it is."""
+    return "controller: " + "; ".join(f"{k} = {v}" for k, v in CONTROLLERS.items())
+
+
+def parse_state(text: str | None, system: System) -> np.ndarray | None:
+    """``--x0`` text ("-1.57,0,0,0") -> a state of ``system``; None stays None (the default start)."""
+    if text is None:
+        return None
+    try:
+        values = [float(v) for v in text.replace(" ", "").split(",") if v]
+    except ValueError:
+        raise ValueError(f"--x0 must be {system.n_states} comma-separated numbers "
+                         f"({', '.join(system.state_names)}), got {text!r}") from None
+    if len(values) != system.n_states:
+        raise ValueError(f"--x0 needs {system.n_states} values ({', '.join(system.state_names)}), "
+                         f"got {len(values)}")
+    return np.array(values)
+
+
+def add_parser(sub) -> None:
+    """Register ``simulate`` on the top-level sub-parsers."""
+    p = sub.add_parser("simulate", help="simulate one run of a system under a controller")
+    p.add_argument("system")
+    p.add_argument("--controller", default="energy", help=controller_help())
+    p.add_argument("--x0", help="initial state, comma-separated; write --x0=-1.57,0,0,0 when it starts "
+                   "with a minus (default: the spec's nominal start, first angle + 1e-3 rad)")
+    p.add_argument("--duration", type=positive(float), help="seconds (default: the spec's episode)")
+    p.add_argument("--out", default="runs/simulate", help="output folder (default: runs/simulate)")
+    p.add_argument("--no-html", action="store_true", help="skip the replay.html")
+    p.add_argument("--meshcat", action="store_true", help="also show it live in meshcat (localhost)")
+    add_debug_flag(p)
+    p.set_defaults(func=run_simulate)
+
+
+def start_live_view():
+    """Start meshcat and say where to look (the ``--meshcat`` flag)."""
+    from ..viz import start_meshcat
+
+    live = start_meshcat()
+    print(f"meshcat: open {live.web_url()} (live view while simulating at real time)")
+    return live
+
+
+@cli_errors
+def run_simulate(args: argparse.Namespace) -> int:
+    """Simulate, write trajectory.npz, summary.json, plot.png (and replay.html), print the summary."""
+    system = load(args.system)
+    x0 = parse_state(args.x0, system)
+    live = start_live_view() if args.meshcat else None
+    summary = simulate_and_write(system, args.controller, args.out, x0=x0, duration=args.duration,
+                                 html=not args.no_html, meshcat=live, command=args.command_line)
+    print(json.dumps({k: summary[k] for k in SUMMARY_KEYS}, indent=1))
+    print(f"wrote {args.out}/trajectory.npz, summary.json, plot.png" + ("" if args.no_html else ", replay.html"))
+    return 0

@@ -1,0 +1,321 @@
+"""``hybridctl train sac|ssac|ars SYSTEM``: one sub-command per learner.
+
+Each learner's flags are generated from its config dataclass (SACConfig, SSACConfig,
+ARSConfig): ``--field-name VALUE`` typed as the field, ``--flag/--no-flag`` for booleans,
+choices where the config accepts a fixed set, the default and the field's source comment in
+``--help``. ``--set key=value`` (values read as JSON) still works. A flag that another learner
+takes but this one does not is a usage error (exit 2) naming who takes it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import inspect
+import json
+import types
+import typing
+from typing import Any, Callable
+
+from ..analysis.postprocess import FORMS as POSTPROCESS_FORMS
+from ..analysis.postprocess import KINDS as POSTPROCESS_KINDS
+from ..experiments import ALGORITHMS, SSAC_VARIANTS, train_and_evaluate
+from ..learn.sac import OBS_TRANSFORMS
+from ..learn.ssac import REWARDS
+from ..parallel import BACKENDS
+from ._common import CommandParser, add_debug_flag, add_quiet_flag, cli_errors, positive
+
+CHOICES = {"obs_transform": OBS_TRANSFORMS, "reward": REWARDS, "gate_class_weight_from": ("warm", "all"),
+           "postprocess": POSTPROCESS_KINDS, "postprocess_form": POSTPROCESS_FORMS, "backend": BACKENDS}
+"""The fixed sets that the configs' ``validate()`` accepts, by field name."""
+
+ALIASES = {"total_steps": ("--steps",)}
+"""Shorter flags kept from the first command line (``--steps`` for ``total_steps``)."""
+
+POSITIVE_FIELDS = {"total_steps", "epochs", "workers"}
+"""Fields whose flags reject values <= 0 at parse time, as the first command line did."""
+
+NOT_FLAGS = {"ssac": {"variant_name"}, "ars": {"eval_episodes"}}
+"""Config fields without a generated flag: ``variant_name`` is set by ``--variant``; ARS's
+``eval_episodes`` is the common ``--eval-episodes``."""
+
+INSTEAD = {("ars", "--steps"): "ars counts --epochs", ("ars", "--total-steps"): "ars counts --epochs",
+           ("sac", "--epochs"): "sac counts --steps", ("ssac", "--epochs"): "ssac counts --steps"}
+"""What to use instead of another learner's flag."""
+
+SYSTEM_HELP = {"sac": "system name (hybridctl systems)", "ssac": "system name (hybridctl systems)",
+               "ars": "gymnasium env id (e.g. Hopper-v5) or system name"}
+TITLES = {"sac": "plain SAC (thesis Ch. 3 baseline) on a system's torch vector env",
+          "ssac": "Switched SAC (thesis Ch. 3): learned swing-up + learned gate + LQR",
+          "ars": "ARS V2-t with dimension post-processing (thesis Ch. 4) on a gymnasium env or system"}
+CONFIG_DEST = "config:"
+"""Namespace prefix of the generated config-field options (set only when given)."""
+
+
+# ------------------------------------------------------------------ flags from a config dataclass
+
+def field_comments(config_class: type) -> dict[str, str]:
+    """Field name -> the comment after it in the class source (continuation lines joined).
+
+    A subclass's comment replaces its base's for a field it redefines. A field without a
+    comment maps to ""; the dict is empty when the source cannot be read (e.g. a frozen
+    executable).
+    """
+    names = {f.name for f in dataclasses.fields(config_class)}
+    comments: dict[str, str] = {}
+    for cls in reversed(config_class.__mro__):
+        if not dataclasses.is_dataclass(cls):
+            continue
+        try:
+            lines = inspect.getsource(cls).splitlines()
+        except (OSError, TypeError):
+            continue
+        current = None
+        for line in lines:
+            stripped = line.strip()
+            body, hash_, comment = line.partition("#")
+            head = body.strip().split(":", 1)[0].strip()
+            if line.startswith("    ") and not line.startswith("     ") and head in names and ":" in body:
+                current = head
+                comments[current] = comment.strip() if hash_ else comments.get(head, "")
+            elif current and stripped.startswith("#") and line.partition("#")[2].startswith("  ") \
+                    and not stripped.lstrip("# ").startswith("---"):
+                comments[current] = (comments[current] + " " + stripped.lstrip("# ").strip()).strip()
+            else:
+                current = None
+    return comments
+
+
+def parse_int(text: str) -> int:
+    """An integer, also written as an integral float ("2e6")."""
+    try:
+        return int(text)
+    except ValueError:
+        value = float(text)
+        if not value.is_integer():
+            raise ValueError(f"not an integer: {text}") from None
+        return int(value)
+
+
+parse_int.__name__ = "int"
+
+
+def value_parser(hint: Any) -> tuple[Callable[[str], Any], str]:
+    """An argparse ``type`` for a field's type hint and its metavar.
+
+    int, float, str; ``X | None`` ("none" gives None); unions tried in order (``float | str``:
+    a number, else the text); ``tuple[X, ...]`` / ``list[X]``: comma-separated; else JSON.
+    """
+    if hint is int:
+        return parse_int, "N"
+    if hint is float:
+        return float, "X"
+    if hint is str:
+        return str, "TEXT"
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        optional = type(None) in args
+        options = [value_parser(a)[0] for a in args if a is not type(None)]
+        metavars = [value_parser(a)[1] for a in args if a is not type(None)]
+
+        def parse_union(text: str):
+            if optional and text.lower() in ("none", "null"):
+                return None
+            for parse in options:
+                try:
+                    return parse(text)
+                except (TypeError, ValueError, argparse.ArgumentTypeError):
+                    continue
+            raise argparse.ArgumentTypeError(f"invalid value {text!r}")
+        parse_union.__name__ = "|".join(metavars)
+        return parse_union, "|".join(metavars + (["none"] if optional else []))
+    if origin in (tuple, list):
+        item = value_parser(args[0] if args else str)[0]
+
+        def parse_sequence(text: str):
+            values = [item(v) for v in text.replace(" ", "").split(",") if v]
+            return origin(values)
+        parse_sequence.__name__ = "list"
+        return parse_sequence, "A,B,..."
+    return json.loads, "JSON"
+
+
+def _positive_or_none(parse: Callable[[str], Any]) -> Callable[[str], Any]:
+    """``parse``, rejecting values <= 0 (None passes) with "must be > 0"."""
+    def parse_positive(text: str):
+        value = parse(text)
+        if value is not None and value <= 0:
+            raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+        return value
+    parse_positive.__name__ = parse.__name__
+    return parse_positive
+
+
+def field_default(f: dataclasses.Field) -> Any:
+    """A dataclass field's default value (its factory's product; MISSING when required)."""
+    if f.default is not dataclasses.MISSING:
+        return f.default
+    if f.default_factory is not dataclasses.MISSING:
+        return f.default_factory()
+    return dataclasses.MISSING
+
+
+def variant_defaults(algorithm: str) -> dict[str, dict[str, Any]]:
+    """For SSAC: variant name -> the fields where that preset differs from hybridctl's defaults."""
+    if algorithm != "ssac":
+        return {}
+    config_class = ALGORITHMS["ssac"].config_class
+    base = dataclasses.asdict(config_class())
+    out = {}
+    for name in SSAC_VARIANTS:
+        if name == "hybridctl":
+            continue
+        values = dataclasses.asdict(config_class.variant(name))
+        out[name] = {k: v for k, v in values.items() if k != "variant_name" and v != base[k]}
+    return out
+
+
+def add_config_flags(parser: argparse.ArgumentParser, algorithm: str) -> set[str]:
+    """Add ``--field-name`` for every field of ``algorithm``'s config; return the option strings."""
+    config_class = ALGORITHMS[algorithm].config_class
+    hints = typing.get_type_hints(config_class)
+    comments = field_comments(config_class)
+    presets = variant_defaults(algorithm)
+    group = parser.add_argument_group(f"{config_class.__name__} fields (default and source of each; "
+                                      "also settable as --set FIELD=VALUE)")
+    options = set()
+    for f in dataclasses.fields(config_class):
+        if f.name in NOT_FLAGS.get(algorithm, ()):
+            continue
+        flag = "--" + f.name.replace("_", "-")
+        names = [*ALIASES.get(f.name, ()), flag]
+        default = field_default(f)
+        text = comments.get(f.name, "")
+        shown = [f"default: {default}"] + [f"--variant {preset}: {changed[f.name]}"
+                                           for preset, changed in presets.items() if f.name in changed]
+        text += (" " if text else "") + "(" + "; ".join(shown) + ")"
+        kwargs: dict[str, Any] = {"dest": CONFIG_DEST + f.name, "default": argparse.SUPPRESS,
+                                  "help": text.replace("%", "%%")}
+        hint = hints.get(f.name, str)
+        if hint is bool:
+            kwargs["action"] = argparse.BooleanOptionalAction
+        else:
+            parse, metavar = value_parser(hint)
+            if f.name in POSITIVE_FIELDS:
+                parse = _positive_or_none(parse)
+            kwargs["type"] = parse
+            if f.name in CHOICES:
+                kwargs["choices"] = CHOICES[f.name]
+            else:
+                kwargs["metavar"] = metavar
+        action = group.add_argument(*names, **kwargs)
+        options.update(action.option_strings)
+    return options
+
+
+def parse_set_pairs(pairs: list[str] | None, config_class: type) -> dict:
+    """``--set key=value`` pairs -> config overrides (values parsed as JSON, else kept as text)."""
+    fields = {f.name for f in dataclasses.fields(config_class)}
+    out = {}
+    for pair in pairs or []:
+        key, sep, text = pair.partition("=")
+        key = key.strip().replace("-", "_")
+        if not sep or not key:
+            raise ValueError(f"--set expects key=value, got {pair!r}")
+        if key not in fields:
+            raise ValueError(f"--set {key}: not a {config_class.__name__} field; fields: " + ", ".join(sorted(fields)))
+        try:
+            out[key] = json.loads(text)
+        except json.JSONDecodeError:
+            out[key] = text
+    return out
+
+
+def config_settings(args: argparse.Namespace) -> dict:
+    """The config fields the command line set: ``--set`` pairs, then the field flags (which win)."""
+    settings = parse_set_pairs(args.set, ALGORITHMS[args.algorithm].config_class)
+    settings.update({k[len(CONFIG_DEST):]: v for k, v in vars(args).items() if k.startswith(CONFIG_DEST)})
+    return settings
+
+
+# ------------------------------------------------------------------ parsers
+
+def _unknown_flag_hint(algorithm: str, options: dict[str, set[str]]) -> Callable[[str], str | None]:
+    """For ``algorithm``'s parser: "FLAG applies to X only" when another learner takes FLAG."""
+    def hint(flag: str) -> str | None:
+        takers = [name for name, known in options.items() if name != algorithm and flag in known]
+        if not takers:
+            return None
+        text = f"{flag} applies to {', '.join(takers)} only"
+        instead = INSTEAD.get((algorithm, flag))
+        return f"{text}; {instead}" if instead else text
+    return hint
+
+
+def add_common_flags(parser: argparse.ArgumentParser, algorithm: str) -> set[str]:
+    """The run flags every learner takes, plus ``--variant`` (ssac) and ``--init`` (ars); return their
+    option strings."""
+    run = parser.add_argument_group("run")
+    actions = [
+        run.add_argument("--out", metavar="DIR", help="run folder (default runs/train/ALGO-SYSTEM-sSEED)"),
+        run.add_argument("--resume", action="store_true", help="continue from the run folder's newest checkpoint"),
+        run.add_argument("--eval-episodes", type=positive(int), metavar="N",
+                         help="episodes in eval.json (default " + ("5" if algorithm == "ars" else "100") + ")"),
+        run.add_argument("--set", action="append", metavar="KEY=VALUE",
+                         help="override a config field, e.g. --set polyak=0.9 (repeatable; value read as JSON)"),
+    ]
+    if algorithm == "ssac":
+        actions.append(run.add_argument(
+            "--variant", choices=SSAC_VARIANTS, default="hybridctl",
+            help="SSAC settings: hybridctl's defaults, the thesis' throughout (paper), or the author's code "
+                 "(author); field flags change the chosen preset"))
+    if algorithm == "ars":
+        actions.append(run.add_argument(
+            "--init", metavar="CHECKPOINT", help="start from this checkpoint's policy and normalisation (the "
+            "thesis trains 750 identity epochs, then 250 with post-processing)"))
+    add_quiet_flag(run)
+    add_debug_flag(run)
+    return {s for action in actions for s in action.option_strings}
+
+
+def add_parser(sub) -> None:
+    """Register ``train`` and its learners ``sac``, ``ssac``, ``ars`` on the top-level sub-parsers."""
+    p = sub.add_parser("train", help="train SAC / Switched SAC (thesis Ch. 3) on a system, or ARS (Ch. 4) on an env",
+                       description="Train a learner; `hybridctl train ALGO --help` lists its flags.")
+    add_debug_flag(p)
+    learners = p.add_subparsers(dest="algorithm", required=True, metavar="{" + ",".join(ALGORITHMS) + "}",
+                                parser_class=CommandParser)
+    parsers, options = {}, {}
+    for algorithm in ALGORITHMS:
+        config_name = ALGORITHMS[algorithm].config_class.__name__
+        q = learners.add_parser(
+            algorithm, help=TITLES[algorithm], description=TITLES[algorithm] + ".",
+            usage=f"%(prog)s SYSTEM [--FIELD VALUE ...] [--set KEY=VALUE ...] [--out DIR] [--resume] ...",
+            epilog=f"Every {config_name} field is a flag. With --resume the checkpoint's settings hold"
+                   + (" (except --steps)." if algorithm != "ars" else "; given flags replace them."))
+        q.add_argument("system", help=SYSTEM_HELP[algorithm])
+        options[algorithm] = add_common_flags(q, algorithm) | add_config_flags(q, algorithm)
+        q.set_defaults(func=run_train)
+        parsers[algorithm] = q
+    for algorithm, q in parsers.items():
+        q.unknown_flag_hint = _unknown_flag_hint(algorithm, options)
+
+
+@cli_errors
+def run_train(args: argparse.Namespace) -> int:
+    """Train, checkpoint, evaluate and print the evaluation (exit 3 when training diverged)."""
+    run = train_and_evaluate(args.algorithm, args.system, out=args.out, settings=config_settings(args),
+                             variant=getattr(args, "variant", "hybridctl"), resume=args.resume,
+                             init=getattr(args, "init", None), eval_episodes=args.eval_episodes,
+                             progress=not args.quiet, command=args.command_line)
+    result, out = run.evaluation, run.out
+    if args.algorithm == "ars":
+        dims = result["mean_dimensions"]
+        print(f"return over {result['episodes']} episodes: {result['mean_return']:.1f} +- {result['std_return']:.1f}; "
+              f"mesh dimension lower {dims['mesh_lower']}, upper {dims['mesh_upper']}; "
+              f"wrote {out}/final, progress.csv, eval.json")
+    else:
+        print(f"deterministic return over {result['episodes']} episodes: {result['mean_return']:.2f} "
+              f"+- {result['std_return']:.2f} (min {result['min_return']:.2f}), success {result['success_rate']:.0%}")
+        print(f"wrote {out}/final (checkpoint), progress.csv, training_curves.png, eval.json")
+    return 0

@@ -1,0 +1,98 @@
+"""The reachable-state mesh report of a rimless wheel on rough terrain (thesis Ch. 5; what
+``hybridctl mesh`` does): mesh, transition matrix, mean first passage time, Monte Carlo check,
+mesh sizes and the figures.
+
+>>> from hybridctl.experiments import mesh_report
+>>> report = mesh_report("rimless-wheel", "runs/mesh", box_size=0.01, monte_carlo=500)
+>>> report["mfpt"]["from_seed"]
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Sequence
+
+import scipy.sparse as sp
+
+from .. import io, viz
+from ..analysis import (GaussianDisturbance, RimlessWheel, build_mesh, mesh_sizes, monte_carlo_mfpt,
+                        reachable_dimension)
+from ..drake import DrakeRimlessWheelMap
+
+MESH_MAPS = {"rimless-wheel": "analytic rimless wheel on rough terrain (Byl & Tedrake 2009)",
+             "drake-rimless-wheel": "Drake's RimlessWheel, apex found by a witness function"}
+"""The section maps :func:`mesh_report` knows, by name."""
+
+
+def section_map_by_name(name: str):
+    """The Poincare section map called ``name`` (a key of ``MESH_MAPS``)."""
+    if name == "rimless-wheel":
+        return RimlessWheel()
+    if name == "drake-rimless-wheel":
+        return DrakeRimlessWheelMap()
+    raise ValueError(f"unknown map {name!r}; known: {', '.join(sorted(MESH_MAPS))}")
+
+
+def mesh_report(map_name: str = "rimless-wheel", out: str | Path = "runs/mesh", box_size: float = 1e-3,
+                slope_mean: float = 0.15, slope_std: float = 0.06, disturbances: int = 25,
+                max_states: int = 1_000_000, monte_carlo: int = 0, sizes: Sequence[float] | None = None,
+                backend: str = "serial", workers: int | None = None, resume: bool = False,
+                progress: bool = True, command: str | None = None) -> dict:
+    """Mesh the states a map reaches from its rolling gait under Gaussian slopes; write the report.
+
+    Seeds the mesh with the wheel's fixed point at ``slope_mean``; the mesh uses ``disturbances``
+    equal-probability slope quantiles. Writes into ``out``: ``mfpt.json`` (the returned report),
+    and for a complete mesh ``transition_matrix.npz``, ``mesh.npz`` (``ReachableMesh.load``) and
+    ``sparsity.png``, ``cumulative_mass.png``, ``states.png`` (plus ``mesh_sizes.png`` with
+    ``sizes``). ``out/mesh_checkpoint.npz`` lets ``resume`` continue an interrupted mesh.
+
+    Args:
+        monte_carlo: episodes of a Monte Carlo MFPT estimate on the true map (0: none), with
+            continuous slopes and with the mesh's slope set.
+        sizes: further box sizes to mesh at (thesis Table 5.1); two complete ones give
+            ``reachable_dimension``.
+
+    Returns:
+        The report: ``mesh``, ``mfpt`` (with ``from_seed``), ``monte_carlo``, ``mesh_sizes``,
+        ``reachable_dimension``; for a mesh cut off at ``max_states``, ``error`` instead of results.
+
+    Raises:
+        ValueError: an unknown map, a bad disturbance, or no rolling gait at ``slope_mean``.
+    """
+    section_map = section_map_by_name(map_name)
+    slopes = GaussianDisturbance(slope_mean, slope_std, disturbances)
+    seed = RimlessWheel().fixed_point(slope_mean)
+    if not math.isfinite(seed):
+        raise ValueError(f"--slope-mean {slope_mean} has no rolling gait to seed the mesh from")
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    mesh = build_mesh(section_map, [[seed]], slopes, box_size, max_states=max_states, backend=backend,
+                      workers=workers, checkpoint=out / "mesh_checkpoint.npz", resume=resume, progress=progress)
+    report = {} if command is None else {"command": command}
+    report.update({"map": map_name, "seed_state": [seed], "mesh": mesh.summary(),
+                   "disturbance": {"slope_mean": slope_mean, "slope_std": slope_std, "count": disturbances}})
+    if not mesh.complete:
+        report["error"] = f"mesh incomplete at --max-states {max_states}: no transition matrix"
+        io.write_json(out / "mfpt.json", report)
+        return report
+    T = mesh.transition_matrix()
+    io.atomic_write(out / "transition_matrix.npz", lambda f: sp.save_npz(f, T))
+    mesh.save(out / "mesh.npz")
+    result = mesh.mfpt()
+    report["mfpt"] = {**result.report(), "from_seed": result.mean(mesh.seed_distribution())}
+    if monte_carlo:
+        continuous = monte_carlo_mfpt(section_map, [[seed]], slopes, episodes=monte_carlo, seed=0)
+        same = monte_carlo_mfpt(section_map, [[seed]], slopes.finite_set(), episodes=monte_carlo, seed=0)
+        report["monte_carlo"] = {"continuous_disturbance": continuous.summary(), "mesh_disturbance_set": same.summary()}
+    viz.plot_transition_sparsity(T, path=out / "sparsity.png")
+    viz.plot_cumulative_mass(T, path=out / "cumulative_mass.png")
+    viz.plot_mesh_states(mesh, path=out / "states.png")
+    if sizes:
+        rows = mesh_sizes(section_map, [[seed]], slopes, sorted(set(sizes) | {box_size}), max_states=max_states)
+        report["mesh_sizes"] = rows
+        if sum(r["complete"] for r in rows) >= 2:
+            report["reachable_dimension"] = reachable_dimension(rows)
+            viz.plot_mesh_sizes(rows, path=out / "mesh_sizes.png")
+    io.write_json(out / "mfpt.json", report)
+    return report
