@@ -280,7 +280,7 @@ def test_workflows_run_from_python_as_from_the_cli(tmp_path):
     from hybridctl import experiments, systems
 
     acrobot = systems.load("acrobot")
-    start = experiments.nudged_nominal_state(acrobot)
+    start = acrobot.nudged_nominal_state()
     assert start == pytest.approx(acrobot.initial_state.nominal + np.array([1e-3, 0, 0, 0]))
     assert start[0] == pytest.approx(-1.5698, abs=1e-4)  # the demo's former --x0
     summary = experiments.simulate_and_write("pendulum", "energy", tmp_path / "sim", x0=[0.05, 0.0], duration=1.0,

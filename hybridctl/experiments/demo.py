@@ -14,7 +14,7 @@ from typing import Callable
 
 from ..systems import load
 from .balance_map import balance_map
-from .simulation import nudged_nominal_state, simulate_and_write
+from .simulation import simulate_and_write
 
 PRETRAINED_ACROBOT = Path(__file__).resolve().parents[2] / "models" / "policies" / "ssac-acrobot"
 """The SSAC acrobot checkpoint shipped with hybridctl (how it was trained: README.md there)."""
@@ -59,7 +59,7 @@ def run_demo(out: str | Path = "runs/demo", grid: int = DEMO_GRID, checkpoint: s
     report("hybridctl demo: acrobot (thesis Ch. 3) in Drake: learned SSAC swing-up (TorchPolicy) + learned gate "
            "(Gate, hysteresis) + Drake LQR")
     report(f"  checkpoint: {checkpoint} (how it was trained: README.md there)")
-    summary = simulate_and_write(system, controller, out / "acrobot", x0=nudged_nominal_state(system),
+    summary = simulate_and_write(system, controller, out / "acrobot", x0=system.nudged_nominal_state(),
                                  duration=duration, meshcat=meshcat, command=command)
     report(f"  simulate {duration:g} s from hanging down: balanced={summary['balanced']} "
            f"return={summary['return']:.1f} (thesis max 100), LQR from t={summary['first_balance_time']} s, "

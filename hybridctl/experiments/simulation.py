@@ -17,21 +17,6 @@ from ..systems import System, load
 from ..viz import plot_trajectory, replay_html
 from .controllers import build_named_diagram
 
-START_NUDGE = 1e-3
-"""rad added to the first angle of the nominal start: the exact hanging-down state is an equilibrium."""
-
-
-def nudged_nominal_state(system: System, nudge: float = START_NUDGE) -> np.ndarray:
-    """The spec's nominal initial state with its first angle moved by ``nudge`` rad.
-
-    For the acrobot: hanging down, th1 = -pi/2 + 1e-3 (a controller started exactly at
-    the bottom equilibrium would see no error to act on).
-    """
-    x0 = np.array(system.initial_state.nominal, dtype=float)
-    x0[system.angle_indices[0]] += nudge
-    return x0
-
-
 def simulate_and_write(system: System | str, controller: str = "energy", out: str | Path = "runs/simulate",
                        x0=None, duration: float | None = None, html: bool = True, meshcat=None,
                        command: str | None = None) -> dict:
@@ -41,7 +26,7 @@ def simulate_and_write(system: System | str, controller: str = "energy", out: st
 
     Args:
         system: a System or a system name.
-        x0: the initial state (default: :func:`nudged_nominal_state`).
+        x0: the initial state (default: ``system.nudged_nominal_state()``).
         duration: seconds (default: the spec's episode duration).
         meshcat: a running Meshcat (``viz.start_meshcat()``) to show the run live at real time.
         command: the command line that asked for the run, recorded in ``summary.json``.
@@ -52,7 +37,7 @@ def simulate_and_write(system: System | str, controller: str = "energy", out: st
     import matplotlib.pyplot as plt
 
     system = load(system) if isinstance(system, str) else system
-    start = nudged_nominal_state(system) if x0 is None else np.asarray(x0, dtype=float)
+    start = system.nudged_nominal_state() if x0 is None else np.asarray(x0, dtype=float)
     out = Path(out)
     diagram = build_named_diagram(system, controller, meshcat=meshcat)
     traj = simulate(diagram, start, duration, realtime_rate=1.0 if meshcat is not None else 0.0)
