@@ -13,10 +13,11 @@ from pathlib import Path
 from typing import Callable
 
 from ..systems import load
+from ..systems.spec import MODELS_DIR
 from .balance_map import balance_map
 from .simulation import simulate_and_write
 
-PRETRAINED_ACROBOT = Path(__file__).resolve().parents[2] / "models" / "policies" / "ssac-acrobot"
+PRETRAINED_ACROBOT = MODELS_DIR / "policies" / "ssac-acrobot"
 """The SSAC acrobot checkpoint shipped with hybridctl (how it was trained: README.md there)."""
 
 DEMO_SYSTEM = "acrobot"

@@ -9,16 +9,23 @@ and the file, so a typo in a spec never reaches the dynamics.
 from __future__ import annotations
 
 import math
+import os
 import re
 import tomllib
+from importlib import resources
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-SPEC_DIR = Path(__file__).resolve().parents[2] / "systems"
-MODELS_DIR = Path(__file__).resolve().parents[2] / "models"
+# Specs and robot models ship inside the package (``hybridctl/data``; the repository's top-level
+# ``systems/`` and ``models/`` are links to them), so an installed wheel finds them.
+DATA_DIR = Path(str(resources.files("hybridctl") / "data"))
+SPEC_DIR = DATA_DIR / "systems"
+MODELS_DIR = DATA_DIR / "models"
+USER_SPEC_ENV = "HYBRIDCTL_SYSTEMS"
+"""Environment variable: folders (separated by ``os.pathsep``) with more ``NAME.toml`` specs."""
 
 INTEGRATORS = ("euler", "runge_kutta2")
 REWARD_KINDS = ("tip_height", "quadratic", "tip_height_centered")
@@ -30,9 +37,27 @@ class SpecError(ValueError):
     """A system spec is missing a key or holds a value out of range."""
 
 
+def spec_dirs() -> list[Path]:
+    """Folders searched for ``NAME.toml``: those in ``$HYBRIDCTL_SYSTEMS`` first, then the shipped specs."""
+    extra = [Path(p).expanduser() for p in os.environ.get(USER_SPEC_ENV, "").split(os.pathsep) if p]
+    for folder in extra:
+        if not folder.is_dir():
+            raise SpecError(f"{USER_SPEC_ENV} names {folder}, which is not a folder")
+    return [*extra, SPEC_DIR]
+
+
+def spec_path(name: str) -> Path | None:
+    """The spec file of system ``name`` (the first found in :func:`spec_dirs`), or None."""
+    for folder in spec_dirs():
+        path = folder / f"{name}.toml"
+        if path.is_file():
+            return path
+    return None
+
+
 def known_systems() -> list[str]:
-    """Names of the systems with a spec file in ``systems/``."""
-    return sorted(p.stem for p in SPEC_DIR.glob("*.toml"))
+    """Names of the systems with a spec file: the shipped ones and those in ``$HYBRIDCTL_SYSTEMS``."""
+    return sorted({p.stem for folder in spec_dirs() for p in folder.glob("*.toml")})
 
 
 def parse_number(raw: Any, where: str) -> float:
@@ -161,10 +186,12 @@ def read_spec(name_or_path: str | Path, **overrides: Any) -> Spec:
     """Read, override and validate a spec by system name or by path to a TOML file."""
     path = Path(name_or_path)
     if path.suffix != ".toml":
-        path = SPEC_DIR / f"{name_or_path}.toml"
-        if not path.exists():
+        path = spec_path(str(name_or_path))
+        if path is None:
             raise KeyError(
                 f"unknown system '{name_or_path}'; known systems: {', '.join(known_systems())}")
+    elif not path.is_file():
+        raise SpecError(f"{path}: no such spec file")
     try:
         doc = tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as exc:
