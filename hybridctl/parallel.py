@@ -22,6 +22,7 @@ parameters, and workers build their simulators themselves (see :func:`cached_env
 
 from __future__ import annotations
 
+import ast
 import concurrent.futures as cf
 import multiprocessing as mp
 import os
@@ -38,6 +39,54 @@ def cached_env(key: Any, make: Callable[[], Any]) -> Any:
     if key not in _ENV_CACHE:
         _ENV_CACHE[key] = make()
     return _ENV_CACHE[key]
+
+
+def _is_main_guard(node: ast.stmt) -> bool:
+    """``if __name__ == "__main__":`` (either operand order)."""
+    if not isinstance(node, ast.If) or not isinstance(node.test, ast.Compare) or len(node.test.ops) != 1:
+        return False
+    sides = [node.test.left, *node.test.comparators]
+    names = [s for s in sides if isinstance(s, ast.Name) and s.id == "__name__"]
+    consts = [s for s in sides if isinstance(s, ast.Constant) and s.value == "__main__"]
+    return isinstance(node.test.ops[0], ast.Eq) and len(names) == 1 and len(consts) == 1
+
+
+def unguarded_script_line() -> tuple[str, int] | None:
+    """Where a script starts worker processes from module-level code outside ``if __name__ == "__main__":``.
+
+    Spawned workers import the main script again; without the guard each of them would run
+    the script's work too, and the pool dies with an error that only the workers' stderr
+    shows. Returns (file, line) of the unguarded module-level statement, or None (guarded,
+    interactive, a notebook, or no readable source).
+    """
+    main = sys.modules.get("__main__")
+    path = getattr(main, "__file__", None)
+    if main is None or not path:
+        return None
+    frame = sys._getframe(1)
+    while frame is not None and not (frame.f_globals is vars(main) and frame.f_code.co_name == "<module>"):
+        frame = frame.f_back
+    if frame is None:
+        return None
+    try:
+        tree = ast.parse(open(path, encoding="utf-8").read())
+    except (OSError, SyntaxError, UnicodeDecodeError):
+        return None
+    line = frame.f_lineno
+    for node in tree.body:
+        if _is_main_guard(node) and node.lineno <= line <= (node.end_lineno or node.lineno):
+            return None
+    return path, line
+
+
+def require_main_guard() -> None:
+    """Raise RuntimeError in one line when :func:`unguarded_script_line` finds unguarded script code."""
+    found = unguarded_script_line()
+    if found is not None:
+        path, line = found
+        raise RuntimeError(f"{path}:{line} starts worker processes outside 'if __name__ == \"__main__\":'; "
+                           "spawned workers re-import the script, so put its code under that guard "
+                           "(or use backend='serial')")
 
 
 class SerialBackend:
@@ -75,6 +124,7 @@ class ProcessBackend(SerialBackend):
 
     def _executor(self) -> cf.ProcessPoolExecutor:
         if self._pool is None:
+            require_main_guard()
             self._pool = cf.ProcessPoolExecutor(self.workers, mp_context=mp.get_context("spawn"))
         return self._pool
 

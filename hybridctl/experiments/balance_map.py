@@ -17,6 +17,7 @@ import numpy as np
 from tqdm import tqdm
 
 from .. import io
+from ..parallel import require_main_guard
 from ..drake import simulate
 from ..systems import System, load
 from ..viz import plot_balance_map
@@ -156,6 +157,7 @@ def balance_map(system: System | str, controller: str = "energy", grid: int = 41
         pool = None
     else:
         # spawn: a forked child would inherit torch/OpenMP thread state from the parent.
+        require_main_guard()
         pool = mp.get_context("spawn").Pool(workers)
         results_iter = pool.imap_unordered(_simulate_chunk, jobs)
     try:
