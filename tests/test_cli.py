@@ -8,6 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from hybridctl.cli import main
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -304,3 +306,51 @@ def test_command_modules_read_typed_spec_sections():
     files += [package / "experiments" / f"{name}.py" for name in ("simulation", "demo", "mesh_report", "training")]
     for path in files:
         assert "spec.get(" not in path.read_text(), path
+
+
+def test_version_and_help_examples_parse_as_printed(capsys):
+    """--version prints the package version; every example line of `hybridctl --help` parses."""
+    import shlex
+
+    import hybridctl
+    from hybridctl.cli import __doc__ as cli_doc, build_parser
+
+    with pytest.raises(SystemExit) as stop:
+        main(["--version"])
+    assert stop.value.code == 0 and capsys.readouterr().out.strip() == f"hybridctl {hybridctl.__version__}"
+    examples = [line.strip() for line in cli_doc.splitlines() if line.strip().startswith("hybridctl ")]
+    assert len(examples) >= 5
+    for example in examples:
+        words = [w for w in shlex.split(example)[1:] if not (w.startswith("[") or w.endswith("]"))]
+        build_parser().parse_args(words)  # a usage error would raise SystemExit
+
+
+def test_help_lists_the_systems_and_every_default(capsys):
+    import argparse
+
+    from hybridctl import systems
+    from hybridctl.cli import build_parser
+
+    for command in (["simulate"], ["balance-map"], ["train", "ssac"], ["train", "sac"]):
+        with pytest.raises(SystemExit):
+            main([*command, "--help"])
+        text = " ".join(capsys.readouterr().out.split())
+        assert all(name in text for name in systems.known_systems()), command
+
+    def parsers(parser):
+        yield parser
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for child in action.choices.values():
+                    yield from parsers(child)
+
+    checked = 0
+    for parser in parsers(build_parser()):
+        formatter = parser._get_formatter()
+        for action in parser._actions:
+            if (not action.option_strings or action.nargs == 0 or action.help == argparse.SUPPRESS
+                    or action.default in (None, False, argparse.SUPPRESS)):
+                continue
+            assert "default" in formatter._get_help_string(action), (parser.prog, action.option_strings)
+            checked += 1
+    assert checked >= 10  # the walk reached the sub-commands (config-field flags state their defaults in their help)

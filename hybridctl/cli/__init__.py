@@ -17,6 +17,7 @@ import sys
 
 from . import balance_map, demo, mesh, simulate, systems, train
 from ._common import CommandParser, add_debug_flag, command_line
+from .. import __version__
 from ..experiments import PRETRAINED_ACROBOT
 
 COMMANDS = (systems, simulate, balance_map, train, mesh, demo)
@@ -27,7 +28,8 @@ __all__ = ["main", "build_parser", "PRETRAINED_ACROBOT"]
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``hybridctl`` command."""
-    parser = CommandParser(prog="hybridctl", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = CommandParser(prog="hybridctl", description=__doc__)
+    parser.add_argument("--version", action="version", version=f"hybridctl {__version__}")
     add_debug_flag(parser, top_level=True)
     sub = parser.add_subparsers(dest="command", required=True)
     for module in COMMANDS:

@@ -71,6 +71,35 @@ def cli_errors(command: Callable[[argparse.Namespace], int]) -> Callable[[argpar
     return run
 
 
+def systems_help() -> str:
+    """Help of a SYSTEM argument: the known systems (shipped and from $HYBRIDCTL_SYSTEMS)."""
+    from ..systems import known_systems  # reads $HYBRIDCTL_SYSTEMS when the parser is built
+
+    try:
+        names = ", ".join(known_systems())
+    except SpecError as exc:  # a bad $HYBRIDCTL_SYSTEMS is reported when the command runs
+        names = f"(unreadable: {exc})"
+    return f"system name: {names}; or a path to a spec file NAME.toml"
+
+
+def add_system_argument(parser: argparse.ArgumentParser, help: str | None = None) -> None:
+    """The positional SYSTEM argument, its help listing the known systems."""
+    parser.add_argument("system", metavar="SYSTEM", help=help or systems_help())
+
+
+class DefaultsHelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Keeps descriptions as written and appends "(default: X)" to every option whose help
+    does not already name its default (flags, None and suppressed defaults excepted)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        default = action.default
+        if ("default" in text or default is None or default is False or default is argparse.SUPPRESS
+                or not action.option_strings or action.nargs == 0):
+            return text
+        return f"{text} (default: {default})"
+
+
 class CommandParser(argparse.ArgumentParser):
     """An ArgumentParser that rejects unknown arguments itself, with its own usage line.
 
@@ -81,6 +110,10 @@ class CommandParser(argparse.ArgumentParser):
     """
 
     unknown_flag_hint: Callable[[str], str | None] | None = None
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("formatter_class", DefaultsHelpFormatter)
+        super().__init__(*args, **kwargs)
 
     def parse_known_args(self, args=None, namespace=None):
         """Parse like ArgumentParser, but exit with a usage error on any unknown argument."""

@@ -6,14 +6,14 @@ import argparse
 
 from ..experiments import balance_map
 from ..systems import load
-from ._common import add_debug_flag, add_quiet_flag, cli_errors, positive
+from ._common import add_system_argument, add_debug_flag, add_quiet_flag, cli_errors, positive
 from .simulate import controller_help
 
 
 def add_parser(sub) -> None:
     """Register ``balance-map`` on the top-level sub-parsers."""
     p = sub.add_parser("balance-map", help="balanced fraction over a grid of rest states (thesis Fig. 3.6)")
-    p.add_argument("system")
+    add_system_argument(p)
     p.add_argument("--controller", default="energy", help=controller_help())
     p.add_argument("--grid", type=positive(int), default=41, help="grid points per axis (default 41, thesis)")
     p.add_argument("--duration", type=positive(float), help="seconds per run (default: the spec's episode)")

@@ -13,7 +13,7 @@ from .simulate import start_live_view
 def add_parser(sub) -> None:
     """Register ``demo`` on the top-level sub-parsers."""
     p = sub.add_parser("demo", help="what `make demo` runs")
-    p.add_argument("--out", default="runs/demo")
+    p.add_argument("--out", default="runs/demo", help="output folder")
     p.add_argument("--grid", type=positive(int), default=DEMO_GRID, help=f"balance-map grid (default {DEMO_GRID})")
     p.add_argument("--meshcat", action="store_true", help="also show the run live in meshcat")
     add_quiet_flag(p)

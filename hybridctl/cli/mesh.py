@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from ..experiments import MESH_MAPS, mesh_report
+from ..parallel import BACKENDS
 from ._common import USAGE_ERROR, add_debug_flag, add_quiet_flag, cli_errors, positive
 
 
@@ -20,8 +21,9 @@ def add_parser(sub) -> None:
     p.add_argument("--monte-carlo", type=int, default=0, metavar="EPISODES",
                    help="also estimate the MFPT by Monte Carlo on the true map")
     p.add_argument("--sizes", type=positive(float), nargs="*", help="also mesh at these box sizes (Table 5.1)")
-    p.add_argument("--backend", choices=["serial", "processes", "ray"], default="serial")
-    p.add_argument("--workers", type=positive(int))
+    p.add_argument("--backend", choices=BACKENDS, default="serial",
+                   help="where section-map steps run: this process, local worker processes, or Ray")
+    p.add_argument("--workers", type=positive(int), help="worker processes (default: all cores)")
     p.add_argument("--resume", action="store_true", help="continue from out/mesh_checkpoint.npz")
     p.add_argument("--out", default="runs/mesh", help="output folder")
     add_quiet_flag(p)

@@ -9,7 +9,7 @@ import numpy as np
 
 from ..experiments import CONTROLLERS, simulate_and_write
 from ..systems import System, load
-from ._common import add_debug_flag, cli_errors, positive
+from ._common import add_system_argument, add_debug_flag, cli_errors, positive
 
 SUMMARY_KEYS = ("system", "balanced", "return", "diverged", "first_balance_time", "wall_time_s")
 """The summary fields ``simulate`` prints."""
@@ -38,7 +38,7 @@ def parse_state(text: str | None, system: System) -> np.ndarray | None:
 def add_parser(sub) -> None:
     """Register ``simulate`` on the top-level sub-parsers."""
     p = sub.add_parser("simulate", help="simulate one run of a system under a controller")
-    p.add_argument("system")
+    add_system_argument(p)
     p.add_argument("--controller", default="energy", help=controller_help())
     p.add_argument("--x0", help="initial state, comma-separated; write --x0=-1.57,0,0,0 when it starts "
                    "with a minus (default: the spec's nominal start, first angle + 1e-3 rad)")

@@ -23,7 +23,7 @@ from ..experiments import ALGORITHMS, SSAC_VARIANTS, train_and_evaluate
 from ..learn.sac import OBS_TRANSFORMS
 from ..learn.ssac import REWARDS
 from ..parallel import BACKENDS
-from ._common import CommandParser, add_debug_flag, add_quiet_flag, cli_errors, positive
+from ._common import add_system_argument, CommandParser, add_debug_flag, add_quiet_flag, cli_errors, positive
 
 CHOICES = {"obs_transform": OBS_TRANSFORMS, "reward": REWARDS, "gate_class_weight_from": ("warm", "all"),
            "postprocess": POSTPROCESS_KINDS, "postprocess_form": POSTPROCESS_FORMS, "backend": BACKENDS}
@@ -43,7 +43,7 @@ INSTEAD = {("ars", "--steps"): "ars counts --epochs", ("ars", "--total-steps"): 
            ("sac", "--epochs"): "sac counts --steps", ("ssac", "--epochs"): "ssac counts --steps"}
 """What to use instead of another learner's flag."""
 
-SYSTEM_HELP = {"sac": "system name (hybridctl systems)", "ssac": "system name (hybridctl systems)",
+SYSTEM_HELP = {"sac": None, "ssac": None,  # None: the known systems (systems_help)
                "ars": "gymnasium env id (e.g. Hopper-v5) or system name"}
 TITLES = {"sac": "plain SAC (thesis Ch. 3 baseline) on a system's torch vector env",
           "ssac": "Switched SAC (thesis Ch. 3): learned swing-up + learned gate + LQR",
@@ -293,7 +293,7 @@ def add_parser(sub) -> None:
             usage=f"%(prog)s SYSTEM [--FIELD VALUE ...] [--set KEY=VALUE ...] [--out DIR] [--resume] ...",
             epilog=f"Every {config_name} field is a flag. With --resume the checkpoint's settings hold"
                    + (" (except --steps)." if algorithm != "ars" else "; given flags replace them."))
-        q.add_argument("system", help=SYSTEM_HELP[algorithm])
+        add_system_argument(q, SYSTEM_HELP[algorithm])
         options[algorithm] = add_common_flags(q, algorithm) | add_config_flags(q, algorithm)
         q.set_defaults(func=run_train)
         parsers[algorithm] = q
