@@ -172,7 +172,7 @@ def test_load_errors(tmp_path, warm):
 
 
 def test_nan_loss_stops_and_keeps_the_last_checkpoint(tmp_path, warm):
-    def poison(agent, _):
+    def poison(agent):
         if agent.num_timesteps >= 1000:
             agent.replay.data["rewards"][:] = math.nan
 
