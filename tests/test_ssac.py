@@ -74,7 +74,7 @@ def test_reward_comes_from_the_spec_unless_the_config_names_one(warm):
     assert SSACConfig().reward is None
     gate, states, labels = warm
     default = SSAC("acrobot", gate=gate, gate_data=(states, labels), **TINY)
-    assert default.system.reward_kind == "tip_height" and default.config.reward is None
+    assert default.system.reward_kind == default.config.reward == "tip_height"   # the spec's, recorded
     quadratic = systems.load("acrobot", **{"reward.kind": "quadratic"})
     agent = SSAC(quadratic, gate=GateNet(quadratic), **TINY)               # a System is used as it is
     assert agent.system is quadratic

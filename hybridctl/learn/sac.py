@@ -61,12 +61,9 @@ False stops training (a final checkpoint is still written).
 from __future__ import annotations
 
 import copy
-import dataclasses
 import math
 import time
-import warnings
-from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
@@ -74,12 +71,10 @@ import torch
 import torch.nn.functional as F
 
 from . import checkpoint as ckpt
-from ..envs import TorchVectorEnv
-from ..systems import System
-from ..systems import load as load_system
 from .networks import OBS_TRANSFORMS, Actor, DeterministicPolicy, ObsTransform, QNetwork
 from .replay import REPLAY_FIELDS, EpisodeStaging, ReplayBuffer, sample_mixed
-from .run import PROGRESS_FILE, EvalResult, Learner, Saved, check_finite, seeded, set_torch_threads
+from .run import Saved, check_finite, seeded
+from .vector_agent import VectorEnvAgent, progress_entry
 
 # ============================================================================ config
 
@@ -132,7 +127,7 @@ class SACConfig:
 
     def __post_init__(self):
         # accept integral floats such as total_steps=2e6
-        for f in dataclasses.fields(self):
+        for f in fields(self):
             value = getattr(self, f.name)
             if f.type in ("int", int) and isinstance(value, float) and value.is_integer():
                 setattr(self, f.name, int(value))
@@ -193,11 +188,7 @@ def _next_multiple(value: int, every: int) -> float:
     return (value // every + 1) * every if every else math.inf
 
 
-def _progress(key: str, attr: str, **kw) -> Saved:
-    return Saved(key, attr, file=PROGRESS_FILE, **kw)
-
-
-class SAC(Learner):
+class SAC(VectorEnvAgent):
     """Soft Actor-Critic on a batched torch vector env.
 
     Args:
@@ -211,54 +202,31 @@ class SAC(Learner):
     Attributes: ``env``, ``config``, ``actor``, ``q1``, ``q2``, ``q1_target``,
     ``q2_target``, ``replay``, ``needle`` (:class:`ReplayBuffer`), ``num_timesteps``
     (env steps), ``num_episodes``, ``num_gradient_steps``, ``num_updates``, ``num_rounds``.
+    Env set-up, inference, ``evaluate``, ``load``: :class:`~hybridctl.learn.vector_agent.VectorEnvAgent`.
     """
 
     config_class = SACConfig
     algorithm_name = "SAC"
     compatible_algorithms = ("SAC", "SSAC")  # an SSAC checkpoint holds a whole SAC agent
-    log_key = "env_steps"
     log_columns = ("env_steps", "episodes", "mean_return", "success_rate", "q_loss", "pi_loss", "alpha",
                    "steps_per_s", "wall_time", "gradient_steps", "needle_size")
     log_int_columns = ("env_steps", "episodes", "gradient_steps", "needle_size")
-    # what a checkpoint holds (model.pt, progress.json, replay.pt), declared once
-    saved = (*(Saved(name, name, "state") for name in ("actor", "q1", "q2", "q1_target", "q2_target",
+    # the checkpoint, declared once: networks, optimizers, alpha, RNG (model.pt), counters (progress.json),
+    # the main and needle buffers (replay.pt, for resume)
+    saved = (*VectorEnvAgent.saved,
+             *(Saved(name, name, "state") for name in ("actor", "q1", "q2", "q1_target", "q2_target",
                                                          "actor_opt", "q_opt")),
              Saved("log_alpha", "log_alpha", "param"), Saved("alpha_opt", "alpha_opt", "state", optional=True),
              Saved("generator", "generator", "rng", optional=True),
-             _progress("env_steps", "num_timesteps", load=int),
-             *(_progress(key, attr, optional=True, load=int) for key, attr in (
-                 ("episodes", "num_episodes"), ("gradient_steps", "num_gradient_steps"), ("updates", "num_updates"),
-                 ("rounds", "num_rounds"), ("needle_episodes", "num_needle_episodes"))),
-             _progress("needle_size", "needle.size", restore=False), _progress("replay_size", "replay.size", restore=False),
-             _progress("wall_time", "wall_time", optional=True, load=float),
-             _progress("mean_return", "mean_return", restore=False),
-             _progress("best_mean_return", "best_mean_return", optional=True,
-                       load=lambda v: -math.inf if v is None else float(v)),
-             _progress("success_rate", "success_rate", restore=False),
-             _progress("recent_returns", "recent_returns", optional=True, save=list, load=lambda v: deque(v, maxlen=100)),
-             _progress("recent_successes", "recent_successes", optional=True, save=list,
-                       load=lambda v: deque(v, maxlen=100)),
-             _progress("env_rng_state", "env_rng_state", optional=True),
+             *(progress_entry(key, f"num_{key}", optional=True, load=int)
+               for key in ("gradient_steps", "updates", "rounds", "needle_episodes")),
+             progress_entry("needle_size", "needle.size", restore=False),
+             progress_entry("replay_size", "replay.size", restore=False),
              Saved("replay", "replay", "state", file=ckpt.REPLAY_FILE, bulky=True),
              Saved("needle", "needle", "state", file=ckpt.REPLAY_FILE, bulky=True))
 
     def __init__(self, env_or_system, config: SACConfig | None = None, **overrides):
-        cfg = dataclasses.replace(config if config is not None else self.config_class(), **overrides)
-        set_torch_threads(cfg.torch_threads)  # before any work, the env's and subclasses' set-up included
-        self.env = self._make_env(env_or_system, cfg)
-        if self.env.num_envs != cfg.num_envs:
-            cfg = dataclasses.replace(cfg, num_envs=int(self.env.num_envs))
-        cfg.validate()
-        self.config = cfg
-        self.system = self.env.system
-        self.device = torch.device(cfg.device)
-        self.obs_dim = int(self.env.single_observation_space.shape[0])
-        self.action_dim = int(self.env.single_action_space.shape[0])
-        high = np.asarray(self.env.single_action_space.high, dtype=np.float64)
-        low = np.asarray(self.env.single_action_space.low, dtype=np.float64)
-        if not np.allclose(high, -low) or not np.all(np.isfinite(high)) or np.any(high <= 0):
-            raise ValueError(f"SAC needs a symmetric, finite action box, got [{low}, {high}]")
-        self.action_scale = torch.as_tensor(high, dtype=torch.float32, device=self.device)
+        cfg = self._setup(env_or_system, config, overrides)  # threads, env, dims, action scale, counters
         self.target_entropy = float(-self.action_dim if cfg.target_entropy is None else cfg.target_entropy)
 
         # networks (initialised from the seed without touching the global torch RNG)
@@ -285,34 +253,11 @@ class SAC(Learner):
         horizon = int(getattr(self.env, "max_decisions", 1000))
         self.staging = EpisodeStaging(cfg.num_envs, horizon, self.obs_dim, self.action_dim, self.device)
 
-        self.generator = torch.Generator(device=self.device)
+        self.generator = torch.Generator(device=self.device)  # every draw of the agent (not the global RNG)
         self.generator.manual_seed(cfg.seed)
-        self.num_timesteps = self.num_episodes = self.num_gradient_steps = 0
-        self.num_updates = self.num_rounds = self.num_needle_episodes = 0
-        self.wall_time = 0.0
-        self.best_mean_return = -math.inf
-        self.recent_returns: deque[float] = deque(maxlen=100)
-        self.recent_successes: deque[bool] = deque(maxlen=100)
-        self.log_rows: list[dict] = []
-        self._obs: torch.Tensor | None = None
-        self._env_seed: int | None = cfg.seed  # reset(seed=...) on the first learn(); None after a load
+        self.num_gradient_steps = self.num_updates = self.num_rounds = self.num_needle_episodes = 0
         self._episode_return = torch.zeros(cfg.num_envs, dtype=torch.float64, device=self.device)
         self._loss_sums = {"q_loss": 0.0, "pi_loss": 0.0, "n": 0}
-
-    # ------------------------------------------------------------------ construction
-    @staticmethod
-    def _make_env(env_or_system, cfg: SACConfig):
-        if isinstance(env_or_system, (str, System)):
-            return TorchVectorEnv(env_or_system, cfg.num_envs, device=cfg.device, seed=cfg.seed)
-        env = env_or_system
-        for attr in ("system", "num_envs", "single_observation_space", "single_action_space"):
-            if not hasattr(env, attr):
-                raise TypeError(f"env must be a system name, a System or a TorchVectorEnv-like vector env "
-                                f"(missing attribute {attr!r}), got {type(env).__name__}")
-        mode = getattr(env, "metadata", {}).get("autoreset_mode")
-        if mode is not None and "same" not in str(getattr(mode, "value", mode)).lower():
-            raise ValueError(f"SAC needs a vector env with same-step autoreset (final_obs in infos), got {mode}")
-        return env
 
     def _transform(self) -> ObsTransform:
         return ObsTransform(self.config.obs_transform, self.obs_dim, getattr(self.system, "angle_indices", []))
@@ -504,13 +449,7 @@ class SAC(Learner):
 
     def _end_episodes(self, ended: torch.Tensor, infos: dict) -> None:
         """Record returns and success of the ended rows, copy needle episodes, reset staging."""
-        returns = self._episode_return[ended].tolist()
-        success = infos.get("success")
-        succ = (torch.as_tensor(success, device=self.device)[ended].tolist() if success is not None
-                else [False] * len(returns))
-        self.recent_returns.extend(returns)
-        self.recent_successes.extend(bool(s) for s in succ)
-        self.num_episodes += len(returns)
+        self._record_episodes(self._episode_return[ended].tolist(), ended, infos)
         needle_rows = self.is_needle_episode(ended, infos)
         if bool(needle_rows.any()):
             self.num_needle_episodes += int(needle_rows.sum())
@@ -518,22 +457,6 @@ class SAC(Learner):
         self.on_episodes_end(ended, infos)
         self.staging.clear(ended)
         self._episode_return[ended] = 0.0
-
-    # ================================================================== logging
-    @property
-    def progress_count(self) -> int:
-        """Env steps so far (the progress.csv key)."""
-        return self.num_timesteps
-
-    @property
-    def mean_return(self) -> float:
-        """Mean return of the last 100 episodes (NaN before the first one ends)."""
-        return float(np.mean(self.recent_returns)) if self.recent_returns else math.nan
-
-    @property
-    def success_rate(self) -> float:
-        """Fraction of the last 100 episodes that passed the thesis success test."""
-        return float(np.mean(self.recent_successes)) if self.recent_successes else math.nan
 
     def _log_row(self, steps_per_s: float) -> dict:
         """The progress row now (subclasses add their columns); resets the loss averages."""
@@ -545,38 +468,16 @@ class SAC(Learner):
                "alpha": float(self.alpha), "steps_per_s": steps_per_s, "wall_time": self.wall_time,
                "gradient_steps": self.num_gradient_steps, "needle_size": self.needle.size}
         self._loss_sums = {"q_loss": 0.0, "pi_loss": 0.0, "n": 0}
-        if math.isfinite(row["mean_return"]) and len(self.recent_returns) >= 10:
-            self.best_mean_return = max(self.best_mean_return, row["mean_return"])
+        self._note_best()
         return row
 
-    def plot_curves(self, log) -> None:
-        """training_curves.png in the log folder, from every progress row."""
-        from ..viz.training import plot_training_curves  # viz loads matplotlib (and pydrake): only when plotting
-
-        plot_training_curves(self.log_rows, log.dir / "training_curves.png",
-                             title=f"{self.algorithm_name} on {self.system.name}")
-
-    # ================================================================ inference
-    def predict(self, obs, deterministic: bool = True):
-        """Actions for states ``obs`` (n,) or (B, n): numpy in -> numpy out, torch in -> torch out.
-
-        deterministic: ``action_scale * tanh(mu)``; else a policy sample (global torch RNG).
-        The output has the input's floating dtype (float32 for integer input).
-        """
-        is_torch = isinstance(obs, torch.Tensor)
-        x = obs if is_torch else torch.as_tensor(np.asarray(obs))
-        dtype = x.dtype if x.is_floating_point() else torch.float32
-        single = x.ndim == 1
-        x = x.to(device=self.device, dtype=torch.float32).reshape(-1, self.obs_dim)
-        with torch.no_grad():
-            if deterministic:
-                a = self.actor.deterministic(x)
-            else:
-                a = self.actor.sample(x, torch.randn(x.shape[0], self.action_dim, device=self.device))[0]
-        a = a[0] if single else a
-        if is_torch:
-            return a.to(device=obs.device, dtype=dtype)
-        return a.cpu().to(dtype).numpy()
+    # ================================================================ the policy
+    def policy_actions(self, x: torch.Tensor, deterministic: bool) -> torch.Tensor:
+        """deterministic: ``action_scale * tanh(mu)``; else a policy sample (global torch RNG:
+        inference draws do not move the agent's training generator)."""
+        if deterministic:
+            return self.actor.deterministic(x)
+        return self.actor.sample(x, torch.randn(x.shape[0], self.action_dim, device=self.device))[0]
 
     def deterministic_policy(self) -> DeterministicPolicy:
         """A frozen ``torch.nn.Module`` copy of the current policy: (B, n) -> (B, m).
@@ -586,107 +487,6 @@ class SAC(Learner):
         """
         return DeterministicPolicy(self.actor).to("cpu")
 
-    def make_eval_env(self, num_envs: int, seed: int):
-        """A fresh vector env like the training env, for :meth:`evaluate` (override for switched envs)."""
-        return TorchVectorEnv(self.system, num_envs, decision_period=getattr(self.env, "decision_period", None),
-                              device=self.device, seed=seed)
-
-    def evaluate(self, episodes: int = 100, seed: int = 12345, deterministic: bool = True) -> EvalResult:
-        """Run ``episodes`` fresh episodes (initial states from the spec, numpy seed ``seed``)
-        with the deterministic policy; returns mean/std/min return, success rate and the returns."""
-        if not isinstance(episodes, (int, np.integer)) or episodes < 1:
-            raise ValueError(f"episodes must be an integer >= 1, got {episodes!r}")
-        env = self.make_eval_env(int(episodes), seed)
-        obs, _ = env.reset(seed=seed)
-        total = torch.zeros(episodes, dtype=torch.float64)
-        running = torch.ones(episodes, dtype=torch.bool)
-        success = torch.zeros(episodes, dtype=torch.bool)
-        for _ in range(int(env.max_decisions)):
-            actions = self.predict(obs.to(torch.float32), deterministic=deterministic).to(torch.float64)
-            obs, rewards, terminated, truncated, infos = env.step(actions)
-            total += torch.where(running, rewards.double().cpu(), torch.zeros_like(total))
-            ended = (terminated | truncated).cpu() & running
-            success |= ended & torch.as_tensor(infos["success"]).cpu().bool()
-            running &= ~ended
-            if not bool(running.any()):
-                break
-        return EvalResult.from_returns(total.numpy(), success_rate=float(success.float().mean()), first={
-            "episodes": int(episodes), "seed": int(seed), "deterministic": bool(deterministic)})
-
-    # ============================================================ save and load
-    @property
-    def env_rng_state(self) -> dict | None:
-        """The training env's numpy RNG state (checkpointed so a resumed run draws the same starts)."""
-        try:
-            return self.env.np_random.bit_generator.state
-        except AttributeError:
-            return None
-
-    @env_rng_state.setter
-    def env_rng_state(self, state: dict | None) -> None:
-        if state is None:
-            return
-        try:
-            self.env.np_random.bit_generator.state = state
-        except (AttributeError, TypeError, ValueError):
-            warnings.warn("could not restore the env's RNG state; episodes will differ", stacklevel=2)
-
-    def checkpoint_meta(self) -> dict:
-        """config.json: algorithm, config, system (name and spec overrides), dimensions, decision period."""
-        spec = getattr(self.system, "spec", None)
-        return {"algorithm": self.algorithm_name, "config": dataclasses.asdict(self.config),
-                "system": {"name": self.system.name, "overrides": getattr(spec, "overrides", {}) or {}},
-                "obs_dim": self.obs_dim, "action_dim": self.action_dim, "action_scale": self.action_scale.tolist(),
-                "decision_period": getattr(self.env, "decision_period", None)}
-
     def normalization(self) -> dict:
         """normalization.json: the observation transform (stateless)."""
         return self.actor.transform.describe()
-
-    def check_checkpoint(self, found: Path, meta: dict, normalization: dict) -> None:
-        """The checkpoint must come from this system and use this observation transform."""
-        if meta.get("system", {}).get("name") != self.system.name:
-            raise ckpt.CheckpointError(f"checkpoint {found} was trained on system "
-                                       f"{meta.get('system', {}).get('name')!r}, but the env is system "
-                                       f"{self.system.name!r}")
-        if normalization != self.actor.transform.describe():
-            raise ckpt.CheckpointError(f"checkpoint {found} normalization {normalization} differs from the agent's "
-                                       f"{self.actor.transform.describe()} (config obs_transform)")
-
-    def after_restore(self, found: Path, meta: dict, bulky: bool) -> None:
-        """The env restarts its episodes on the next learn()."""
-        self._obs, self._env_seed = None, None
-
-    @classmethod
-    def load(cls, path: str | Path, env=None, **overrides) -> "SAC":
-        """Load a checkpoint directory written by :meth:`save` (or by ``learn``).
-
-        ``env``: None (a TorchVectorEnv of the checkpoint's system, with its spec
-        overrides), a system name, a System or a vector env; it must be the system the
-        checkpoint was trained on. ``overrides`` replace config fields (e.g. ``num_envs``).
-        The replay buffer is not loaded (``learn(resume=True)`` does that).
-        """
-        found = ckpt.resolve_checkpoint_dir(path)
-        meta = ckpt.read_json(found / ckpt.CONFIG_FILE)
-        saved_system = meta.get("system", {}).get("name")
-        if env is None:
-            env = load_system(saved_system, **meta["system"].get("overrides", {}))
-        env_system = env if isinstance(env, str) else env.name if isinstance(env, System) else env.system.name
-        if env_system != saved_system:
-            raise ckpt.CheckpointError(f"checkpoint {found} was trained on system {saved_system!r}, "
-                                       f"but the env is system {env_system!r}")
-        fields = {f.name for f in dataclasses.fields(cls.config_class)}
-        saved = {k: v for k, v in meta["config"].items() if k in fields}
-        config = dataclasses.replace(cls.config_class(**saved), **overrides)
-        agent = cls._construct_for_load(env, config, found)
-        if (agent.obs_dim, agent.action_dim) != (meta.get("obs_dim"), meta.get("action_dim")):
-            raise ckpt.CheckpointError(f"checkpoint {found} has obs/action dims {meta.get('obs_dim')}/"
-                                       f"{meta.get('action_dim')}, the env {agent.obs_dim}/{agent.action_dim}")
-        agent.checkpointer.restore(found, bulky=False)
-        return agent
-
-    @classmethod
-    def _construct_for_load(cls, env, config: SACConfig, found: Path) -> "SAC":
-        """Hook for :meth:`load`: build the agent whose weights ``found`` then restores
-        (subclasses skip expensive set-up that the checkpoint overwrites anyway)."""
-        return cls(env, config=config)

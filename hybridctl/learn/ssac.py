@@ -227,6 +227,8 @@ class SSAC(SAC):
         cfg.validate()
         self._init_gate, self._init_gate_data, self.gate_info = gate, gate_data, {}
         super().__init__(env_or_system, config=cfg)
+        if self.config.reward is None:  # record the reward trained on (config.json; older readers need a kind)
+            self.config = dataclasses.replace(self.config, reward=self.system.reward_kind)
         self.gate = self.env.gate
         self.gate_opt = torch.optim.Adam(self.gate.parameters(), lr=cfg.gate_lr)
         self.gate_generator = torch.Generator().manual_seed(cfg.seed + 7919)
