@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import dataclasses
 import math
 import warnings
 from collections.abc import Iterable
@@ -52,7 +53,7 @@ from . import checkpoint as ckpt
 from .checkpoint import CONFIG_FILE, MODEL_FILE, NORMALIZATION_FILE, PROGRESS_FILE, CheckpointError
 
 __all__ = ["Learner", "Saved", "Checkpointer", "RunLog", "Run", "Callback", "CallbackList", "EvalResult",
-           "check_finite", "progress_bar", "seeded", "set_torch_threads", "newest_checkpoint", "MODEL_FILE", "PROGRESS_FILE"]
+           "check_finite", "progress_bar", "seeded", "set_torch_threads", "MODEL_FILE", "PROGRESS_FILE"]
 
 PROGRESS_CSV = "progress.csv"
 CURVES_PNG = "training_curves.png"
@@ -528,22 +529,6 @@ class Checkpointer:
 # ============================================================================ the learner base
 
 
-def newest_checkpoint(candidates: Iterable[str | Path], key: str = "env_steps") -> Path | None:
-    """Among existing checkpoint directories, the one whose progress.json ``key`` counter is largest
-    (the first on a tie; None if there is none)."""
-    best, best_count = None, -1
-    for candidate in candidates:
-        try:
-            found = ckpt.resolve_checkpoint_dir(candidate)
-        except CheckpointError:
-            continue
-        progress = ckpt.read_json(found / PROGRESS_FILE)
-        count = int(progress.get(key, progress.get("env_steps", 0)))
-        if count > best_count:
-            best, best_count = found, count
-    return best
-
-
 class Learner:
     """Base of every learner: declared checkpoint state, ``save``, the run context.
 
@@ -585,8 +570,6 @@ class Learner:
 
     def checkpoint_meta(self) -> dict:
         """config.json: algorithm, config and what a loader needs to rebuild the learner."""
-        import dataclasses
-
         return {"algorithm": self.algorithm_name, "config": dataclasses.asdict(self.config)}
 
     def normalization(self) -> dict:
@@ -639,7 +622,7 @@ class Learner:
             if resume:
                 if log_dir is None:
                     raise ValueError("learn(resume=True) needs the log_dir of the run to resume")
-                found = newest_checkpoint([log_dir / "checkpoint", log_dir / "final"], self.log_key)
+                found = ckpt.newest_checkpoint([log_dir / "checkpoint", log_dir / "final"], self.log_key)
                 if found is None:
                     warnings.warn(f"resume=True but no checkpoint in {log_dir}; starting from the learner's current "
                                   f"state ({self.log_key} {self.progress_count})", stacklevel=3)
