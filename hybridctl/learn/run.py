@@ -95,16 +95,20 @@ def check_finite(name: str, value, where: str) -> None:
     """
     if isinstance(value, torch.Tensor):
         finite = bool(torch.isfinite(value).all())
-        shown = float(value.detach().reshape(-1)[0]) if value.numel() == 1 else "non-finite"
     elif isinstance(value, (np.ndarray, float, int, np.generic)):
         finite = bool(np.all(np.isfinite(value)))
-        shown = float(value) if np.ndim(value) == 0 else "non-finite"
     elif isinstance(value, Iterable):
+        value = list(value)
         finite = all(bool(torch.isfinite(v).all()) for v in value)
-        shown = "non-finite"
     else:
         raise TypeError(f"check_finite: cannot check a {type(value).__name__}")
-    if not finite:
+    if not finite:  # the message shows a single number, else says "non-finite"
+        if isinstance(value, torch.Tensor):
+            shown = float(value.detach().reshape(-1)[0]) if value.numel() == 1 else "non-finite"
+        elif isinstance(value, list):
+            shown = "non-finite"
+        else:
+            shown = float(np.reshape(value, -1)[0]) if np.size(value) == 1 else "non-finite"
         raise FloatingPointError(f"{name} became {shown} {where}; training stopped before applying it. "
                                  f"The last good checkpoint (if any) is left intact.")
 
