@@ -53,7 +53,7 @@ from ..envs import env_id
 from ..parallel import BACKENDS, cached_env, make_backend
 from ..systems import known_systems
 from . import checkpoint as ckpt
-from .run import PROGRESS_FILE, EvalResult, Learner, Saved, check_finite, seeded, set_torch_threads
+from .run import PROGRESS_FILE, EvalResult, Learner, Saved, check_fields, check_finite, seeded, set_torch_threads
 
 
 @dataclass
@@ -82,14 +82,8 @@ class ARSConfig:
 
     def validate(self) -> None:
         """Raise ValueError naming the first invalid field."""
-        for name in ("step_size", "noise"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ValueError(f"ARSConfig.{name} must be a finite number > 0, got {value!r}")
-        for name in ("n_directions", "top_directions", "epochs", "checkpoint_every", "eval_episodes", "torch_threads"):
-            value = getattr(self, name)
-            if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 1:
-                raise ValueError(f"ARSConfig.{name} must be an integer >= 1, got {value!r}")
+        check_fields(self, positive=("step_size", "noise"), integers_from_1=(
+            "n_directions", "top_directions", "epochs", "checkpoint_every", "eval_episodes", "torch_threads"))
         if self.top_directions > self.n_directions:
             raise ValueError(f"ARSConfig.top_directions ({self.top_directions}) must be <= n_directions "
                              f"({self.n_directions})")

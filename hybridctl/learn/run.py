@@ -52,7 +52,7 @@ import torch
 from . import checkpoint as ckpt
 from .checkpoint import CONFIG_FILE, MODEL_FILE, NORMALIZATION_FILE, PROGRESS_FILE, CheckpointError
 
-__all__ = ["Learner", "Saved", "Checkpointer", "RunLog", "Run", "Callback", "CallbackList", "EvalResult",
+__all__ = ["Learner", "Saved", "check_fields", "Checkpointer", "RunLog", "Run", "Callback", "CallbackList", "EvalResult",
            "check_finite", "progress_bar", "seeded", "set_torch_threads", "MODEL_FILE", "PROGRESS_FILE"]
 
 PROGRESS_CSV = "progress.csv"
@@ -111,6 +111,29 @@ def check_finite(name: str, value, where: str) -> None:
             shown = float(np.reshape(value, -1)[0]) if np.size(value) == 1 else "non-finite"
         raise FloatingPointError(f"{name} became {shown} {where}; training stopped before applying it. "
                                  f"The last good checkpoint (if any) is left intact.")
+
+
+# ============================================================================ config checks
+
+
+def check_fields(config, integers_from_1: Iterable[str] = (), integers_from_0: Iterable[str] = (),
+                 positive: Iterable[str] = (), unit_interval: Iterable[str] = ()) -> None:
+    """Raise ValueError naming the first field of ``config`` that is not an integer >= 1 / >= 0,
+    a finite number > 0, or a number in [0, 1] (the checks every learner's ``validate`` repeats)."""
+    cls = type(config).__name__
+    for minimum, names in ((1, integers_from_1), (0, integers_from_0)):
+        for name in names:
+            value = getattr(config, name)
+            if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < minimum:
+                raise ValueError(f"{cls}.{name} must be an integer >= {minimum}, got {value!r}")
+    for name in positive:
+        value = getattr(config, name)
+        if not (isinstance(value, (int, float, np.number)) and math.isfinite(value) and value > 0):
+            raise ValueError(f"{cls}.{name} must be a finite number > 0, got {value!r}")
+    for name in unit_interval:
+        value = getattr(config, name)
+        if not (isinstance(value, (int, float, np.number)) and 0.0 <= value <= 1.0):
+            raise ValueError(f"{cls}.{name} must be in [0, 1], got {value!r}")
 
 
 # ============================================================================ evaluation results

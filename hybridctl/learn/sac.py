@@ -66,14 +66,13 @@ import time
 from dataclasses import dataclass, fields
 from pathlib import Path
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 
 from . import checkpoint as ckpt
 from .networks import OBS_TRANSFORMS, Actor, DeterministicPolicy, ObsTransform, QNetwork
 from .replay import REPLAY_FIELDS, EpisodeStaging, ReplayBuffer, sample_mixed
-from .run import Saved, check_finite, seeded
+from .run import Saved, check_fields, check_finite, seeded
 from .vector_agent import VectorEnvAgent, progress_entry
 
 # ============================================================================ config
@@ -134,26 +133,11 @@ class SACConfig:
 
     def validate(self) -> None:
         """Raise ValueError naming the first invalid field."""
-        positive = ["steps_per_update", "updates_per_round", "replay_batch_size", "minibatch_size",
-                    "hidden_layers", "hidden_size", "buffer_size", "needle_buffer_size", "num_envs",
-                    "torch_threads", "log_every"]
-        for name in positive:
-            value = getattr(self, name)
-            if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 1:
-                raise ValueError(f"SACConfig.{name} must be an integer >= 1, got {value!r}")
-        for name in ("total_steps", "exploration_steps", "checkpoint_every", "seed"):
-            value = getattr(self, name)
-            if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 0:
-                raise ValueError(f"SACConfig.{name} must be an integer >= 0, got {value!r}")
-        for name in ("lr", "alpha_lr", "alpha_init"):
-            if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
-                raise ValueError(f"SACConfig.{name} must be a finite number > 0, got {getattr(self, name)!r}")
-        if not 0.0 <= self.gamma <= 1.0:
-            raise ValueError(f"SACConfig.gamma must be in [0, 1], got {self.gamma!r}")
-        if not 0.0 <= self.polyak <= 1.0:
-            raise ValueError(f"SACConfig.polyak must be in [0, 1], got {self.polyak!r}")
-        if not 0.0 <= self.needle_prob <= 1.0:
-            raise ValueError(f"SACConfig.needle_prob must be in [0, 1], got {self.needle_prob!r}")
+        check_fields(self, integers_from_1=("steps_per_update", "updates_per_round", "replay_batch_size",
+                                            "minibatch_size", "hidden_layers", "hidden_size", "buffer_size",
+                                            "needle_buffer_size", "num_envs", "torch_threads", "log_every"),
+                     integers_from_0=("total_steps", "exploration_steps", "checkpoint_every", "seed"),
+                     positive=("lr", "alpha_lr", "alpha_init"), unit_interval=("gamma", "polyak", "needle_prob"))
         if isinstance(self.alpha, str):
             if self.alpha != "auto":
                 raise ValueError(f"SACConfig.alpha must be a number >= 0 or 'auto', got {self.alpha!r}")
@@ -168,7 +152,6 @@ class SACConfig:
     def gradient_steps_per_update(self) -> int:
         """Minibatches per replay batch: ceil(replay_batch_size / minibatch_size) (paper: 32)."""
         return -(-self.replay_batch_size // self.minibatch_size)
-
 
 
 # ============================================================================= agent

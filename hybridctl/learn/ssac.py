@@ -49,7 +49,7 @@ from ..systems import load as load_system
 from ..systems.control import cost_to_go, hysteresis, saturate
 from ..systems.spec import REWARD_KINDS
 from .gate import GateConfig, GateNet, fit_gate, label_states, warm_start_gate
-from .run import Saved
+from .run import Saved, check_fields
 from .sac import SAC, SACConfig
 
 GATE_DATA_FILE = "gate_data.pt"
@@ -103,22 +103,12 @@ class SSACConfig(SACConfig):
     def validate(self) -> None:
         """Raise ValueError naming the first invalid field."""
         super().validate()
-        for name in ("gate_refit_every", "gate_refit_steps", "gate_warm_samples", "gate_warm_fit_steps",
-                     "gate_batch_size", "gate_data_max"):
-            value = getattr(self, name)
-            if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 1:
-                raise ValueError(f"SSACConfig.{name} must be an integer >= 1, got {value!r}")
-        if not isinstance(self.gate_relabel_per_refit, (int, np.integer)) or self.gate_relabel_per_refit < 0:
-            raise ValueError(f"SSACConfig.gate_relabel_per_refit must be an integer >= 0, "
-                             f"got {self.gate_relabel_per_refit!r}")
-        if not (math.isfinite(self.gate_relabel_cost) and self.gate_relabel_cost > 0):
-            raise ValueError(f"SSACConfig.gate_relabel_cost must be > 0, got {self.gate_relabel_cost!r}")
+        check_fields(self, integers_from_1=("gate_refit_every", "gate_refit_steps", "gate_warm_samples",
+                                            "gate_warm_fit_steps", "gate_batch_size", "gate_data_max"),
+                     integers_from_0=("gate_relabel_per_refit",),
+                     positive=("gate_relabel_cost", "gate_lr", "gate_positive_weight"))
         if self.gate_warm_samples < 2:
             raise ValueError(f"SSACConfig.gate_warm_samples must be >= 2, got {self.gate_warm_samples}")
-        if not (math.isfinite(self.gate_lr) and self.gate_lr > 0):
-            raise ValueError(f"SSACConfig.gate_lr must be a finite number > 0, got {self.gate_lr!r}")
-        if not (math.isfinite(self.gate_positive_weight) and self.gate_positive_weight > 0):
-            raise ValueError(f"SSACConfig.gate_positive_weight must be > 0, got {self.gate_positive_weight!r}")
         if self.gate_class_weight_from not in ("warm", "all"):
             raise ValueError(f"SSACConfig.gate_class_weight_from must be 'warm' or 'all', "
                              f"got {self.gate_class_weight_from!r}")
