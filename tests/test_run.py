@@ -252,3 +252,16 @@ def test_progress_bar_off_has_the_same_methods():
     bar.update(3)
     bar.set_postfix({"a": 1}, refresh=False)
     bar.close()
+
+
+def test_training_curves_from_rows_or_a_progress_csv(tmp_path):
+    from hybridctl.viz.training import plot_training_curves, read_progress_rows
+    log = RunLog(tmp_path, ("env_steps", "mean_return", "q_loss", "pi_loss", "alpha", "success_rate"), "env_steps", 0)
+    for step in (100, 200, 300):
+        log.write({"env_steps": step, "mean_return": step / 10, "q_loss": 1.0, "pi_loss": -1.0, "alpha": 0.05})
+    log.close()
+    rows = read_progress_rows(tmp_path / "progress.csv")
+    assert [r["env_steps"] for r in rows] == [100, 200, 300] and math.isnan(rows[0]["success_rate"])
+    assert plot_training_curves(tmp_path / "progress.csv", tmp_path / "a.png").stat().st_size > 1000
+    assert plot_training_curves(rows, tmp_path / "b.png", title="t").is_file()
+    assert plot_training_curves([], tmp_path / "c.png") is None and not (tmp_path / "c.png").exists()

@@ -187,6 +187,17 @@ def test_save_load_keeps_policy_gate_and_resume_restores_gate_data(tmp_path, war
     assert (tmp_path / "final" / "gate_data.pt").is_file()
 
 
+def test_config_json_is_written_once_with_the_gate(tmp_path, warm, monkeypatch):
+    """SSAC adds its gate section through checkpoint_meta: config.json is written once, not rewritten."""
+    from hybridctl.learn import run as run_module
+    written = []
+    original = run_module.ckpt.write_json
+    monkeypatch.setattr(run_module.ckpt, "write_json",
+                        lambda path, data: (written.append((path.name, "gate" in data)), original(path, data)))
+    tiny_ssac(warm).save(tmp_path / "ck")
+    assert [w for w in written if w[0] == "config.json"] == [("config.json", True)]
+
+
 def test_load_errors(tmp_path, warm):
     agent = tiny_ssac(warm)
     agent.save(tmp_path / "ssac")
