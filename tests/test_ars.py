@@ -123,7 +123,8 @@ def test_the_hopper_checkpoint_loads_and_evaluates():
     assert agent.epoch == 140 and agent.stats.count == int(tensors["stats_count"])
     result = agent.evaluate(episodes=3)
     assert result["steps"] == [1000, 1000, 1000]
-    assert result["mean_return"] == pytest.approx(3327.1809483387556, rel=1e-9)   # measured before the skeleton
+    # 3327.1809483387556 before and after the skeleton on the development machine; MuJoCo builds may differ slightly
+    assert result["mean_return"] == pytest.approx(3327.1809483387556, rel=1e-6)
 
 
 def test_mlp_checkpoint_holds_the_trained_weights(tmp_path):

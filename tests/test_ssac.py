@@ -278,4 +278,7 @@ def test_the_shipped_checkpoint_evaluates_as_before():
     folder = Path(__file__).resolve().parents[1] / "models" / "policies" / "ssac-acrobot"
     result = SSAC.load(folder).evaluate(episodes=100)
     assert result["success_rate"] == 1.0 and result.episodes == 100
-    assert result["mean_return"] == pytest.approx(91.98468007287164, abs=1e-9)
+    # 91.98468007287164 on the development machine, before and after the training skeleton (bit-identical
+    # there); float reductions differ in the last digits across CPUs / torch builds (91.98467998121106 was
+    # measured elsewhere), hence 1e-6
+    assert result["mean_return"] == pytest.approx(91.98468007287164, abs=1e-6)
