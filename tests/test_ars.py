@@ -78,6 +78,55 @@ def test_resume_after_a_crash_redoes_the_log_rows_past_the_checkpoint(tmp_path):
     np.testing.assert_array_equal(ARS.load(tmp_path / "final", env=point_reach).theta, resumed.theta)
 
 
+def test_learn_resume_continues_exactly_from_the_log_dir(tmp_path):
+    straight = ARS(point_reach, ARSConfig(seed=4, **SMALL)).learn(epochs=5, progress=False)
+    ARS(point_reach, ARSConfig(seed=4, **SMALL)).learn(epochs=3, progress=False, log_dir=tmp_path)
+    fresh = ARS(point_reach, ARSConfig(seed=4, **SMALL))                       # a new agent, epoch 0
+    fresh.learn(epochs=5, progress=False, log_dir=tmp_path, resume=True)       # from final/ (epoch 3)
+    np.testing.assert_array_equal(straight.theta, fresh.theta)
+    np.testing.assert_array_equal(straight.stats.sum, fresh.stats.sum)
+    epochs = [int(line.split(",")[0]) for line in (tmp_path / "progress.csv").read_text().splitlines()[1:]]
+    assert epochs == [1, 2, 3, 4, 5] and fresh.epoch == 5
+
+
+def test_ars_keeps_the_global_torch_rng():
+    import torch
+    torch.manual_seed(7)
+    state = torch.random.get_rng_state()
+    agent = ARS(point_reach, ARSConfig(seed=2, policy="mlp:8", **SMALL))
+    agent.train_epoch(rollouts.SerialBackend())
+    assert torch.equal(torch.random.get_rng_state(), state)
+    again = ARS(point_reach, ARSConfig(seed=2, policy="mlp:8", **SMALL))      # the seed alone sets the weights
+    np.testing.assert_array_equal(again.theta, ARS(point_reach, ARSConfig(seed=2, policy="mlp:8", **SMALL)).theta)
+
+
+def test_evaluate_result_is_a_dict_with_the_statistics():
+    import json
+    agent = ARS(point_reach, ARSConfig(seed=0, **SMALL)).learn(epochs=2, progress=False)
+    result = agent.evaluate(episodes=4)
+    assert result["mean_return"] == result.mean_return == pytest.approx(np.mean(result["returns"]))
+    assert result.min_return == min(result["returns"]) and result.success_rate is None
+    result.update({"epochs": agent.epoch})
+    assert json.loads(json.dumps(result))["epochs"] == 2
+
+
+def test_the_hopper_checkpoint_loads_and_evaluates():
+    """models/policies/ars-hopper (epoch 140): its return over 3 episodes is unchanged (MuJoCo needed)."""
+    from pathlib import Path
+    from hybridctl.learn.checkpoint import load_tensors, read_json
+    folder = Path(__file__).resolve().parents[1] / "models" / "policies" / "ars-hopper"
+    meta, tensors = read_json(folder / "config.json"), load_tensors(folder / "model.pt")
+    assert tensors["theta"].numel() == meta["obs_dim"] * meta["act_dim"] == 33
+    assert ARSConfig(**meta["config"]).transient_steps == 200
+    pytest.importorskip("mujoco")
+    agent = ARS.load(folder)
+    assert agent.epoch == 140 and agent.stats.count == int(tensors["stats_count"])
+    result = agent.evaluate(episodes=3)
+    assert result["steps"] == [1000, 1000, 1000]
+    # 3327.1809483387556 before and after the skeleton on the development machine; MuJoCo builds may differ slightly
+    assert result["mean_return"] == pytest.approx(3327.1809483387556, rel=1e-6)
+
+
 def test_mlp_checkpoint_holds_the_trained_weights(tmp_path):
     import torch
     agent = ARS(point_reach, ARSConfig(seed=2, policy="mlp:8", **SMALL)).learn(epochs=2, progress=False)

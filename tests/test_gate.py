@@ -1,12 +1,14 @@
 """Gate learning (thesis Sec. 3.3, Algorithm 2)."""
 
+import math
+
 import numpy as np
 import pytest
 import torch
 
 from hybridctl import systems
-from hybridctl.learn.gate import (GateConfig, GateNet, fit_gate, gate_metrics, label_states, warm_start_gate,
-                                  warm_start_states)
+from hybridctl.learn.gate import (GateConfig, GateNet, fit_gate, gate_loss, gate_metrics, label_states,
+                                  positive_class_weight, warm_start_gate, warm_start_states)
 
 
 @pytest.fixture(scope="module")
@@ -54,7 +56,12 @@ def test_class_weight_makes_the_gate_conservative(acrobot):
 
 def test_warm_start_gate_returns_data_and_metrics(acrobot):
     config = GateConfig(warm_samples=4000, warm_fit_steps=200)
+    torch.manual_seed(123)
+    rng_state = torch.random.get_rng_state()
     gate, states, labels, info = warm_start_gate(acrobot, config)
+    assert torch.equal(torch.random.get_rng_state(), rng_state)     # seeded by its own seed only
+    again = warm_start_gate(acrobot, config)[0]
+    assert all(torch.equal(a, b) for a, b in zip(gate.state_dict().values(), again.state_dict().values()))
     assert states.shape == (4000, 4) and labels.shape == (4000,) and labels.any()
     assert {"false_handover_rate", "recall", "positive_fraction"} <= set(info)
     assert info["positive_fraction"] == pytest.approx(labels.mean())
@@ -79,3 +86,46 @@ def test_label_horizon_is_a_system_fact():
     assert label_horizon(cartpole, dataclasses.replace(GateConfig(), label_horizon=3.0)) == 3.0
     near = warm_start_states(cartpole, 400, np.random.default_rng(0))[:200]
     assert label_states(cartpole, near, GateConfig()).mean() > 0.5            # 88 % measured on 2000 states
+
+
+def test_gate_features_are_the_wrapped_error_and_the_cost_to_go(acrobot):
+    """The features are the control module's wrapped state error and log(1 + V / cost_scale)."""
+    from hybridctl.systems.control import cost_to_go
+    gate = GateNet(acrobot)
+    x = torch.tensor([[1.0 + 2 * np.pi, -0.5, 0.3, 2.0]], dtype=torch.float64)
+    err = torch.as_tensor(acrobot.state_error(x.numpy().copy()), dtype=torch.float32)
+    S = torch.as_tensor(acrobot.lqr()[1] / acrobot.gate.cost_scale, dtype=torch.float32)
+    expected = torch.cat([err / gate.feature_scale, torch.log1p(cost_to_go(err, S)).unsqueeze(-1)], dim=-1)
+    torch.testing.assert_close(gate.features(x), expected, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(gate.feature_scale, torch.as_tensor(acrobot.gate.warm_far, dtype=torch.float32))
+
+
+def test_gate_metrics_threshold_comes_from_the_system(acrobot):
+    states = warm_start_states(acrobot, 400, np.random.default_rng(3))
+    labels = label_states(acrobot, states, GateConfig())
+    gate = GateNet(acrobot)
+    with torch.no_grad():
+        gate.net[-1].weight.zero_()
+        gate.net[-1].bias.fill_(float(np.log(0.8 / 0.2)))   # p = 0.8 everywhere
+    assert gate_metrics(gate, states, labels)["handovers"] == 0                # acrobot gate.on = 0.9
+    assert gate_metrics(gate, states, labels, on=0.7)["handovers"] == 400
+    assert acrobot.gate.on == 0.9
+    with pytest.raises(ValueError, match="on="):
+        gate_metrics(torch.nn.Sequential(torch.nn.Linear(4, 1), torch.nn.Sigmoid()).double(), states, labels)
+
+
+def test_fit_gate_minimises_the_eq_3_3_loss(acrobot):
+    """fit_gate's losses are gate_loss with the class weight of eq. 3.3 on the whole data set."""
+    states = warm_start_states(acrobot, 500, np.random.default_rng(4))
+    labels = label_states(acrobot, states, GateConfig())
+    c_w = positive_class_weight(labels, 0.01)
+    assert c_w == pytest.approx(len(labels) / labels.sum() * 0.01)
+    gate = GateNet(acrobot)
+    losses = fit_gate(gate, states, labels, steps=1, batch_size=500, lr=0.0,
+                      generator=torch.Generator().manual_seed(0))
+    # one step at lr 0 on a batch drawn with replacement: the loss is the weighted BCE of that batch
+    rows = torch.randint(500, (500,), generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        batch = float(gate_loss(gate, torch.as_tensor(states, dtype=torch.float32)[rows], torch.as_tensor(labels)[rows],
+                                c_w))
+    assert losses[0] == pytest.approx(batch, rel=1e-6) and math.isfinite(batch)

@@ -11,8 +11,8 @@ import pytest
 import torch
 
 from hybridctl.envs import TorchVectorEnv
-from hybridctl.learn import (SAC, CheckpointError, DeterministicPolicy, EpisodeStaging, ReplayBuffer, SACConfig,
-                             sample_mixed, write_checkpoint_dir)
+from hybridctl.learn import (SAC, Callback, CheckpointError, EpisodeStaging, ReplayBuffer, SACConfig, sample_mixed,
+                             write_checkpoint_dir)
 from hybridctl.learn.checkpoint import resolve_checkpoint_dir
 
 # A few hundred gradient steps at most: every test here runs in about a second.
@@ -105,14 +105,50 @@ def test_same_seed_same_weights_different_seed_different():
 def test_callback_every_round_can_stop_training():
     seen = []
 
-    def callback(agent, local_vars):
+    def callback(agent):
         seen.append(agent.num_timesteps)
-        assert "rewards" in local_vars
         return len(seen) < 3
 
     agent = tiny_agent()
     agent.learn(total_steps=4000, progress=False, callback=callback)
     assert seen == [200, 400, 600] and agent.num_timesteps == 600
+
+
+def test_callback_objects_get_every_hook_with_the_agent(tmp_path):
+    class Recorder(Callback):
+        def __init__(self):
+            self.calls = []
+
+        def on_training_start(self, learner):
+            self.calls.append(("start", learner.num_timesteps))
+
+        def on_step(self, learner):
+            self.calls.append(("step", learner.num_timesteps))
+
+        def on_update(self, learner):
+            self.calls.append(("update", learner.num_rounds))
+
+        def on_checkpoint(self, learner, path):
+            self.calls.append(("checkpoint", path.name, learner.num_timesteps))
+
+        def on_training_end(self, learner):
+            self.calls.append(("end", learner.num_timesteps))
+
+    recorder, agent = Recorder(), tiny_agent()
+    agent.learn(total_steps=800, progress=False, log_dir=tmp_path, callback=[recorder])
+    calls = recorder.calls
+    assert calls[0] == ("start", 0) and calls[-1] == ("end", 800)
+    assert [c[1] for c in calls if c[0] == "step"] == list(range(8, 801, 8))      # every vector step
+    assert [c[1] for c in calls if c[0] == "update"] == [1, 2, 3, 4]               # every update round
+    assert [c[1:] for c in calls if c[0] == "checkpoint"] == [("checkpoint", 800), ("final", 800)]
+
+    class StopAtStep(Callback):
+        def on_step(self, learner):
+            return learner.num_timesteps < 48
+
+    agent = tiny_agent()
+    agent.learn(total_steps=800, progress=False, callback=StopAtStep())
+    assert agent.num_timesteps == 48
 
 
 def test_learned_alpha_moves():
@@ -194,7 +230,7 @@ def test_resume_continues_steps_weights_and_replay(tmp_path):
     class Crash(Exception):
         pass
 
-    def crash_after_1000(agent, _):
+    def crash_after_1000(agent):
         if agent.num_timesteps >= 1000:
             raise Crash
 
@@ -226,7 +262,7 @@ def test_resume_without_checkpoint_starts_fresh(tmp_path):
 
 
 def test_nan_loss_stops_training_and_keeps_the_checkpoint(tmp_path):
-    def poison(agent, _):
+    def poison(agent):
         if agent.num_timesteps >= 1000:  # after the checkpoint at 800
             agent.replay.data["rewards"][:] = math.nan
 
@@ -330,7 +366,9 @@ def test_deterministic_policy_module_matches_predict():
     agent = tiny_agent("acrobot")
     agent.learn(total_steps=400, progress=False)
     module = agent.deterministic_policy()
-    assert isinstance(module, (torch.nn.Module, DeterministicPolicy))
+    # a frozen copy: no gradients, eval mode, its own parameters
+    assert not module.training and not any(p.requires_grad for p in module.parameters())
+    assert all(p.data_ptr() != q.data_ptr() for p, q in zip(module.parameters(), agent.actor.parameters()))
     x = torch.as_tensor(np.random.default_rng(1).uniform(-3, 3, size=(32, 4)))  # float64, as the envs
     u = module(x)
     assert u.shape == (32, 1) and u.dtype == torch.float64

@@ -1,5 +1,7 @@
 """Learning: SAC and Switched SAC on batched torch envs (thesis Ch. 3), gate learning, checkpoints;
 ARS with dimension post-processing and parallel rollouts, failure rates under disturbances (Ch. 4).
+Every learner stands on the training skeleton of :mod:`.run` (run log, checkpoints, resume,
+callbacks, NaN guard, evaluation results).
 
 >>> from hybridctl.learn import SAC, SSAC
 >>> agent = SAC("acrobot", seed=0).learn(total_steps=200_000, log_dir="runs/sac")
@@ -10,8 +12,10 @@ from .ars import ARS, ARSConfig
 from .checkpoint import CheckpointError, resolve_checkpoint_dir, write_checkpoint_dir
 from .export import load_controller
 from .gate import GateConfig, GateNet, fit_gate, gate_metrics, warm_start_gate
-from .sac import (Actor, DeterministicPolicy, EpisodeStaging, ObsTransform, QNetwork, ReplayBuffer, SAC,
-                  SACConfig, plot_training_curves, sample_mixed)
+from .networks import Actor, DeterministicPolicy, ObsTransform, QNetwork
+from .replay import EpisodeStaging, ReplayBuffer, sample_mixed
+from .run import Callback, CallbackList, Checkpointer, EvalResult, Learner, RunLog, Saved, check_finite
+from .sac import SAC, SACConfig
 from .robustness import failure_rates
 from ..parallel import ProcessBackend, RayBackend, SerialBackend, make_backend
 from .ssac import SSAC, GateDataset, SSACConfig
@@ -20,4 +24,14 @@ __all__ = ["SAC", "SACConfig", "SSAC", "SSACConfig", "GateDataset", "Actor", "QN
            "DeterministicPolicy", "ReplayBuffer", "EpisodeStaging", "sample_mixed", "plot_training_curves",
            "CheckpointError", "resolve_checkpoint_dir", "write_checkpoint_dir", "GateConfig", "GateNet",
            "fit_gate", "gate_metrics", "warm_start_gate", "load_controller", "ARS", "ARSConfig", "failure_rates",
-           "make_backend", "SerialBackend", "ProcessBackend", "RayBackend"]
+           "make_backend", "SerialBackend", "ProcessBackend", "RayBackend",
+           "Learner", "Saved", "Checkpointer", "RunLog", "Callback", "CallbackList", "EvalResult", "check_finite"]
+
+
+def __getattr__(name):
+    # plot_training_curves lives in hybridctl.viz.training; importing hybridctl.viz loads pydrake
+    # (its meshcat module), so it is re-exported here on first use, not at import time
+    if name == "plot_training_curves":
+        from ..viz.training import plot_training_curves
+        return plot_training_curves
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

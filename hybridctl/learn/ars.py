@@ -18,8 +18,12 @@ parameters are flattened into theta.
 
 >>> agent = ARS("Hopper-v5", ARSConfig(postprocess="mesh-lower", seed=0))
 >>> agent.learn(epochs=100, log_dir="runs/ars-hopper")     # progress bar, CSV, checkpoints
+>>> agent.learn(epochs=200, log_dir="runs/ars-hopper", resume=True)   # on from the newest checkpoint
 >>> agent.predict(obs)                                       # deterministic action
 >>> agent.save("runs/ars-hopper/final"); ARS.load("runs/ars-hopper/final")
+
+The run log, checkpoints, resume, callbacks and the NaN guard come from the training
+skeleton (:mod:`hybridctl.learn.run`); this file holds the algorithm.
 
 Rollouts run on a backend from :mod:`hybridctl.parallel` ("processes" by
 default, "serial", or "ray"). Directions and env seeds come from
@@ -30,9 +34,7 @@ seed gives the same run on every backend, and a resumed run continues exactly.
 from __future__ import annotations
 
 import copy
-import csv
 import dataclasses
-import io
 import math
 import time
 from dataclasses import dataclass
@@ -45,10 +47,13 @@ import torch
 
 from ..analysis.mesh import mesh_dimension
 from ..analysis.postprocess import KINDS as POSTPROCESS_KINDS
-from ..analysis.postprocess import MIN_POINTS, PostProcessor
+from ..analysis.postprocess import MIN_POINTS, TRANSIENT_STEPS, PostProcessor
 from ..analysis.variation import madogram, variogram
-from . import checkpoint as ckpt
+from ..envs import env_id
 from ..parallel import BACKENDS, cached_env, make_backend
+from ..systems import known_systems
+from . import checkpoint as ckpt
+from .run import PROGRESS_FILE, EvalResult, Learner, Saved, check_fields, check_finite, seeded, set_torch_threads
 
 
 @dataclass
@@ -66,24 +71,19 @@ class ARSConfig:
     postprocess: str = "identity"    # thesis Sec. 4.2.5: identity, mesh-lower, mesh-upper, mesh-mean, madogram,
     #                                  variogram
     postprocess_form: str = "auto"   # "divide" (eq. 4.4), "multiply" (eq. 6.2), "auto": by the return's sign
-    transient_steps: int = 200       # T_r, thesis Sec. 4.2.5
+    transient_steps: int = TRANSIENT_STEPS  # T_r = 200, thesis Sec. 4.2.5
     seed: int = 0
     backend: str = "processes"       # "serial", "processes" (local, default), "ray"
     workers: int | None = None       # None: every core (processes) or the cluster's CPUs (ray)
     address: str | None = None       # Ray cluster address (backend "ray"); None starts a local instance
     checkpoint_every: int = 10       # epochs between atomic checkpoints
     eval_episodes: int = 5           # thesis Ch. 4: 5 rollouts per seed for the metrics
+    torch_threads: int = 1           # hybridctl: torch threads of the learner's own process (torch policies)
 
     def validate(self) -> None:
         """Raise ValueError naming the first invalid field."""
-        for name in ("step_size", "noise"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ValueError(f"ARSConfig.{name} must be a finite number > 0, got {value!r}")
-        for name in ("n_directions", "top_directions", "epochs", "checkpoint_every", "eval_episodes"):
-            value = getattr(self, name)
-            if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 1:
-                raise ValueError(f"ARSConfig.{name} must be an integer >= 1, got {value!r}")
+        check_fields(self, positive=("step_size", "noise"), integers_from_1=(
+            "n_directions", "top_directions", "epochs", "checkpoint_every", "eval_episodes", "torch_threads"))
         if self.top_directions > self.n_directions:
             raise ValueError(f"ARSConfig.top_directions ({self.top_directions}) must be <= n_directions "
                              f"({self.n_directions})")
@@ -200,10 +200,6 @@ def make_env(env: str | Callable[[], gym.Env], env_kwargs: dict | None = None,
     """
     if callable(env):
         return env()
-    import hybridctl.envs  # noqa: F401  (registers hybridctl/... ids)
-    from ..envs import env_id
-    from ..systems import known_systems
-
     name = env_id(env) if env in known_systems() else env
     kwargs = dict(env_kwargs or {})
     if max_steps is not None:
@@ -274,7 +270,7 @@ def run_episode(task: RolloutTask) -> dict:
     return out
 
 
-def measure_dimensions(states: np.ndarray, transient_steps: int = 200) -> dict:
+def measure_dimensions(states: np.ndarray, transient_steps: int = TRANSIENT_STEPS) -> dict:
     """Raw (unclipped) lower/upper mesh dimension, madogram and variogram of the states after the
     transient (thesis Table 4.1 metrics); None where the episode is too short to measure."""
     tail = states[transient_steps:]
@@ -328,16 +324,31 @@ class RunningStats:
 
 # ----------------------------------------------------------------------------- the algorithm
 
-class ARS:
+class ARS(Learner):
     """ARS V2-t with optional dimension post-processing: ``learn`` / ``predict`` / ``evaluate`` / ``save`` / ``load``."""
 
     algorithm_name = "ARS"
     config_class = ARSConfig
+    log_key = "epoch"
+    log_columns = ("epoch", "env_steps", "mean_return", "max_return", "mean_raw_return", "mean_dimension", "sigma_r",
+                   "episode_steps", "wall_time", "steps_per_s")
+    log_int_columns = ("epoch", "env_steps")
+    log_float_format = None   # full precision, as the log always had
+    # what a checkpoint holds, declared once: parameters and normalisation sums (model.pt), the
+    # torch module's weights at theta (torch policies), counters and the epoch history (progress.json)
+    saved = (Saved("theta", "theta", "array"), Saved("stats_sum", "stats.sum", "array"),
+             Saved("stats_sumsq", "stats.sumsq", "array"), Saved("stats_count", "stats.count", load=int),
+             Saved("module_state", "policy.module", "state", optional=True),
+             Saved("epoch", "epoch", file=PROGRESS_FILE, load=int),
+             Saved("env_steps", "env_steps", file=PROGRESS_FILE, load=int),
+             Saved("wall_time", "wall_time", file=PROGRESS_FILE, load=float),
+             Saved("history", "history", file=PROGRESS_FILE, optional=True, load=list))
 
     def __init__(self, env: str | Callable[[], gym.Env], config: ARSConfig | None = None,
                  env_kwargs: dict | None = None, policy: torch.nn.Module | None = None, **overrides):
         self.config = dataclasses.replace(config or ARSConfig(), **overrides)
         self.config.validate()
+        set_torch_threads(self.config.torch_threads)
         self.env, self.env_kwargs = env, env_kwargs
         probe = make_env(env, env_kwargs)
         if not isinstance(probe.action_space, gym.spaces.Box):
@@ -348,8 +359,8 @@ class ARS:
         if policy is not None:
             module = policy.double()
         elif hidden:
-            torch.manual_seed(self.config.seed)  # the MLP's initial weights follow the seed
-            module = mlp_policy(obs_dim, act_dim, hidden)
+            with seeded(self.config.seed):  # the MLP's initial weights follow the seed, the global RNG is kept
+                module = mlp_policy(obs_dim, act_dim, hidden)
         else:
             module = None
         self.policy = PolicySpec(obs_dim, act_dim, probe.action_space.low, probe.action_space.high, module)
@@ -359,6 +370,12 @@ class ARS:
         self.stats = RunningStats(obs_dim)
         self.epoch, self.env_steps, self.wall_time = 0, 0, 0.0
         self.history: list[dict] = []
+        self.log_rows: list[dict] = []
+
+    @property
+    def progress_count(self) -> int:
+        """Epochs so far (the progress.csv key)."""
+        return self.epoch
 
     # -- rollouts ------------------------------------------------------------------------
     def _tasks(self, thetas: list[np.ndarray], seeds: list[int], max_steps: int | None = None,
@@ -396,7 +413,9 @@ class ARS:
         sigma_r = r[top].std()
         step = (r[top, 0] - r[top, 1]) @ directions[top]
         if sigma_r > 0:
-            self.theta = self.theta + cfg.step_size / (cfg.top_directions * sigma_r) * step
+            theta = self.theta + cfg.step_size / (cfg.top_directions * sigma_r) * step
+            check_finite("ARS theta", theta, f"at epoch {self.epoch + 1}")
+            self.theta = theta
         for res in results:  # V2: update the normalisation after the epoch, in task order
             self.stats.add(res["sum"], res["sumsq"], res["count"])
         steps = sum(res["steps"] for res in results)
@@ -408,42 +427,40 @@ class ARS:
                 "episode_steps": steps / len(results)}
 
     def learn(self, epochs: int | None = None, log_dir: str | Path | None = None, progress: bool = True,
-              backend=None) -> "ARS":
+              backend=None, resume: bool = False, callback=None) -> "ARS":
         """Train until ``epochs`` epochs in total (default ``config.epochs``); checkpoint every
-        ``checkpoint_every`` epochs into ``log_dir/checkpoint`` and finally ``log_dir/final``."""
-        from tqdm.auto import tqdm
+        ``checkpoint_every`` epochs into ``log_dir/checkpoint`` and finally ``log_dir/final``.
 
+        ``resume``: first restore the newest checkpoint in ``log_dir`` (a warning when there
+        is none). Without it training continues from the agent's state (e.g. after
+        :meth:`load`); either way progress.csv keeps the rows up to the agent's epoch.
+        ``callback``: :class:`~hybridctl.learn.run.Callback` objects or ``f(agent)``, called
+        after every epoch; False stops training.
+        """
         target = self.config.epochs if epochs is None else int(epochs)
         if target < 1:
             raise ValueError(f"epochs must be >= 1, got {target}")
-        own_backend = backend is None
-        backend = backend or make_backend(self.config.backend, self.config.workers, self.config.address)
-        log_dir = Path(log_dir) if log_dir is not None else None
-        if log_dir is not None:
-            _truncate_csv(log_dir / "progress.csv", self.epoch)   # rows past a resumed checkpoint are redone
-        bar = tqdm(total=target, initial=self.epoch, desc=f"ARS {self.env_name}", disable=not progress,
-                   unit="epoch")
-        try:
-            while self.epoch < target:
-                start = time.perf_counter()
-                row = self.train_epoch(backend)
-                self.wall_time += time.perf_counter() - start
-                row.update(wall_time=self.wall_time, steps_per_s=row["episode_steps"] * 2 * self.config.n_directions
-                           / max(time.perf_counter() - start, 1e-9))
-                self.history.append(row)
-                bar.update(1)
-                bar.set_postfix(ret=f"{row['mean_raw_return']:.1f}", dim=f"{row['mean_dimension']:.2f}",
+        with self.run(log_dir, resume, progress, callback, total=target, unit="epoch",
+                      desc=f"ARS {self.env_name}") as run:
+            own_backend = backend is None
+            pool = backend or make_backend(self.config.backend, self.config.workers, self.config.address)
+            try:
+                while self.epoch < target and not run.stopped:
+                    start = time.perf_counter()
+                    row = self.train_epoch(pool)
+                    self.wall_time += time.perf_counter() - start
+                    row.update(wall_time=self.wall_time, steps_per_s=row["episode_steps"] * 2 * self.config.n_directions
+                               / max(time.perf_counter() - start, 1e-9))
+                    self.history.append(row)
+                    run.log(row)
+                    run.advance(1, ret=f"{row['mean_raw_return']:.1f}", dim=f"{row['mean_dimension']:.2f}",
                                 sps=f"{row['steps_per_s']:.0f}")
-                if log_dir is not None:
-                    _append_csv(log_dir / "progress.csv", row)
+                    run.after_update()
                     if self.epoch % self.config.checkpoint_every == 0:
-                        self.save(log_dir / "checkpoint")
-        finally:
-            bar.close()
-            if own_backend:
-                backend.close()
-        if log_dir is not None:
-            self.save(log_dir / "final")
+                        run.checkpoint()
+            finally:
+                if own_backend:
+                    pool.close()
         return self
 
     # -- use ---------------------------------------------------------------------------------
@@ -464,7 +481,7 @@ class ARS:
 
     def evaluate(self, episodes: int | None = None, seed: int = 12345, episode_steps: int | None = None,
                  postprocess: str = "identity", backend=None, keep_states: bool = False, measure: bool = False,
-                 **noise) -> dict:
+                 **noise) -> EvalResult:
         """Deterministic rollouts of the current policy: raw returns, episode lengths, dimensions.
 
         ``measure``: also the raw lower/upper mesh dimension, madogram and variogram of every
@@ -481,10 +498,10 @@ class ARS:
         results = (backend or make_backend("serial")).map(run_episode, tasks)
         finite = [r for r in results if r["finite"]]
         returns = np.array([r["raw_return"] for r in finite])
-        out = {"episodes": n, "seed": seed, "mean_return": float(returns.mean()) if len(finite) else None,
-               "std_return": float(returns.std()) if len(finite) else None, "returns": returns.tolist(),
-               "steps": [r["steps"] for r in results], "terminated": [r.get("terminated", True) for r in results],
-               "nonfinite": n - len(finite), "dimension": [r["dimension"] for r in finite]}
+        out = EvalResult.from_returns(  # success_rate None: a gym env has no thesis success test
+            returns, first={"episodes": n, "seed": seed}, steps=[r["steps"] for r in results],
+            terminated=[r.get("terminated", True) for r in results], nonfinite=n - len(finite),
+            dimension=[r["dimension"] for r in finite])
         if keep_states:
             out["states"] = [r["states"] for r in finite]
         if measure:
@@ -495,24 +512,20 @@ class ARS:
         return out
 
     # -- checkpoints ---------------------------------------------------------------------------
-    def save(self, path: str | Path) -> Path:
-        """Write a checkpoint directory atomically (weights load with ``weights_only=True``)."""
-        def write(tmp: Path) -> None:
-            tensors = {"theta": torch.as_tensor(self.theta), "stats_sum": torch.as_tensor(self.stats.sum),
-                       "stats_sumsq": torch.as_tensor(self.stats.sumsq), "stats_count": self.stats.count}
-            if self.policy.module is not None:   # rollouts leave perturbed weights in it: store theta's
-                self.policy.actor(self.theta)
-                tensors["module_state"] = self.policy.module.state_dict()
-            torch.save(tensors, tmp / ckpt.MODEL_FILE)
-            ckpt.write_json(tmp / ckpt.CONFIG_FILE, {
-                "algorithm": self.algorithm_name, "format": ckpt.FORMAT_VERSION, "env": self.env_name,
-                "env_kwargs": self.env_kwargs, "obs_dim": self.policy.obs_dim, "act_dim": self.policy.act_dim,
-                "config": dataclasses.asdict(self.config), "versions": ckpt.versions()})
-            ckpt.write_json(tmp / ckpt.NORMALIZATION_FILE, {"type": "running_mean_std", "mean": self.stats.mean,
-                                                             "std": self.stats.std, "count": self.stats.count})
-            ckpt.write_json(tmp / ckpt.PROGRESS_FILE, {"epoch": self.epoch, "env_steps": self.env_steps,
-                                                        "wall_time": self.wall_time, "history": self.history})
-        return ckpt.write_checkpoint_dir(path, write)
+    def before_checkpoint(self) -> None:
+        """Rollouts leave perturbed weights in a torch policy's module: put theta's back before saving."""
+        if self.policy.module is not None:
+            self.policy.actor(self.theta)
+
+    def checkpoint_meta(self) -> dict:
+        """config.json: the env (id and kwargs), the policy's dimensions and the config."""
+        return {"algorithm": self.algorithm_name, "env": self.env_name, "env_kwargs": self.env_kwargs,
+                "obs_dim": self.policy.obs_dim, "act_dim": self.policy.act_dim,
+                "config": dataclasses.asdict(self.config)}
+
+    def normalization(self) -> dict:
+        """normalization.json: the running mean and std (model.pt holds the exact sums)."""
+        return {"type": "running_mean_std", "mean": self.stats.mean, "std": self.stats.std, "count": self.stats.count}
 
     @classmethod
     def load(cls, path: str | Path, env: str | Callable[[], gym.Env] | None = None,
@@ -529,54 +542,5 @@ class ARS:
             raise ckpt.CheckpointError(
                 f"{folder} was trained on {meta['env']} with {meta['obs_dim']} observations and {meta['act_dim']} "
                 f"actions; this env has {agent.policy.obs_dim} and {agent.policy.act_dim}")
-        tensors = ckpt.load_tensors(folder / ckpt.MODEL_FILE)
-        agent.theta = tensors["theta"].double().numpy().copy()
-        agent.stats.sum = tensors["stats_sum"].double().numpy().copy()
-        agent.stats.sumsq = tensors["stats_sumsq"].double().numpy().copy()
-        agent.stats.count = int(tensors["stats_count"])
-        if agent.policy.module is not None and "module_state" in tensors:
-            agent.policy.module.load_state_dict(tensors["module_state"])
-        progress = ckpt.read_json(folder / ckpt.PROGRESS_FILE)
-        agent.epoch, agent.env_steps = int(progress["epoch"]), int(progress["env_steps"])
-        agent.wall_time, agent.history = float(progress["wall_time"]), list(progress.get("history", []))
+        agent.checkpointer.restore(folder)
         return agent
-
-
-def _truncate_csv(path: Path, epoch: int) -> None:
-    """Drop CSV rows with ``epoch`` greater than ``epoch`` (written after the checkpoint being resumed)."""
-    if not path.is_file():
-        return
-    if epoch == 0:          # a fresh run: an old log in the folder is replaced, not read
-        path.unlink()
-        return
-    with open(path, newline="") as fh:
-        reader = csv.DictReader(fh)
-        rows = list(reader)
-        if "epoch" not in (reader.fieldnames or []):
-            raise ValueError(f"{path} has no 'epoch' column: not an ARS progress log; move it or pick another log_dir")
-    keep = [r for r in rows if int(float(r["epoch"])) <= epoch]
-    if len(keep) == len(rows):
-        return
-    if not keep:            # nothing left: no file, so the next row writes the header
-        path.unlink()
-        return
-    buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=list(keep[0]))
-    writer.writeheader()
-    writer.writerows(keep)
-    tmp = path.with_suffix(".csv.tmp")
-    tmp.write_text(buffer.getvalue())
-    tmp.replace(path)
-
-
-def _append_csv(path: Path, row: dict) -> None:
-    """Append one row to a CSV log (header on first write)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    new = not path.exists()
-    buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=list(row))
-    if new:
-        writer.writeheader()
-    writer.writerow(row)
-    with open(path, "a", newline="") as fh:
-        fh.write(buffer.getvalue())

@@ -9,6 +9,10 @@ A checkpoint is ONE directory::
     normalization.json  observation normalisation ({"type": "none"} when there is none)
     progress.json       env steps, episodes, counters, recent returns, env RNG state
     replay.pt           optional: the replay and needle buffers (oldest first)
+    gate_data.pt        optional (SSAC): the gate data set and the states waiting to be relabelled
+
+Which entries go into which file each learner declares once (``saved``, see
+:mod:`hybridctl.learn.run`); :class:`~hybridctl.learn.run.Checkpointer` writes and reads them.
 
 :func:`write_checkpoint_dir` writes everything into ``<path>.tmp-XXXX`` next to the
 target, fsyncs the files, renames an existing ``<path>`` to ``<path>.bak-XXXX``,
@@ -19,15 +23,10 @@ two renames, only the backup: :func:`resolve_checkpoint_dir` finds it).
 
 from __future__ import annotations
 
-import json
-import math
 import os
 import platform
-import shutil
-import tempfile
-import uuid
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import Iterable
 
 import numpy as np
 import torch
@@ -104,15 +103,17 @@ def load_tensors(path: Path, device: str | torch.device = "cpu") -> dict:
         raise CheckpointError(f"could not read {path}: {type(exc).__name__}: {exc}") from exc
 
 
-def newest_checkpoint(candidates: Iterable[str | os.PathLike]) -> Path | None:
-    """Among existing checkpoint directories, the one with the most env steps (None if none)."""
-    best, best_steps = None, -1
+def newest_checkpoint(candidates: Iterable[str | os.PathLike], key: str = "env_steps") -> Path | None:
+    """Among existing checkpoint directories, the one whose progress.json ``key`` counter (env
+    steps, epochs; env steps where it lacks ``key``) is largest: the first on a tie, None if none."""
+    best, best_count = None, -1
     for cand in candidates:
         try:
             found = resolve_checkpoint_dir(cand)
         except CheckpointError:
             continue
-        steps = int(read_json(found / PROGRESS_FILE).get("env_steps", 0))
-        if steps > best_steps:
-            best, best_steps = found, steps
+        progress = read_json(found / PROGRESS_FILE)
+        count = int(progress.get(key, progress.get("env_steps", 0)))
+        if count > best_count:
+            best, best_count = found, count
     return best

@@ -12,8 +12,8 @@ from pathlib import Path
 import torch
 
 from . import checkpoint as ckpt
-from .gate import GateNet
-from .sac import Actor, DeterministicPolicy, ObsTransform
+from .gate import GateConfig, GateNet
+from .networks import Actor, DeterministicPolicy, ObsTransform
 
 
 def load_controller(path: str | Path, system) -> tuple[DeterministicPolicy, GateNet | None, dict]:
@@ -59,7 +59,7 @@ def load_controller(path: str | Path, system) -> tuple[DeterministicPolicy, Gate
         gate_state = model.get("extra", {}).get("gate")
         if gate_state is None:
             raise ckpt.CheckpointError(f"{found / ckpt.MODEL_FILE} is an SSAC checkpoint without gate weights")
-        hidden = tuple(meta.get("gate", {}).get("hidden", (32, 32)))
+        hidden = tuple(meta.get("gate", {}).get("hidden", GateConfig.hidden))
         gate = GateNet(system, hidden, cost_feature=bool(cfg.get("gate_cost_feature", True)))
         gate.load_state_dict(gate_state)
         gate.eval()

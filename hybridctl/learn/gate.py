@@ -24,8 +24,9 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 import torch
 
-from ..analysis.balance import lqr_rollouts_balanced
 from ..systems import System
+from ..systems.control import cost_to_go, lqr_rollouts_balanced, wrap_angles
+from .run import check_finite, seeded
 
 
 @dataclass
@@ -36,7 +37,8 @@ class GateConfig:
     positive_weight: float = 0.01             # thesis eq. 3.3: w in c_w = n_t / n_p * w
     label_eps: float = 0.2                    # implementation notes: gate labels within 0.2 (L2)
     label_lookback: int = 10                  # implementation notes: last 10 states
-    label_horizon: float | None = None        # None: the spec's gate.label_horizon, else 2.5 s (thesis LQR rollouts)
+    label_horizon: float | None = None        # None: the spec's gate.label_horizon (default: the thesis' 2.5 s,
+    #                                           systems.spec.THESIS_LABEL_HORIZON)
     warm_samples: int = 100_000               # hybridctl: 2.5e7 LQR steps, ~1 min on 2 cores (thesis: 1e6 steps)
     warm_fit_steps: int = 3000                # hybridctl: Adam steps on the warm-start data
     refit_steps: int = 500                    # hybridctl: Adam steps per SSAC refit on all gate data
@@ -61,17 +63,20 @@ class GateNet(torch.nn.Module):
     ``cost_feature``, log(1 + V / gate.cost_scale) of the LQR cost-to-go V.
     """
 
-    def __init__(self, system: System, hidden: tuple[int, ...] = (32, 32),
+    def __init__(self, system: System, hidden: tuple[int, ...] = GateConfig.hidden,
                  feature_scale: np.ndarray | None = None, cost_feature: bool = True):
         super().__init__()
         self.system_name = system.name
-        scale = _spread(system, "gate.warm_far") if feature_scale is None else np.asarray(feature_scale, float)
+        self.gate_on = system.gate.on  # the hand-over threshold of the system's hysteresis (gate_metrics)
+        scale = system.gate.spread("warm_far") if feature_scale is None else np.asarray(feature_scale, float)
         self.register_buffer("feature_scale", torch.as_tensor(scale, dtype=torch.float32))
         self.register_buffer("goal", torch.as_tensor(system.goal, dtype=torch.float32))
+        # kept as a buffer: checkpoints' gate state dicts hold it
         self.register_buffer("angle_mask", torch.zeros(system.n_states, dtype=torch.bool))
         self.angle_mask[system.angle_indices] = True
+        self.angle_indices = list(system.angle_indices)
         self.cost_feature = bool(cost_feature)
-        S = system.lqr()[1] / float(system.spec.get("gate.cost_scale"))
+        S = system.lqr()[1] / system.gate.cost_scale
         self.register_buffer("S_scaled", torch.as_tensor(S, dtype=torch.float32))
         layers, width = [], system.n_states + int(self.cost_feature)
         for h in hidden:
@@ -82,13 +87,10 @@ class GateNet(torch.nn.Module):
 
     def features(self, x: torch.Tensor) -> torch.Tensor:
         """Wrapped state error, scaled, and optionally log(1 + V / scale)."""
-        x = x.to(self.goal.dtype)
-        err = x - self.goal
-        wrapped = torch.remainder(err + np.pi, 2 * np.pi) - np.pi
-        err = torch.where(self.angle_mask, wrapped, err)
+        err = wrap_angles(x.to(self.goal.dtype) - self.goal, self.angle_indices)  # a new tensor: wrapped in place
         features = err / self.feature_scale
         if self.cost_feature:
-            cost = ((err @ self.S_scaled) * err).sum(-1, keepdim=True)
+            cost = cost_to_go(err, self.S_scaled).unsqueeze(-1)
             features = torch.cat([features, torch.log1p(cost)], dim=-1)
         return features
 
@@ -101,34 +103,23 @@ class GateNet(torch.nn.Module):
         return torch.sigmoid(self.logits(x))
 
 
-def _spread(system: System, key: str) -> np.ndarray:
-    if not system.spec.has(key):
-        raise ValueError(f"{system.spec.path}: gate learning needs '{key}' (a spread per state)")
-    spread = np.asarray(system.spec.get(key), dtype=float)
-    if spread.shape != (system.n_states,) or np.any(spread <= 0):
-        raise ValueError(f"{system.spec.path}: '{key}' must be {system.n_states} positive numbers")
-    return spread
-
-
 def warm_start_states(system: System, n: int, rng: np.random.Generator) -> np.ndarray:
     """Thesis Algorithm 2 samples: half goal + U(-warm_near, warm_near), half goal + U(-warm_far, warm_far)."""
     if n < 2:
         raise ValueError(f"n must be >= 2, got {n}")
-    near, far = _spread(system, "gate.warm_near"), _spread(system, "gate.warm_far")
+    near, far = system.gate.spread("warm_near"), system.gate.spread("warm_far")
     half = n // 2
     states = np.concatenate([rng.uniform(-near, near, size=(half, system.n_states)),
                              rng.uniform(-far, far, size=(n - half, system.n_states))])
     return system.goal + states
 
 
-THESIS_LABEL_HORIZON = 2.5  # s, implementation notes: the thesis' LQR rollouts for gate labels
-
-
 def label_horizon(system: System, config: GateConfig) -> float:
-    """Seconds of LQR rollout behind a gate label: the config's, else the spec's, else the thesis' 2.5 s."""
+    """Seconds of LQR rollout behind a gate label: the config's, else the system's ``gate.label_horizon``
+    (whose default is the thesis' 2.5 s)."""
     if config.label_horizon is not None:
         return float(config.label_horizon)
-    return float(system.spec.get("gate.label_horizon", THESIS_LABEL_HORIZON))
+    return system.gate.label_horizon
 
 
 def label_states(system: System, states: np.ndarray, config: GateConfig, K=None) -> np.ndarray:
@@ -138,10 +129,14 @@ def label_states(system: System, states: np.ndarray, config: GateConfig, K=None)
                                  lookback=config.label_lookback, K=K)
 
 
-def gate_loss(gate: GateNet, states: torch.Tensor, labels: torch.Tensor, positive_weight: float) -> torch.Tensor:
-    """Thesis eq. 3.3: weighted BCE with c_w = (n_total / n_positive) * positive_weight."""
-    n_pos = float(labels.sum())
-    c_w = (labels.numel() / n_pos) * positive_weight if n_pos > 0 else 1.0
+def positive_class_weight(labels, positive_weight: float) -> float:
+    """Thesis eq. 3.3: c_w = (n_total / n_positive) * positive_weight (1 without positives)."""
+    n_pos = int(labels.sum()) if isinstance(labels, torch.Tensor) else int(np.asarray(labels, dtype=bool).sum())
+    return (len(labels) / n_pos) * positive_weight if n_pos else 1.0
+
+
+def gate_loss(gate: GateNet, states: torch.Tensor, labels: torch.Tensor, c_w: float) -> torch.Tensor:
+    """Thesis eq. 3.3: BCE on the gate's logits with the positive class weighted by ``c_w``."""
     return torch.nn.functional.binary_cross_entropy_with_logits(
         gate.logits(states).squeeze(-1), labels.float(), pos_weight=torch.tensor(c_w))
 
@@ -158,17 +153,14 @@ def fit_gate(gate: GateNet, states, labels, steps: int, lr: float = 1e-3, positi
     y = torch.as_tensor(np.asarray(labels), dtype=torch.bool)
     if x.shape[0] != y.shape[0] or x.shape[0] == 0:
         raise ValueError(f"states and labels must be non-empty and of equal length, got {x.shape[0]} and {y.shape[0]}")
-    n_pos = int(y.sum())
-    c_w = class_weight if class_weight is not None else (len(y) / n_pos) * positive_weight if n_pos else 1.0
+    c_w = positive_class_weight(y, positive_weight) if class_weight is None else class_weight
     optimizer = optimizer or torch.optim.Adam(gate.parameters(), lr=lr)
     losses = []
     gate.train()
     for step in range(steps):
         rows = torch.randint(len(y), (min(batch_size, len(y)),), generator=generator)
-        loss = torch.nn.functional.binary_cross_entropy_with_logits(
-            gate.logits(x[rows]).squeeze(-1), y[rows].float(), pos_weight=torch.tensor(c_w))
-        if not torch.isfinite(loss):
-            raise FloatingPointError(f"gate loss became {loss.item()} at fit step {step}")
+        loss = gate_loss(gate, x[rows], y[rows], c_w)
+        check_finite("gate loss", loss, f"at fit step {step}")
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
@@ -177,13 +169,22 @@ def fit_gate(gate: GateNet, states, labels, steps: int, lr: float = 1e-3, positi
     return losses
 
 
-def gate_metrics(gate: torch.nn.Module, states, labels, on: float = 0.9) -> dict:
+def gate_metrics(gate: torch.nn.Module, states, labels, on: float | None = None) -> dict:
     """How the gate's hand-over decision (p > on) compares with the labels.
+
+    ``on``: the hand-over threshold; None: the system's ``gate.on`` (a :class:`GateNet`
+    knows it; a gate with a ``system``, e.g. ``CostToGoGate``, reads it there).
 
     ``false_handover_rate``: share of predicted hand-overs whose LQR rollout fails
     (what the conservative weighting keeps small); ``recall``: share of
     balanceable states the gate hands over.
     """
+    if on is None:
+        on = getattr(gate, "gate_on", None)
+        if on is None and getattr(gate, "system", None) is not None:
+            on = gate.system.gate.on
+        if on is None:
+            raise ValueError(f"gate_metrics needs on= for a {type(gate).__name__} (no system to read gate.on from)")
     with torch.no_grad():
         p = gate(torch.as_tensor(np.asarray(states))).reshape(-1).numpy()
     y = np.asarray(labels, dtype=bool)
@@ -204,15 +205,15 @@ def warm_start_gate(system: System, config: GateConfig | None = None, progress: 
     """
     config = config or GateConfig()
     rng = np.random.default_rng(config.seed)
-    torch.manual_seed(config.seed)
     states = warm_start_states(system, config.warm_samples, rng)
     labels = label_states(system, states, config)
     if labels.sum() == 0:
         raise RuntimeError(f"no warm-start state of {system.name} was balanced by the LQR; widen gate.warm_near")
-    gate = GateNet(system, tuple(config.hidden), cost_feature=config.cost_feature)
+    with seeded(config.seed):  # initial weights from the seed; the caller's global torch RNG is left alone
+        gate = GateNet(system, tuple(config.hidden), cost_feature=config.cost_feature)
     generator = torch.Generator().manual_seed(config.seed)
     losses = fit_gate(gate, states, labels, config.warm_fit_steps, config.lr, config.positive_weight,
                       config.batch_size, generator)
     info = {"positive_fraction": float(labels.mean()), "final_loss": losses[-1],
-            **gate_metrics(gate, states, labels, float(system.spec.get("gate.on")))}
+            **gate_metrics(gate, states, labels, system.gate.on)}
     return gate, states, labels, info

@@ -33,9 +33,9 @@ states); ``SSACConfig.variant("paper")`` is the thesis throughout and
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -43,16 +43,21 @@ from typing import Any
 import numpy as np
 import torch
 
-from . import checkpoint as ckpt
-from .gate import GateConfig, GateNet, fit_gate, label_states, warm_start_gate
-from .sac import SAC, SACConfig
+from ..envs import SwitchedVectorEnv
+from ..systems import System
+from ..systems import load as load_system
+from ..systems.control import cost_to_go, hysteresis, saturate
 from ..systems.spec import REWARD_KINDS
+from .gate import GateConfig, GateNet, fit_gate, label_states, warm_start_gate
+from .run import Saved, check_fields
+from .sac import SAC, SACConfig
 
 GATE_DATA_FILE = "gate_data.pt"
 REWARDS = REWARD_KINDS  # one list of reward kinds, in the spec module
 
 # the thesis' own values where hybridctl's defaults differ (SSACConfig comments say why)
-PAPER = {"polyak": 0.995, "obs_transform": "none", "gate_relabel_per_refit": 0, "gate_class_weight_from": "all"}
+PAPER = {"polyak": 0.995, "obs_transform": "none", "gate_relabel_per_refit": 0, "gate_class_weight_from": "all",
+         "reward": "tip_height"}
 # where the author's code differs from the paper (implementation notes, Ch. 3)
 AUTHOR_CODE = {**PAPER, "needle_prob": 0.2, "gate_refit_every": 25_000, "gamma": 0.99, "updates_per_round": 16,
                "reward": "quadratic"}
@@ -66,8 +71,10 @@ class SSACConfig(SACConfig):
     #                                      return 88.2 (0.9 + angle_sincos) vs 23.3 (thesis values)
     obs_transform: str = "angle_sincos"  # hybridctl (thesis: raw state); the envs do not wrap angles
     needle_prob: float = 0.5             # thesis Sec. 3.3 p_d = 0.5 (author code 0.2)
-    reward: str = "tip_height"           # thesis eq. 3.1; "quadratic": author script -0.1 |q - q_goal|^2;
-    #                                      "tip_height_centered": minus 0.1 x_cart^2 (System.reward)
+    reward: str | None = None            # None: the system spec's reward.kind (thesis eq. 3.1 "tip_height" for
+    #                                      every shipped system); "quadratic": author script -0.1 |q - q_goal|^2;
+    #                                      "tip_height_centered": minus 0.1 x_cart^2 (System.reward). A system
+    #                                      name is loaded with this reward.kind; a System must already have it
     gate_refit_every: int = 50_000       # thesis appendix: gate refit every 5e4 steps (author code 2.5e4)
     gate_refit_steps: int = 2000         # hybridctl: Adam steps per refit (~2 s), minibatches from all of D_g
     gate_warm_samples: int = 100_000     # hybridctl: LQR-labelled warm-start states (2.5e7 LQR steps;
@@ -96,27 +103,17 @@ class SSACConfig(SACConfig):
     def validate(self) -> None:
         """Raise ValueError naming the first invalid field."""
         super().validate()
-        for name in ("gate_refit_every", "gate_refit_steps", "gate_warm_samples", "gate_warm_fit_steps",
-                     "gate_batch_size", "gate_data_max"):
-            value = getattr(self, name)
-            if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 1:
-                raise ValueError(f"SSACConfig.{name} must be an integer >= 1, got {value!r}")
-        if not isinstance(self.gate_relabel_per_refit, (int, np.integer)) or self.gate_relabel_per_refit < 0:
-            raise ValueError(f"SSACConfig.gate_relabel_per_refit must be an integer >= 0, "
-                             f"got {self.gate_relabel_per_refit!r}")
-        if not (math.isfinite(self.gate_relabel_cost) and self.gate_relabel_cost > 0):
-            raise ValueError(f"SSACConfig.gate_relabel_cost must be > 0, got {self.gate_relabel_cost!r}")
+        check_fields(self, integers_from_1=("gate_refit_every", "gate_refit_steps", "gate_warm_samples",
+                                            "gate_warm_fit_steps", "gate_batch_size", "gate_data_max"),
+                     integers_from_0=("gate_relabel_per_refit",),
+                     positive=("gate_relabel_cost", "gate_lr", "gate_positive_weight"))
         if self.gate_warm_samples < 2:
             raise ValueError(f"SSACConfig.gate_warm_samples must be >= 2, got {self.gate_warm_samples}")
-        if not (math.isfinite(self.gate_lr) and self.gate_lr > 0):
-            raise ValueError(f"SSACConfig.gate_lr must be a finite number > 0, got {self.gate_lr!r}")
-        if not (math.isfinite(self.gate_positive_weight) and self.gate_positive_weight > 0):
-            raise ValueError(f"SSACConfig.gate_positive_weight must be > 0, got {self.gate_positive_weight!r}")
         if self.gate_class_weight_from not in ("warm", "all"):
             raise ValueError(f"SSACConfig.gate_class_weight_from must be 'warm' or 'all', "
                              f"got {self.gate_class_weight_from!r}")
-        if self.reward not in REWARDS:
-            raise ValueError(f"SSACConfig.reward must be one of {REWARDS}, got {self.reward!r}")
+        if self.reward is not None and self.reward not in REWARDS:
+            raise ValueError(f"SSACConfig.reward must be None (the spec's) or one of {REWARDS}, got {self.reward!r}")
 
     @classmethod
     def variant(cls, name: str = "hybridctl", **overrides) -> "SSACConfig":
@@ -180,7 +177,8 @@ class SSAC(SAC):
 
     Args:
         env_or_system: a system name or System (a SwitchedVectorEnv is built around a
-            warm-started gate and Drake's LQR; ``config.reward`` picks the reward), or
+            warm-started gate and the LQR; the reward is the spec's ``reward.kind``, or
+            ``config.reward`` for a system name), or
             a ready :class:`~hybridctl.envs.SwitchedVectorEnv` (its gate is used and
             refitted; pass ``gate_data`` to refit on its data too).
         config: an :class:`SSACConfig` (default: the thesis' values).
@@ -195,7 +193,23 @@ class SSAC(SAC):
 
     config_class = SSACConfig
     algorithm_name = "SSAC"
-    csv_columns = (*SAC.csv_columns, "gate_data", "gate_refits", "lqr_share")
+    compatible_algorithms = ("SSAC",)
+    log_int_columns = (*SAC.log_int_columns, "gate_data", "gate_refits")
+    # beyond SAC's checkpoint: the gate, its optimizer, RNG and counters (model.pt "extra"), and the
+    # gate data set D_g with the pool of states waiting to be relabelled (gate_data.pt, for resume)
+    saved = (*SAC.saved, Saved("extra.gate", "gate", "state"),
+             Saved("extra.gate_opt", "gate_opt", "state", optional=True),
+             Saved("extra.gate_generator", "gate_generator", "rng", optional=True),
+             *(Saved(f"extra.gate_counters.{key}", attr, optional=True, load=int) for key, attr in (
+                 ("refits", "num_gate_refits"), ("episodes", "num_gate_episodes"),
+                 ("relabelled", "num_gate_relabelled"), ("next_refit", "_next_refit"))),
+             Saved("", "gate_data", "state", file=GATE_DATA_FILE, bulky=True),
+             Saved("relabel_pool", "_relabel_pool", "tensor", file=GATE_DATA_FILE, bulky=True, optional=True))
+
+    @classmethod
+    def extend_log_columns(cls, columns: tuple[str, ...]) -> tuple[str, ...]:
+        """SAC's columns plus the gate data size, the refits so far and the LQR's share of control."""
+        return (*super().extend_log_columns(columns), "gate_data", "gate_refits", "lqr_share")
 
     def __init__(self, env_or_system, config: SSACConfig | None = None, gate: GateNet | None = None,
                  gate_data: tuple[Any, Any] | None = None, **overrides):
@@ -203,6 +217,8 @@ class SSAC(SAC):
         cfg.validate()
         self._init_gate, self._init_gate_data, self.gate_info = gate, gate_data, {}
         super().__init__(env_or_system, config=cfg)
+        if self.config.reward is None:  # record the reward trained on (config.json; older readers need a kind)
+            self.config = dataclasses.replace(self.config, reward=self.system.reward_kind)
         self.gate = self.env.gate
         self.gate_opt = torch.optim.Adam(self.gate.parameters(), lr=cfg.gate_lr)
         self.gate_generator = torch.Generator().manual_seed(cfg.seed + 7919)
@@ -217,7 +233,7 @@ class SSAC(SAC):
         self.num_gate_relabelled = 0
         self._next_refit = cfg.gate_refit_every
         # swing-up decision states near the goal, waiting to be labelled by LQR rollouts
-        S = self.system.lqr()[1] / float(self.system.spec.get("gate.cost_scale"))
+        S = self.system.lqr()[1] / self.system.gate.cost_scale
         self._cost_matrix = torch.as_tensor(S, dtype=torch.float32, device=self.device)
         self._goal = torch.as_tensor(self.system.goal, dtype=torch.float32, device=self.device)
         self._relabel_pool = torch.zeros((0, self.obs_dim), dtype=torch.float32)
@@ -225,22 +241,12 @@ class SSAC(SAC):
 
     # ------------------------------------------------------------------ construction
     def _make_env(self, env_or_system, cfg: SSACConfig):
-        from ..envs import SwitchedVectorEnv
-        from ..systems import System, load
-
         if isinstance(env_or_system, SwitchedVectorEnv):
+            _check_reward(env_or_system.system, cfg)
             if self._init_gate is not None:
                 env_or_system.set_gate(self._init_gate)
             return env_or_system
-        if not isinstance(env_or_system, (str, System)):
-            raise TypeError(f"SSAC needs a system name, a System or a SwitchedVectorEnv, "
-                            f"got {type(env_or_system).__name__}")
-        system = env_or_system
-        if isinstance(system, str):
-            system = load(system, **({"reward.kind": cfg.reward} if cfg.reward != "tip_height" else {}))
-        elif system.reward_kind != cfg.reward:
-            overrides = {**(system.spec.overrides or {}), "reward.kind": cfg.reward}
-            system = load(system.name, **overrides)
+        system = _system_with_reward(env_or_system, cfg)
         gate = self._init_gate
         if gate is None:
             gate, states, labels, info = warm_start_gate(system, cfg.gate_config())
@@ -251,14 +257,9 @@ class SSAC(SAC):
     @classmethod
     def _construct_for_load(cls, env, config: SSACConfig, found: Path) -> "SSAC":
         # the checkpoint holds the gate's weights: skip the warm start, start from an empty gate
-        from ..envs import SwitchedVectorEnv
-        from ..systems import System, load
-
         if isinstance(env, SwitchedVectorEnv):
             return cls(env, config=config)
-        system = env if isinstance(env, System) else load(env)
-        if system.reward_kind != config.reward:
-            system = load(system.name, **{**(system.spec.overrides or {}), "reward.kind": config.reward})
+        system = _system_with_reward(env, config)
         return cls(system, config=config, gate=GateNet(system, cost_feature=config.gate_cost_feature))
 
     # ====================================================== SSAC additions to SAC
@@ -276,7 +277,7 @@ class SSAC(SAC):
         if self.config.gate_relabel_per_refit and lqr is not None:
             swingup = ~torch.as_tensor(lqr, device=self.device).bool()
             err = self.system.state_error(obs.double()).float()
-            cost = ((err @ self._cost_matrix) * err).sum(-1)
+            cost = cost_to_go(err, self._cost_matrix)
             keep = swingup & (cost < self.config.gate_relabel_cost)
             if bool(keep.any()):
                 pool = torch.cat([self._relabel_pool, obs[keep].cpu()])
@@ -309,12 +310,10 @@ class SSAC(SAC):
         relabelled = self._relabel_visited_states()
         if len(self.gate_data) == 0 or not bool(self.gate_data.labels.any()):
             return {}
-        threads = torch.get_num_threads()
         losses = fit_gate(self.gate, self.gate_data.states, self.gate_data.labels,
                           cfg.gate_refit_steps if steps is None else steps, cfg.gate_lr,
                           cfg.gate_positive_weight, cfg.gate_batch_size, self.gate_generator, self.gate_opt,
                           class_weight=self._class_weight())
-        torch.set_num_threads(threads)
         self.num_gate_refits += 1
         episode = slice(self.gate_data.n_warm, None)
         info = {"loss": losses[-1], "data": len(self.gate_data), **relabelled, "episode_rows": len(self.gate_data) - self.gate_data.n_warm,
@@ -361,79 +360,39 @@ class SSAC(SAC):
             p = self.gate(xb.to(torch.float32)).reshape(-1)
             lqr = self.env.lqr(xb.to(self.env.dtype)).to(swingup.dtype if is_torch else torch.float64)
         sw = swingup if is_torch else torch.as_tensor(swingup, dtype=torch.float64)
-        out = torch.where((p > self.env.gate_on)[:, None], lqr, sw.reshape(-1, self.action_dim))
-        out = out.clamp(-float(self.action_scale.max()), float(self.action_scale.max()))
-        out = out.reshape(sw.shape)
+        # a fresh mode is swing-up (False): the hysteresis hands over only above gate_on
+        lqr_on = hysteresis(p, torch.zeros_like(p, dtype=torch.bool), self.env.gate_on, self.env.gate_off)
+        out = torch.where(lqr_on[:, None], lqr, sw.reshape(-1, self.action_dim))
+        out = saturate(out, float(self.action_scale.max())).reshape(sw.shape)
         return out if is_torch else out.numpy()
 
     def make_eval_env(self, num_envs: int, seed: int):
         """A SwitchedVectorEnv with a frozen copy of the current gate and the same LQR."""
-        from ..envs import SwitchedVectorEnv
-
         return SwitchedVectorEnv(self.system, num_envs, gate=self.gate_module(), K=self.env._K.cpu().numpy(),
                                  gate_on=self.env.gate_on, gate_off=self.env.gate_off,
                                  decision_period=self.env.decision_period, device=self.device, seed=seed)
 
     def gate_module(self) -> GateNet:
         """A frozen copy of the current gate (for a Drake ``Gate`` block)."""
-        import copy
-
         gate = copy.deepcopy(self.gate).to("cpu").eval()
         for p in gate.parameters():
             p.requires_grad_(False)
         return gate
 
     # ============================================================ checkpoints
-    def extra_checkpoint_state(self) -> dict[str, Any]:
-        return {"gate": self.gate.state_dict(), "gate_opt": self.gate_opt.state_dict(),
-                "gate_generator": self.gate_generator.get_state(),
-                "gate_counters": {"refits": self.num_gate_refits, "episodes": self.num_gate_episodes,
-                                  "relabelled": self.num_gate_relabelled, "next_refit": self._next_refit}}
+    def checkpoint_meta(self) -> dict:
+        """SAC's config.json plus the gate: layers, inputs, hysteresis, LQR gain, warm-start/refit metrics."""
+        return {**super().checkpoint_meta(), "gate": {
+            "hidden": [m.out_features for m in self.gate.net if isinstance(m, torch.nn.Linear)][:-1],
+            "cost_feature": self.gate.cost_feature, "gate_on": self.env.gate_on, "gate_off": self.env.gate_off,
+            "K": self.env._K.cpu().tolist(), "info": self.gate_info}}
 
-    def load_extra_checkpoint_state(self, state: dict[str, Any]) -> None:
-        if "gate" not in state:
-            raise ckpt.CheckpointError("SSAC checkpoint lacks the gate's weights (model.pt 'extra.gate'); "
-                                       "was it written by SAC?")
-        self.gate.load_state_dict(state["gate"])
+    def after_restore(self, found: Path, meta: dict, bulky: bool) -> None:
+        """The env switches with the restored gate; the running episodes' LQR flags are dropped."""
+        super().after_restore(found, meta, bulky)
         self.gate.eval()
-        if state.get("gate_opt"):
-            self.gate_opt.load_state_dict(state["gate_opt"])
-        if "gate_generator" in state:
-            self.gate_generator.set_state(state["gate_generator"].cpu())
-        counters = state.get("gate_counters", {})
-        self.num_gate_refits = int(counters.get("refits", 0))
-        self.num_gate_episodes = int(counters.get("episodes", 0))
-        self.num_gate_relabelled = int(counters.get("relabelled", 0))
-        self._next_refit = int(counters.get("next_refit", self.config.gate_refit_every))
         self.env.set_gate(self.gate)
-
-    def _write_checkpoint(self, d: Path, include_replay: bool) -> None:
-        super()._write_checkpoint(d, include_replay)
-        meta = ckpt.read_json(d / ckpt.CONFIG_FILE)
-        meta["gate"] = {"hidden": [m.out_features for m in self.gate.net if isinstance(m, torch.nn.Linear)][:-1],
-                        "cost_feature": self.gate.cost_feature, "gate_on": self.env.gate_on,
-                        "gate_off": self.env.gate_off, "K": self.env._K.cpu().tolist(),
-                        "info": self.gate_info}
-        ckpt.write_json(d / ckpt.CONFIG_FILE, meta)
-        if include_replay:
-            torch.save({**self.gate_data.state_dict(), "relabel_pool": self._relabel_pool}, d / GATE_DATA_FILE)
-
-    def _restore(self, found: Path, replay: bool) -> None:
-        found = ckpt.resolve_checkpoint_dir(found)
-        meta = ckpt.read_json(found / ckpt.CONFIG_FILE)
-        if meta.get("algorithm") not in (None, self.algorithm_name):
-            raise ckpt.CheckpointError(f"checkpoint {found} was written by {meta.get('algorithm')}, not SSAC "
-                                       f"(use {meta.get('algorithm')}.load)")
-        super()._restore(found, replay)
         self.gate_info = meta.get("gate", {}).get("info", {})
-        if replay:
-            if (found / GATE_DATA_FILE).is_file():
-                data = ckpt.load_tensors(found / GATE_DATA_FILE, "cpu")
-                self.gate_data.load_state_dict(data)
-                self._relabel_pool = data.get("relabel_pool", self._relabel_pool[:0]).to(torch.float32)
-            else:
-                warnings.warn(f"{found} has no {GATE_DATA_FILE}: gate refits use only new episode data",
-                              stacklevel=3)
         self._lqr_at_start.zero_()
 
     def _log_row(self, steps_per_s: float) -> dict:
@@ -443,3 +402,22 @@ class SSAC(SAC):
         row["lqr_share"] = self._lqr_share_sum / max(self._lqr_share_n, 1)
         self._lqr_share_sum, self._lqr_share_n = 0.0, 0
         return row
+
+
+def _check_reward(system: System, config: SSACConfig) -> None:
+    """An explicit ``config.reward`` must be the reward the system was loaded with."""
+    if config.reward is not None and system.reward_kind != config.reward:
+        raise ValueError(f"SSACConfig.reward={config.reward!r}, but system {system.name!r} was loaded with "
+                         f"reward.kind={system.reward_kind!r}: load it with systems.load({system.name!r}, "
+                         f"**{{'reward.kind': {config.reward!r}}}) or leave reward=None")
+
+
+def _system_with_reward(system, config: SSACConfig) -> System:
+    """The System to train on: a name is loaded (with ``config.reward`` as its reward.kind when set);
+    a System is used as it is (its reward must match an explicit ``config.reward``)."""
+    if isinstance(system, str):
+        return load_system(system, **({"reward.kind": config.reward} if config.reward is not None else {}))
+    if not isinstance(system, System):
+        raise TypeError(f"SSAC needs a system name, a System or a SwitchedVectorEnv, got {type(system).__name__}")
+    _check_reward(system, config)
+    return system
