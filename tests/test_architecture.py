@@ -127,3 +127,22 @@ def test_light_rooms_do_not_load_heavy_dependencies(module, forbidden):
     code = f"import sys, {module}; print({forbidden!r} in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False", f"import {module} loaded {forbidden}"
+
+
+def test_no_spec_string_look_ups_outside_systems():
+    """Outside ``systems`` a spec value is read from its typed section (``system.gate.on``), not by string."""
+    offenders = [f"{module_name(p)}:{i}" for p in all_modules() if room(module_name(p)) != "systems"
+                 for i, line in enumerate(p.read_text().splitlines(), 1)
+                 if "spec.get(" in line or "spec.has(" in line]
+    assert not offenders, offenders
+
+
+@pytest.mark.parametrize("module, forbidden", [
+    ("hybridctl.learn", "pydrake"),
+    ("hybridctl.viz.training", "pydrake"),
+])
+def test_learners_and_their_plots_do_not_need_drake(module, forbidden):
+    code = (f"import sys, {module}; import hybridctl.learn as L; L.plot_training_curves; "
+            f"print({forbidden!r} in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False", f"import {module} loaded {forbidden}"

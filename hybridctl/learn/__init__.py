@@ -29,8 +29,8 @@ __all__ = ["SAC", "SACConfig", "SSAC", "SSACConfig", "GateDataset", "Actor", "QN
 
 
 def __getattr__(name):
-    # plot_training_curves lives in hybridctl.viz.training; importing hybridctl.viz loads pydrake
-    # (its meshcat module), so it is re-exported here on first use, not at import time
+    # plot_training_curves lives in hybridctl.viz.training (matplotlib): re-exported on first use,
+    # so that importing the learners does not load matplotlib
     if name == "plot_training_curves":
         from ..viz.training import plot_training_curves
         return plot_training_curves

@@ -126,7 +126,7 @@ class VectorEnvAgent(Learner):
 
     def plot_curves(self, log) -> None:
         """training_curves.png in the log folder, from every progress row."""
-        from ..viz.training import plot_training_curves  # viz loads matplotlib (and pydrake): only when plotting
+        from ..viz.training import plot_training_curves  # matplotlib: only when plotting
 
         plot_training_curves(self.log_rows, log.dir / "training_curves.png",
                              title=f"{self.algorithm_name} on {self.system.name}")
