@@ -205,7 +205,10 @@ def add_config_flags(parser: argparse.ArgumentParser, algorithm: str) -> set[str
                 parse = _positive_or_none(parse)
             kwargs["type"] = parse
             if f.name in CHOICES:
-                kwargs["choices"] = CHOICES[f.name]
+                # an optional field (``reward: str | None``) also takes "none", which parses to None
+                kwargs["choices"] = (*CHOICES[f.name], None) if metavar.endswith("|none") else CHOICES[f.name]
+                kwargs["metavar"] = "{" + ",".join(map(str, CHOICES[f.name])) + ("}|none" if None in kwargs["choices"]
+                                                                                   else "}")
             else:
                 kwargs["metavar"] = metavar
         action = group.add_argument(*names, **kwargs)

@@ -21,7 +21,7 @@ from .vector import TorchVectorEnv
 
 __all__ = ["DimensionReward", "SwingupEnv", "TorchVectorEnv", "SwitchedVectorEnv", "is_balanced", "env_id", "STATE_BOUND"]
 
-for _name in known_systems():
+for _name in known_systems(strict=False):  # a bad $HYBRIDCTL_SYSTEMS is reported where a system is loaded
     if env_id(_name) not in gym.registry:
         gym.register(id=env_id(_name), entry_point="hybridctl.envs.single:SwingupEnv",
                      kwargs={"system": _name})

@@ -55,9 +55,19 @@ def spec_path(name: str) -> Path | None:
     return None
 
 
-def known_systems() -> list[str]:
-    """Names of the systems with a spec file: the shipped ones and those in ``$HYBRIDCTL_SYSTEMS``."""
-    return sorted({p.stem for folder in spec_dirs() for p in folder.glob("*.toml")})
+def known_systems(strict: bool = True) -> list[str]:
+    """Names of the systems with a spec file: the shipped ones and those in ``$HYBRIDCTL_SYSTEMS``.
+
+    ``strict=False`` skips a ``$HYBRIDCTL_SYSTEMS`` entry that is not a folder instead of raising
+    (the gymnasium registration at import time; loading a system still reports it).
+    """
+    try:
+        folders = spec_dirs()
+    except SpecError:
+        if strict:
+            raise
+        folders = [SPEC_DIR]
+    return sorted({p.stem for folder in folders for p in folder.glob("*.toml")})
 
 
 def parse_number(raw: Any, where: str) -> float:
