@@ -19,7 +19,7 @@ from typing import Any, Callable
 import numpy as np
 
 __all__ = ["atomic_write", "atomic_write_text", "write_json", "read_json", "to_jsonable", "atomic_directory",
-           "FileFormatError"]
+           "output_folder", "FileFormatError"]
 
 
 class FileFormatError(ValueError):
@@ -83,6 +83,15 @@ def read_json(path: str | os.PathLike) -> Any:
         return json.loads(Path(path).read_text())
     except json.JSONDecodeError as exc:
         raise FileFormatError(f"{path} is not valid JSON: {exc}") from exc
+
+
+def output_folder(path: str | os.PathLike, name: str = "--out") -> Path:
+    """``path`` as a folder for outputs: created if missing; NotADirectoryError naming ``name`` if it is a file."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise NotADirectoryError(f"{name} {path} is a file; outputs go into a folder")
+    path.mkdir(parents=True, exist_ok=True)
+    return path
 
 
 def _fsync_file(path: Path) -> None:

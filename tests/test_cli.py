@@ -58,7 +58,7 @@ def test_demo_balances_the_acrobot(tmp_path):
     (["simulate", "acrobot", "--x0", "1,2"], "--x0 needs 4 values"),
     (["simulate", "acrobot", "--x0", "a,b,c,d"], "--x0 must be 4 comma-separated numbers"),
     (["simulate", "acrobot", "--controller", "nope"], "unknown controller 'nope'; known: energy"),
-    (["simulate", "acrobot", "--duration", "-1"], "must be > 0"),
+    (["simulate", "acrobot", "--duration", "-1"], "must be a finite number > 0"),
     (["balance-map", "acrobot", "--grid", "1", "--workers", "1"], "grid must be >= 2"),
 ])
 def test_bad_arguments_exit_nonzero_with_clear_message(args, message, tmp_path):
@@ -116,7 +116,7 @@ def test_mesh_writes_matrix_report_and_figures(tmp_path):
 
 @pytest.mark.parametrize("args, message", [
     (["mesh", "rimless-wheel", "--slope-mean", "-0.5"], "no rolling gait"),
-    (["mesh", "rimless-wheel", "--box-size", "0"], "must be > 0"),
+    (["mesh", "rimless-wheel", "--box-size", "0"], "must be a finite number > 0"),
     (["mesh", "hopper"], "invalid choice"),
 ])
 def test_mesh_bad_arguments(args, message, tmp_path):

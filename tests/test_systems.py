@@ -145,10 +145,13 @@ def test_unknown_system_lists_known():
     ({"control__period": 0.015}, "control.period"),
     ({"gate__on": 0.4}, "gate.on"),
 ])
-def test_out_of_range_spec_value_names_key_and_file(override, key):
+def test_out_of_range_override_names_the_override_and_key(override, key):
     with pytest.raises(SpecError) as info:
         systems.load("acrobot", **override)
-    assert key in str(info.value) and "acrobot.toml" in str(info.value)
+    message = str(info.value)
+    (name, value), = override.items()
+    assert key in message and f"override {name}={value!r}" in message and "of acrobot" in message
+    assert "acrobot.toml" not in message  # the file is fine: the override is what is wrong
 
 
 def test_bad_spec_file_names_key_and_file(tmp_path: Path):

@@ -27,6 +27,23 @@ import numpy as np
 from scipy.special import ndtri
 
 
+def check_section_states(states, disturbances, width: int | None = None) -> np.ndarray:
+    """``states`` as a finite float array (N, width) matching ``disturbances`` (length N).
+
+    Raises ValueError naming the argument: a state that is NaN or infinite, a ragged or
+    wrongly shaped batch, or a disturbance list of another length.
+    """
+    x = np.asarray(states, dtype=np.float64)
+    if x.ndim != 2 or x.shape[0] == 0 or (width is not None and x.shape[1] != width):
+        want = f"(N, {width})" if width is not None else "(N, n_states)"
+        raise ValueError(f"states must have shape {want} with N >= 1, got shape {x.shape}")
+    if not np.all(np.isfinite(x)):
+        raise ValueError("states must be finite (a failed state is not a section state)")
+    if len(disturbances) != x.shape[0]:
+        raise ValueError(f"disturbances must hold one entry per state ({x.shape[0]}), got {len(disturbances)}")
+    return x
+
+
 class SectionMap:
     """Base class: ``step_many`` (vectorised) or ``step`` (one state) -- define either."""
 
@@ -34,11 +51,15 @@ class SectionMap:
 
     def step(self, state: np.ndarray, disturbance) -> np.ndarray | None:
         """Next state on the section after ``disturbance``, or None if the system failed."""
-        out = self.step_many(np.asarray(state, dtype=np.float64)[None, :], [disturbance])[0]
+        state = np.asarray(state, dtype=np.float64)
+        if state.ndim != 1:
+            raise ValueError(f"state must be one state (n_states,), got shape {state.shape}")
+        out = self.step_many(state[None, :], [disturbance])[0]
         return None if np.isnan(out).any() else out
 
     def step_many(self, states: np.ndarray, disturbances: Sequence) -> np.ndarray:
         """Next states (NaN rows for failures) of ``states[i]`` under ``disturbances[i]``."""
+        states = check_section_states(states, disturbances)
         out = np.full(np.shape(states), np.nan)
         for i, (s, d) in enumerate(zip(states, disturbances)):
             nxt = self.step(s, d)
@@ -81,8 +102,11 @@ class RimlessWheel(SectionMap):
 
     def step_many(self, states, disturbances):
         """Vectorised map; NaN rows for failures."""
-        w = np.asarray(states, dtype=np.float64).reshape(-1)
+        states = np.asarray(states, dtype=np.float64)
+        w = check_section_states(states.reshape(-1, 1) if states.ndim == 1 else states, disturbances, 1)[:, 0]
         gamma = np.asarray(disturbances, dtype=np.float64).reshape(-1)
+        if gamma.shape != w.shape or not np.all(np.isfinite(gamma)):
+            raise ValueError(f"disturbances must be {len(w)} finite slopes (rad), got {disturbances!r}")
         a, k = self.half_angle, 2.0 * self.g_over_l
         arg = math.cos(2 * a) ** 2 * (w ** 2 + k * (1 - np.cos(a + gamma))) - k * (1 - np.cos(a - gamma))
         out = np.sqrt(np.where(arg > 0, arg, np.nan))

@@ -98,6 +98,9 @@ class PostProcessor:
 
     def __call__(self, states, episode_return: float) -> tuple[float, dict]:
         """(post-processed return, info) for one episode."""
+        if isinstance(episode_return, (bool, np.bool_)) or not isinstance(episode_return, (int, float, np.number)) \
+                or not np.isfinite(episode_return):
+            raise ValueError(f"episode_return must be a finite number, got {episode_return!r}")
         dim, info = self.dimension(states)
         form = self.form if self.form != "auto" else ("divide" if episode_return >= 0 else "multiply")
         info["form"] = form

@@ -11,8 +11,11 @@ from __future__ import annotations
 
 import argparse
 import functools
+import math
 import sys
 from typing import Callable
+
+import gymnasium
 
 from ..io import FileFormatError
 from ..learn.checkpoint import CheckpointError
@@ -23,8 +26,10 @@ USAGE_ERROR = 2
 DIVERGED = 3
 """Exit code of a training run stopped by a non-finite loss."""
 
-EXPECTED_ERRORS = (SpecError, FileFormatError, CheckpointError, FileNotFoundError, KeyError, ValueError)
-"""Errors that mean "the input was wrong", reported as one line instead of a traceback."""
+EXPECTED_ERRORS = (SpecError, FileFormatError, CheckpointError, OSError, KeyError, ValueError, ImportError,
+                   gymnasium.error.Error)
+"""Errors that mean "the input was wrong" (a bad value, name, file or folder, an optional extra that is
+not installed, an unknown gymnasium env), reported as one line instead of a traceback."""
 
 
 def error_message(exc: BaseException) -> str:
@@ -130,11 +135,20 @@ class CommandParser(argparse.ArgumentParser):
 
 
 def positive(kind: type) -> Callable[[str], float | int]:
-    """An argparse type: ``kind(text)``, rejected unless > 0 ("must be > 0, got ...")."""
+    """An argparse type: ``kind(text)``, rejected unless finite and > 0 ("must be a finite number > 0, got ...")."""
+    return _bounded(kind, lambda v: v > 0, "> 0")
+
+
+def non_negative(kind: type) -> Callable[[str], float | int]:
+    """An argparse type: ``kind(text)``, rejected unless finite and >= 0."""
+    return _bounded(kind, lambda v: v >= 0, ">= 0")
+
+
+def _bounded(kind: type, accept: Callable, rule: str) -> Callable[[str], float | int]:
     def parse(text: str):
         value = kind(text)
-        if value <= 0:
-            raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+        if not math.isfinite(value) or not accept(value):
+            raise argparse.ArgumentTypeError(f"must be a finite number {rule}, got {text}")
         return value
     parse.__name__ = kind.__name__  # argparse names the type in "invalid int value"
     return parse

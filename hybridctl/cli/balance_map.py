@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from .. import io
 from ..experiments import balance_map
 from ..systems import load
 from ._common import add_system_argument, add_debug_flag, add_quiet_flag, cli_errors, positive
@@ -28,6 +29,7 @@ def add_parser(sub) -> None:
 def run_balance_map(args: argparse.Namespace) -> int:
     """Simulate every grid start, write balance_map.png and balance_map.json, print the fraction."""
     system = load(args.system)
+    io.output_folder(args.out)  # a file at --out fails here, not after the simulations
     result = balance_map(system, args.controller, grid=args.grid, duration=args.duration,
                          workers=args.workers, progress=not args.quiet)
     result.meta["command"] = args.command_line

@@ -6,7 +6,7 @@ import argparse
 
 from ..experiments import MESH_MAPS, mesh_report
 from ..parallel import BACKENDS
-from ._common import USAGE_ERROR, add_debug_flag, add_quiet_flag, cli_errors, positive
+from ._common import non_negative, USAGE_ERROR, add_debug_flag, add_quiet_flag, cli_errors, positive
 
 
 def add_parser(sub) -> None:
@@ -18,7 +18,7 @@ def add_parser(sub) -> None:
     p.add_argument("--slope-std", type=positive(float), default=0.06, help="slope std, rad (default 0.06)")
     p.add_argument("--disturbances", type=positive(int), default=25, help="slope quantiles in the mesh (default 25)")
     p.add_argument("--max-states", type=positive(int), default=1_000_000, help="cap on mesh states")
-    p.add_argument("--monte-carlo", type=int, default=0, metavar="EPISODES",
+    p.add_argument("--monte-carlo", type=non_negative(int), default=0, metavar="EPISODES",
                    help="also estimate the MFPT by Monte Carlo on the true map")
     p.add_argument("--sizes", type=positive(float), nargs="*", help="also mesh at these box sizes (Table 5.1)")
     p.add_argument("--backend", choices=BACKENDS, default="serial",

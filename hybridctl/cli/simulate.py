@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 
 import numpy as np
 
@@ -32,6 +33,8 @@ def parse_state(text: str | None, system: System) -> np.ndarray | None:
     if len(values) != system.n_states:
         raise ValueError(f"--x0 needs {system.n_states} values ({', '.join(system.state_names)}), "
                          f"got {len(values)}")
+    if not all(math.isfinite(v) for v in values):
+        raise ValueError(f"--x0 must be finite numbers ({', '.join(system.state_names)}), got {text!r}")
     return np.array(values)
 
 

@@ -96,6 +96,9 @@ def _validate_x0(x0, n: int) -> np.ndarray:
         raise ValueError(f"x0 must have shape ({n},), got {x0.shape}")
     if not np.all(np.isfinite(x0)):
         raise ValueError(f"x0 contains NaN or Inf: {x0}")
+    if np.any(np.abs(x0) > DIVERGENCE_BOUND):
+        raise ValueError(f"x0 entries must lie in [-{DIVERGENCE_BOUND:g}, {DIVERGENCE_BOUND:g}] "
+                         f"(beyond it a state counts as diverged), got {x0}")
     return x0
 
 

@@ -61,8 +61,7 @@ class BalanceMap:
         """Write ``balance_map.json`` and ``balance_map.png`` into ``out_dir``."""
         import matplotlib.pyplot as plt
 
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
+        out = io.output_folder(out_dir)
         summary = self.summary()
         io.atomic_write_text(out / "balance_map.json", json.dumps(summary, indent=1))
         fig = plot_balance_map(self.values1, self.values2, self.balanced, path=out / "balance_map.png",

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import io
 from ..drake import simulate
 from ..systems import System, load
 from ..viz import plot_trajectory, replay_html
@@ -38,13 +39,15 @@ def simulate_and_write(system: System | str, controller: str = "energy", out: st
 
     system = load(system) if isinstance(system, str) else system
     start = system.nudged_nominal_state() if x0 is None else np.asarray(x0, dtype=float)
-    out = Path(out)
+    out = io.output_folder(out)
     diagram = build_named_diagram(system, controller, meshcat=meshcat)
     traj = simulate(diagram, start, duration, realtime_rate=1.0 if meshcat is not None else 0.0)
     traj.meta["controller"] = controller
     if command is not None:
         traj.meta["command"] = command
     summary = traj.save(out)
+    if len(traj.t) < 2:  # diverged within the first step: nothing to draw, the summary says why
+        return summary
     fig = plot_trajectory(traj.t, traj.x, traj.u, traj.gate, system, path=out / "plot.png",
                           title=f"{system.name}, {controller}: balanced={summary['balanced']}")
     plt.close(fig)

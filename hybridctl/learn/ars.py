@@ -53,6 +53,7 @@ from ..envs import env_id
 from ..parallel import BACKENDS, cached_env, make_backend
 from ..systems import known_systems
 from . import checkpoint as ckpt
+from .config_check import check_types
 from .run import PROGRESS_FILE, EvalResult, Learner, Saved, check_fields, check_finite, seeded, set_torch_threads
 
 
@@ -82,8 +83,12 @@ class ARSConfig:
 
     def validate(self) -> None:
         """Raise ValueError naming the first invalid field."""
+        check_types(self)
         check_fields(self, positive=("step_size", "noise"), integers_from_1=(
-            "n_directions", "top_directions", "epochs", "checkpoint_every", "eval_episodes", "torch_threads"))
+            "n_directions", "top_directions", "epochs", "checkpoint_every", "eval_episodes", "torch_threads"),
+            integers_from_0=("seed", "transient_steps"))
+        if self.workers is not None and self.workers < 1:
+            raise ValueError(f"ARSConfig.workers must be None (every core) or an integer >= 1, got {self.workers!r}")
         if self.top_directions > self.n_directions:
             raise ValueError(f"ARSConfig.top_directions ({self.top_directions}) must be <= n_directions "
                              f"({self.n_directions})")

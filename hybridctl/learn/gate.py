@@ -26,7 +26,8 @@ import torch
 
 from ..systems import System
 from ..systems.control import cost_to_go, lqr_rollouts_balanced, wrap_angles
-from .run import check_finite, seeded
+from .config_check import check_types
+from .run import check_fields, check_finite, seeded
 
 
 @dataclass
@@ -47,6 +48,19 @@ class GateConfig:
     lr: float = 1e-3                          # hybridctl; thesis "initial gate learning rate" 1e-5 (too slow here)
     seed: int = 0
     extra: dict = field(default_factory=dict)
+
+    def validate(self) -> None:
+        """Raise ValueError naming the first invalid field."""
+        check_types(self)
+        check_fields(self, positive=("positive_weight", "label_eps", "lr"),
+                     integers_from_1=("label_lookback", "batch_size"),
+                     integers_from_0=("warm_fit_steps", "refit_steps", "seed"))
+        if not self.hidden or any(h < 1 for h in self.hidden):
+            raise ValueError(f"GateConfig.hidden must be a non-empty tuple of layer widths >= 1, got {self.hidden!r}")
+        if self.warm_samples < 2:
+            raise ValueError(f"GateConfig.warm_samples must be an integer >= 2, got {self.warm_samples!r}")
+        if self.label_horizon is not None and self.label_horizon <= 0:
+            raise ValueError(f"GateConfig.label_horizon must be None (the spec's) or > 0, got {self.label_horizon!r}")
 
     def to_dict(self) -> dict:
         """JSON-ready dict."""
@@ -204,6 +218,7 @@ def warm_start_gate(system: System, config: GateConfig | None = None, progress: 
     Returns (gate, states, labels, info) so SSAC keeps the data for later refits.
     """
     config = config or GateConfig()
+    config.validate()
     rng = np.random.default_rng(config.seed)
     states = warm_start_states(system, config.warm_samples, rng)
     labels = label_states(system, states, config)

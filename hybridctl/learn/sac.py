@@ -72,6 +72,7 @@ import torch.nn.functional as F
 from . import checkpoint as ckpt
 from .networks import OBS_TRANSFORMS, Actor, DeterministicPolicy, ObsTransform, QNetwork
 from .replay import REPLAY_FIELDS, EpisodeStaging, ReplayBuffer, sample_mixed
+from .config_check import check_types
 from .run import Saved, check_fields, check_finite, seeded
 from .vector_agent import VectorEnvAgent, progress_entry
 
@@ -133,6 +134,7 @@ class SACConfig:
 
     def validate(self) -> None:
         """Raise ValueError naming the first invalid field."""
+        check_types(self)
         check_fields(self, integers_from_1=("steps_per_update", "updates_per_round", "replay_batch_size",
                                             "minibatch_size", "hidden_layers", "hidden_size", "buffer_size",
                                             "needle_buffer_size", "num_envs", "torch_threads", "log_every"),
@@ -147,6 +149,11 @@ class SACConfig:
             raise ValueError(f"SACConfig needs log_std_min < log_std_max, got {self.log_std_min}, {self.log_std_max}")
         if self.obs_transform not in OBS_TRANSFORMS:
             raise ValueError(f"SACConfig.obs_transform must be one of {OBS_TRANSFORMS}, got {self.obs_transform!r}")
+        try:
+            torch.device(self.device)
+        except (RuntimeError, TypeError):
+            raise ValueError(f"SACConfig.device must be a torch device such as 'cpu' or 'cuda:0', "
+                             f"got {self.device!r}") from None
 
     @property
     def gradient_steps_per_update(self) -> int:

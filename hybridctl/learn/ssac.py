@@ -114,6 +114,10 @@ class SSACConfig(SACConfig):
                              f"got {self.gate_class_weight_from!r}")
         if self.reward is not None and self.reward not in REWARDS:
             raise ValueError(f"SSACConfig.reward must be None (the spec's) or one of {REWARDS}, got {self.reward!r}")
+        if self.variant_name not in ("hybridctl", "paper", "author"):
+            raise ValueError(f"SSACConfig.variant_name must be 'hybridctl', 'paper' or 'author', "
+                             f"got {self.variant_name!r}")
+        self.gate_config().validate()
 
     @classmethod
     def variant(cls, name: str = "hybridctl", **overrides) -> "SSACConfig":

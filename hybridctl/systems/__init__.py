@@ -124,7 +124,11 @@ class System:
             raise ValueError("x and u must be torch tensors (use torch.as_tensor)")
         check_array("x", x, self.n_states)
         check_array("u", u, self.n_actions)
-        if x.dim() == 2 and u.dim() == 2 and x.shape[0] != u.shape[0]:
+        # exact shapes: a (n,) state with (B, m) inputs would broadcast into B states silently
+        if x.dim() != u.dim():
+            raise ValueError(f"x and u must both be single ((n,), (m,)) or both batched ((B, n), (B, m)), "
+                             f"got shapes {tuple(x.shape)} and {tuple(u.shape)}")
+        if x.dim() == 2 and x.shape[0] != u.shape[0]:
             raise ValueError(f"x and u batch sizes differ: {x.shape[0]} vs {u.shape[0]}")
 
     def derivatives(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
@@ -151,8 +155,18 @@ class System:
         return x + 0.5 * self.dt * (k1 + k2)
 
     def rollout(self, x0: torch.Tensor, controls: torch.Tensor) -> torch.Tensor:
-        """States (B, T+1, n) from x0 (B, n) under controls (B, T, m), differentiable."""
-        self._check(x0, controls[:, 0])
+        """States (B, T+1, n) from x0 (B, n) under controls (B, T, m), differentiable.
+
+        Every control step is checked up front (shape, finite values), not only the first.
+        """
+        if not isinstance(x0, torch.Tensor) or not isinstance(controls, torch.Tensor):
+            raise ValueError("x0 and controls must be torch tensors (use torch.as_tensor)")
+        if x0.dim() != 2 or controls.dim() != 3 or controls.shape[0] != x0.shape[0] or controls.shape[1] < 1 \
+                or controls.shape[2] != self.n_actions:
+            raise ValueError(f"x0 must be (B, {self.n_states}) and controls (B, T >= 1, {self.n_actions}), "
+                             f"got {tuple(x0.shape)} and {tuple(controls.shape)}")
+        check_array("x0", x0, self.n_states)
+        check_array("controls", controls.reshape(-1, self.n_actions), self.n_actions)
         states = [x0]
         for t in range(controls.shape[1]):
             states.append(self.step_unchecked(states[-1], controls[:, t]))

@@ -9,6 +9,7 @@ and the file, so a typo in a spec never reaches the dynamics.
 from __future__ import annotations
 
 import math
+import numbers
 import os
 import re
 import tomllib
@@ -74,7 +75,9 @@ def parse_number(raw: Any, where: str) -> float:
     """Parse a number or a pi expression such as ``"-pi/2"``; ``where`` names the key."""
     if isinstance(raw, bool):
         raise SpecError(f"{where}: expected a number, got {raw!r}")
-    if isinstance(raw, (int, float)):
+    if isinstance(raw, numbers.Real):
+        if not math.isfinite(raw):
+            raise SpecError(f"{where}: must be a finite number, got {raw!r}")
         return float(raw)
     if isinstance(raw, str):
         match = _PI_EXPR.match(raw)
@@ -103,6 +106,7 @@ class Spec:
     sources: dict[str, str] = field(default_factory=dict)
     units: dict[str, str] = field(default_factory=dict)
     overrides: dict[str, Any] = field(default_factory=dict)
+    overridden: dict[str, str] = field(default_factory=dict)  # full key -> "override k=v", for error messages
 
     def get(self, key: str, default: Any = ...) -> Any:
         """Value of 'section.key'; raises SpecError naming the file when missing."""
@@ -117,7 +121,9 @@ class Spec:
         return key in self.values
 
     def error(self, key: str, message: str) -> SpecError:
-        """An error that names the key and the spec file."""
+        """An error that names the key and where its value came from: the spec file, or an override."""
+        if key in self.overridden:
+            return SpecError(f"{self.overridden[key]} ('{key}' of {self.name}): {message}")
         return SpecError(f"{self.path}: '{key}' {message}")
 
 
@@ -129,6 +135,37 @@ _STRING_KEYS = {
 _LIST_OF_STRING_KEYS = {"state.names", "action.names"}
 _INT_LIST_KEYS = {"model.actuated_joints", "state.angles"}
 _INT_KEYS = {"success.lookback"}
+
+
+def parse_value(full: str, entry: Any, where: str) -> Any:
+    """One spec value, type-checked by its key: the same rules for the file and for overrides.
+
+    ``where`` prefixes the error ("<file>: 'params.link_mass'" or "override link_mass=-1.0").
+    """
+    if full in _STRING_KEYS:
+        if not isinstance(entry, str):
+            raise SpecError(f"{where}: must be a string, got {entry!r}")
+        return entry
+    if full in _LIST_OF_STRING_KEYS:
+        if not (isinstance(entry, (list, tuple)) and all(isinstance(s, str) for s in entry)):
+            raise SpecError(f"{where}: must be a list of strings, got {entry!r}")
+        return list(entry)
+    if full in _INT_LIST_KEYS:
+        if not (isinstance(entry, (list, tuple)) and all(isinstance(i, int) and not isinstance(i, bool)
+                                                         for i in entry)):
+            raise SpecError(f"{where}: must be a list of integers, got {entry!r}")
+        return list(entry)
+    if full in _INT_KEYS:
+        if isinstance(entry, float) and entry.is_integer():
+            entry = int(entry)
+        if not isinstance(entry, int) or isinstance(entry, bool):
+            raise SpecError(f"{where}: must be an integer, got {entry!r}")
+        return entry
+    if isinstance(entry, np.ndarray):
+        entry = entry.tolist()
+    if isinstance(entry, tuple):
+        entry = list(entry)
+    return _parse_tree(entry, where)
 
 
 def _flatten(doc: dict, path: Path) -> Spec:
@@ -148,48 +185,38 @@ def _flatten(doc: dict, path: Path) -> Spec:
                 if "units" in entry:
                     units[full] = str(entry["units"])
                 entry = entry["value"]
-            if full in _STRING_KEYS:
-                if not isinstance(entry, str):
-                    raise SpecError(f"{path}: '{full}' must be a string, got {entry!r}")
-                values[full] = entry
-            elif full in _LIST_OF_STRING_KEYS:
-                if not (isinstance(entry, list) and all(isinstance(s, str) for s in entry)):
-                    raise SpecError(f"{path}: '{full}' must be a list of strings")
-                values[full] = list(entry)
-            elif full in _INT_LIST_KEYS:
-                if not (isinstance(entry, list) and all(isinstance(i, int) for i in entry)):
-                    raise SpecError(f"{path}: '{full}' must be a list of integers")
-                values[full] = list(entry)
-            elif full in _INT_KEYS:
-                if not isinstance(entry, int) or isinstance(entry, bool):
-                    raise SpecError(f"{path}: '{full}' must be an integer, got {entry!r}")
-                values[full] = entry
-            else:
-                values[full] = _parse_tree(entry, f"{path}: '{full}'")
+            values[full] = parse_value(full, entry, f"{path}: '{full}'")
     return Spec(name=str(values.get("system.name", path.stem)), path=path, values=values,
                 sources=sources, units=units)
 
 
 def _apply_overrides(spec: Spec, overrides: dict[str, Any]) -> None:
-    """Override values by 'section.key' or by a bare key that is unique across sections."""
+    """Override values by 'section.key' or by a bare key that is unique across sections.
+
+    Each value is type-checked like the file's (:func:`parse_value`) and must keep the
+    file value's shape (a list stays a list of as many entries); :func:`validate` then
+    range-checks it, and every error names the override, not the file.
+    """
     for key, value in overrides.items():
         full = key.replace("__", ".")
         if full not in spec.values:
             matches = [k for k in spec.values if k.split(".", 1)[1] == full]
             if len(matches) != 1:
-                known = ", ".join(sorted(k for k in spec.values))
-                what = "is ambiguous" if matches else "is not a key of this spec"
-                raise SpecError(f"{spec.path}: override '{key}' {what}; keys: {known}")
+                known = ", ".join(sorted({k.split(".", 1)[1] for k in spec.values}))
+                what = "is ambiguous (give it as section__key)" if matches else "is not a key of this spec"
+                raise SpecError(f"override '{key}' {what}; keys of {spec.name}: {known}")
             full = matches[0]
+        where = f"override {key}={value!r} ('{full}' of {spec.name})"
         old = spec.values[full]
-        if isinstance(old, np.ndarray):
-            spec.values[full] = _parse_tree(list(np.asarray(value).tolist()) if not isinstance(value, list) else value,
-                                            f"override '{key}'")
-        elif isinstance(old, float):
-            spec.values[full] = parse_number(value, f"override '{key}'")
-        else:
-            spec.values[full] = value
+        new = parse_value(full, value, where)
+        if isinstance(old, np.ndarray) and np.shape(new) != old.shape:
+            raise SpecError(f"{where}: must have the file value's shape {old.shape} "
+                            f"(e.g. {old.tolist()}), got shape {np.shape(new)}")
+        if isinstance(old, float) and np.ndim(new) != 0:
+            raise SpecError(f"{where}: must be a single number, got {value!r}")
+        spec.values[full] = new
         spec.sources[full] = "user override"
+        spec.overridden[full] = f"override {key}={value!r}"
 
 
 def read_spec(name_or_path: str | Path, **overrides: Any) -> Spec:
@@ -285,6 +312,9 @@ def validate(spec: Spec) -> None:
     if not 0.0 < off < on < 1.0:
         raise spec.error("gate.on", f"needs 0 < gate.off < gate.on < 1, got off={off}, on={on}")
     _require_positive(spec, "gate.cost_scale")
+    for key in [k for k in spec.values if k.startswith("swingup.") and k != "swingup.controller"]:
+        # energy-shaping gains: the Lyapunov argument needs k_energy > 0 and k_p, k_d >= 0
+        _require_positive(spec, key, allow_zero=key != "swingup.k_energy")
     if spec.has("gate.label_horizon"):
         _require_positive(spec, "gate.label_horizon")
     for key in ("gate.warm_near", "gate.warm_far"):
@@ -316,12 +346,15 @@ class GateSection:
     label_horizon: float
     warm_near: np.ndarray | None
     warm_far: np.ndarray | None
+    system: str = ""
 
     def spread(self, which: str) -> np.ndarray:
         """``warm_near`` or ``warm_far``; ValueError naming the key when the spec has none."""
         value = getattr(self, which)
         if value is None:
-            raise ValueError(f"gate learning needs 'gate.{which}' (a spread per state) in the system's spec")
+            raise ValueError(f"gate learning needs 'gate.{which}' (a spread per state) in the spec of "
+                             f"{self.system or 'this system'}; systems with one: those whose spec sets it "
+                             f"(acrobot, cartpole)")
         return value
 
 
@@ -363,7 +396,7 @@ def typed_sections(spec: Spec) -> dict:
         on=float(spec.get("gate.on")), off=float(spec.get("gate.off")),
         cost_scale=float(spec.get("gate.cost_scale")),
         label_horizon=float(spec.get("gate.label_horizon", THESIS_LABEL_HORIZON)),
-        warm_near=optional_spread("gate.warm_near"), warm_far=optional_spread("gate.warm_far"))
+        warm_near=optional_spread("gate.warm_near"), warm_far=optional_spread("gate.warm_far"), system=spec.name)
     success = SuccessSection(eps=float(spec.get("success.eps")), lookback=int(spec.get("success.lookback")))
     initial = InitialStateSection(*(np.asarray(spec.get(f"initial_state.{k}"), dtype=float).copy()
                                     for k in ("nominal", "low", "high")))
