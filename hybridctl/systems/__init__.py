@@ -37,6 +37,8 @@ def check_array(name: str, value, width: int) -> None:
     shape = tuple(value.shape)
     if len(shape) not in (1, 2) or shape[-1] != width:
         raise ValueError(f"{name} must have shape ({width},) or (batch, {width}), got {shape}")
+    if len(shape) == 2 and shape[0] == 0:
+        raise ValueError(f"{name} is an empty batch (0, {width}); give at least one row")
     if isinstance(value, torch.Tensor):
         # NaN and Inf both turn a sum of zeros into NaN: one reduction, no boolean tensor.
         finite = torch.isfinite((value * 0).sum())
