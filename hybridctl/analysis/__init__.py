@@ -6,7 +6,7 @@ Names load on first use (PEP 562), so ``from hybridctl.analysis.poincare import 
 does not pull in scipy.sparse and the reachable-mesh code.
 """
 
-from importlib import import_module
+from .. import lazy_exports
 
 _HOMES = {
     "markov": ("MFPTResult", "absorbing_mfpt", "check_transition_matrix", "cumulative_transition_mass"),
@@ -17,19 +17,4 @@ _HOMES = {
                   "monte_carlo_mfpt", "reachable_dimension"),
     "variation": ("madogram", "power_variation", "variation_dimension", "variogram"),
 }
-_HOME_OF = {name: module for module, names in _HOMES.items() for name in names}
-
-__all__ = sorted(_HOME_OF)
-
-
-def __getattr__(name: str):
-    module = _HOME_OF.get(name)
-    if module is None:
-        raise AttributeError(f"module 'hybridctl.analysis' has no attribute {name!r}")
-    value = getattr(import_module(f".{module}", __name__), name)
-    globals()[name] = value  # later look-ups skip this hook
-    return value
-
-
-def __dir__():
-    return sorted(set(globals()) | set(__all__))
+__getattr__, __dir__, __all__ = lazy_exports(__name__, _HOMES)

@@ -9,7 +9,7 @@ Names load on first use (PEP 562): plotting training curves does not import pydr
 (only the meshcat views need it).
 """
 
-from importlib import import_module
+from .. import lazy_exports
 
 _HOMES = {
     "meshcat": ("add_meshcat", "replay_html", "start_meshcat"),
@@ -17,19 +17,4 @@ _HOMES = {
     "plots": ("plot_balance_map", "plot_trajectory"),
     "training": ("plot_training_curves",),
 }
-_HOME_OF = {name: module for module, names in _HOMES.items() for name in names}
-
-__all__ = sorted(_HOME_OF)
-
-
-def __getattr__(name: str):
-    module = _HOME_OF.get(name)
-    if module is None:
-        raise AttributeError(f"module 'hybridctl.viz' has no attribute {name!r}")
-    value = getattr(import_module(f".{module}", __name__), name)
-    globals()[name] = value  # later look-ups skip this hook
-    return value
-
-
-def __dir__():
-    return sorted(set(globals()) | set(__all__))
+__getattr__, __dir__, __all__ = lazy_exports(__name__, _HOMES)
