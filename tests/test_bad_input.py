@@ -309,3 +309,18 @@ def test_the_table_is_large():
     """The closing note of issue 12 reports this count."""
     total = len(CLI_CASES) + len(OVERRIDE_CASES) + len(ENTRY_CASES) + len(CONFIG_CASES) + len(RANGE_CASES)
     assert total > 200
+
+
+def test_cli_names_a_missing_optional_extra(tmp_path, capsys):
+    """`--backend ray` without Ray: one line that says how to install it."""
+    try:
+        import ray  # noqa: F401
+        pytest.skip("Ray is installed here")
+    except ImportError:
+        pass
+    with pytest.raises(SystemExit) as stop:
+        main(["train", "ars", "Pendulum-v1", "--backend", "ray", "--epochs", "1", "--quiet",
+              "--out", str(tmp_path / "ars")])
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and "Traceback" not in err
+    assert "backend 'ray' needs Ray: pip install 'hybridctl[ray]'" in err
