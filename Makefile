@@ -37,7 +37,7 @@ bench: $(STAMP)
 
 # The documentation site, offline, into site/ (open site/index.html): the README as home page,
 # ARCHITECTURE.md, the API reference from the docstrings and the four notebooks, executed
-# during the build (about 1.5 minutes on 2 cores; notebooks/ keeps no outputs).
+# during the build (about a minute on 2 cores; notebooks/ keeps no outputs).
 docs: $(DOCS_STAMP)
 	NO_MKDOCS_2_WARNING=1 $(BIN)/python -m mkdocs build
 

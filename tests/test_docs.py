@@ -3,7 +3,7 @@
 The fast tests check mkdocs.yml: every notebook and every API page is in the navigation,
 every module of the package is documented on some API page, the notebooks are executed
 during the build, and nothing is fetched from the network. The slow test builds the site
-(about 1.5 minutes: the notebooks run) and opens its pages in headless Chromium: the
+(about a minute: the notebooks run) and opens its pages in headless Chromium: the
 notebooks' figures are rendered as embedded PNGs, their printed results are there, and the
 API pages carry the docstrings. Tests skip with the reason when the ``docs`` extra or
 Chromium is missing (``HYBRIDCTL_REQUIRE_CHROMIUM=1`` makes a missing Chromium fail, as in
@@ -139,11 +139,11 @@ def test_doctest_lines_render_as_code():
     """docs/hooks.py fences ``>>>`` runs of the docstrings and drops Sphinx roles."""
     markdown = pytest.importorskip("markdown", reason="the docs extra is not installed")
     pytest.importorskip("mkdocs", reason="the docs extra is not installed")
-    sys.path.insert(0, str(DOCS))
-    try:
-        import hooks
-    finally:
-        sys.path.remove(str(DOCS))
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("hybridctl_docs_hooks", DOCS / "hooks.py")
+    hooks = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(hooks)
     text = ("Run it (:func:`simulate`):\n\n>>> result = run_demo()\n>>> result[\"simulation\"][\"balanced\"]\nTrue\n\n"
             "After.\n\n```python\n>>> inside a fence\n```\n")
     out = markdown.markdown(text, extensions=[hooks.DoctestFences(), "fenced_code"])
