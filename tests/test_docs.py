@@ -272,3 +272,16 @@ def test_api_pages_show_the_docstrings(site, tmp_path):
         assert f"hybridctl.{room}" in text, f"api/{room}.html does not document hybridctl.{room}"
     home = _text(_dump_dom(site / "index.html", tmp_path))
     assert "Quick start" in home and "make docs" in home, "the home page is the README"
+
+
+def test_notebooks_use_only_the_installed_package():
+    """A reader runs the notebooks with hybridctl installed: no imports from tests/, no stale promises."""
+    import json
+
+    for path in NOTEBOOKS:
+        cells = json.loads(path.read_text())["cells"]
+        code = "\n".join("".join(c["source"]) for c in cells if c["cell_type"] == "code")
+        text = "\n".join("".join(c["source"]) for c in cells)
+        assert "toy_envs" not in code and '"tests"' not in code, f"{path.name} imports from tests/"
+        for stale in ("a later issue", "once recorded", "later step of this project"):
+            assert stale not in text, f"{path.name} still says {stale!r}"
