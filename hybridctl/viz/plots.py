@@ -111,6 +111,8 @@ def plot_trajectory(times, states, inputs, gate, system: "System",
             ax.plot(*_break_at_wraps(times, shown[:, i]), lw=1.2)
             goal = float(system.goal[i])
             ax.set_ylim(goal - np.pi - 0.3, goal + np.pi + 0.3)
+            for edge in (goal - np.pi, goal + np.pi):   # where the drawn angle wraps
+                ax.axhline(edge, color="0.8", lw=0.6, ls=(0, (1, 3)))
             ax.text(0.995, 0.96, "wrapped to goal +- pi", transform=ax.transAxes, ha="right", va="top",
                     fontsize=7, color="0.4")
         else:
