@@ -203,3 +203,68 @@ def test_plot_balance_map(tmp_path):
         viz.plot_balance_map(th, th, balanced[:, :-1])
     with pytest.raises(ValueError, match="th1_values must be strictly increasing"):
         viz.plot_balance_map(th[::-1], th, balanced)
+
+
+def test_plot_trajectory_wraps_angles_about_the_goal():
+    """An acrobot run whose elbow spins two full turns is drawn within goal +- pi, not at 4 pi."""
+    system = systems.load("acrobot")
+    times = np.arange(0.0, 4.0, 0.01)
+    states = np.tile(system.goal, (len(times), 1)).astype(float)
+    states[:, 0] += 0.2 * np.sin(times)                     # th1 near the goal
+    states[:, 1] = 4 * np.pi * np.clip(times / 3.0, 0, 1)   # th2: 0 -> 4 pi, then rests there
+    inputs, gate = np.zeros(len(times)), (times > 3.0).astype(int)
+    fig = viz.plot_trajectory(times, states, inputs, gate, system)
+    try:
+        for i in system.angle_indices:
+            goal = system.goal[i]
+            y = np.concatenate([ln.get_ydata() for ln in fig.axes[i].get_lines() if ln.get_linestyle() == "-"])
+            y = y[np.isfinite(y)]
+            assert y.size >= len(times)
+            assert np.all(y >= goal - np.pi - 1e-9) and np.all(y < goal + np.pi + 1e-9), (i, y.min(), y.max())
+        th2 = [ln for ln in fig.axes[1].get_lines() if ln.get_linestyle() == "-"][0].get_ydata()
+        assert abs(th2[-1] - system.goal[1]) < 1e-9, "4 pi is drawn at the goal"
+        assert np.isnan(th2).sum() == 2, "the line breaks where it wraps (through pi and 3 pi)"
+        rates = fig.axes[system.n_states // 2].get_lines()[0].get_ydata()   # rates are not wrapped
+        np.testing.assert_array_equal(rates, states[:, system.n_states // 2])
+    finally:
+        plt.close(fig)
+    from hybridctl.viz.plots import wrap_about_goal
+    wrapped = wrap_about_goal(states, system)
+    np.testing.assert_allclose(wrapped[:, [0, 2, 3]], states[:, [0, 2, 3]], atol=1e-12)   # already near the goal
+    np.testing.assert_allclose(wrapped[-1, 1], system.goal[1], atol=1e-9)
+
+
+def legend_labels(fig):
+    legends = [ax.get_legend() for ax in fig.axes if ax.get_legend() is not None] + fig.legends
+    assert legends, "the figure has no legend"
+    return [text.get_text() for legend in legends for text in legend.get_texts()]
+
+
+def test_plot_balance_map_has_a_legend():
+    th = np.linspace(-np.pi, np.pi, 9)
+    balanced = np.add.outer(np.cos(th), np.cos(th)) > 0.5
+    fig = viz.plot_balance_map(th, th, balanced)
+    try:
+        assert legend_labels(fig) == ["balanced", "not balanced"]
+    finally:
+        plt.close(fig)
+    diverged = np.zeros_like(balanced)
+    diverged[0, 0] = True                                    # a corner run that diverged
+    assert not balanced[0, 0]
+    fig = viz.plot_balance_map(th, th, balanced, diverged=diverged)
+    try:
+        assert legend_labels(fig) == ["balanced", "not balanced", "diverged"]
+        mesh = fig.axes[0].collections[0]
+        colours = mesh.cmap(mesh.norm(mesh.get_array().reshape(9, 9)))   # [th2, th1]
+        from matplotlib.colors import to_rgba
+        assert np.allclose(colours[0, 0], to_rgba("tab:orange"))
+        assert np.allclose(colours[4, 4], to_rgba("black"))              # the centre balanced
+    finally:
+        plt.close(fig)
+    fig = viz.plot_balance_map(th, th, balanced, diverged=np.zeros_like(balanced))
+    try:
+        assert legend_labels(fig) == ["balanced", "not balanced"], "no diverged entry when none diverged"
+    finally:
+        plt.close(fig)
+    with pytest.raises(ValueError, match="diverged must have the shape"):
+        viz.plot_balance_map(th, th, balanced, diverged=diverged[:, :-1])

@@ -24,11 +24,17 @@ if ("matplotlib.pyplot" not in sys.modules and sys.platform.startswith("linux")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.colors import ListedColormap  # noqa: E402
+from matplotlib.patches import Patch  # noqa: E402
+
+from ..systems.control import wrap_angles  # noqa: E402
 
 if TYPE_CHECKING:
     from hybridctl.systems import System
 
-__all__ = ["plot_trajectory", "plot_balance_map"]
+__all__ = ["plot_trajectory", "plot_balance_map", "wrap_about_goal"]
+
+# Balance-map colours by outcome: the legend labels the same three.
+BALANCE_COLOURS = {"not balanced": "tab:red", "balanced": "black", "diverged": "tab:orange"}
 
 
 def _array(name: str, value, ndims: tuple[int, ...]) -> np.ndarray:
@@ -48,14 +54,36 @@ def _save(fig, path) -> None:
         fig.savefig(path, dpi=100)
 
 
+def wrap_about_goal(states, system: "System") -> np.ndarray:
+    """States with each angle coordinate wrapped into [goal - pi, goal + pi) (a new array).
+
+    The angle coordinates are ``system.angle_indices`` (the spec's ``state.angles``); rates
+    and linear coordinates are returned unchanged. An elbow that made full turns on the way up
+    (``th2`` ending at ``4 pi``) is drawn at the goal, where it is.
+    """
+    states = np.array(states, dtype=float)
+    goal = np.asarray(system.goal, dtype=float)
+    return goal + wrap_angles(states - goal, system.angle_indices)
+
+
+def _break_at_wraps(times: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Insert NaN where a wrapped angle jumps by more than pi, so the line is not drawn across."""
+    jumps = np.flatnonzero(np.abs(np.diff(values)) > np.pi) + 1
+    if jumps.size == 0:
+        return times, values
+    return np.insert(times, jumps, np.nan), np.insert(values, jumps, np.nan)
+
+
 def plot_trajectory(times, states, inputs, gate, system: "System",
                     path: str | Path | None = None, title: str | None = None):
     """Figure of one run: a subplot per state, the input(s), and the gate mode.
 
     ``times`` (T,), ``states`` (T, n_states), ``inputs`` (T, n_actions) or (T,),
     ``gate`` (T,) with 0 = swing-up policy, 1 = LQR. Angles (the spec's
-    ``state.angles``) are labelled in rad and the action limit is drawn as dashed
-    lines. Saves a PNG at ``path`` when given; returns the open Figure.
+    ``state.angles``) are labelled in rad and drawn wrapped about the goal, in
+    [goal - pi, goal + pi) (:func:`wrap_about_goal`; the line breaks where it wraps), with
+    the goal as a dotted line. The action limit is drawn as dashed lines. Saves a PNG at
+    ``path`` when given; returns the open Figure.
     """
     times = _array("times", times, (1,))
     states = _array("states", states, (2,))
@@ -73,12 +101,23 @@ def plot_trajectory(times, states, inputs, gate, system: "System",
     n_rows = system.n_states + 2
     fig, axes = plt.subplots(n_rows, 1, sharex=True, figsize=(8, 1.6 * n_rows), squeeze=False)
     axes = axes[:, 0]
+    shown = wrap_about_goal(states, system)
+    n_q = system.n_states // 2
     for i, name in enumerate(system.state_names):
         ax = axes[i]
-        ax.plot(times, states[:, i], lw=1.2)
-        n_q = system.n_states // 2
         is_rate = i >= n_q
-        unit = "rad" if (i % n_q) in system.angle_indices else "m"
+        is_angle = (i % n_q) in system.angle_indices
+        if is_angle and not is_rate:
+            ax.plot(*_break_at_wraps(times, shown[:, i]), lw=1.2)
+            goal = float(system.goal[i])
+            ax.set_ylim(goal - np.pi - 0.3, goal + np.pi + 0.3)
+            for edge in (goal - np.pi, goal + np.pi):   # where the drawn angle wraps
+                ax.axhline(edge, color="0.8", lw=0.6, ls=(0, (1, 3)))
+            ax.text(0.995, 0.96, "wrapped to goal +- pi", transform=ax.transAxes, ha="right", va="top",
+                    fontsize=7, color="0.4")
+        else:
+            ax.plot(times, states[:, i], lw=1.2)
+        unit = "rad" if is_angle else "m"
         ax.set_ylabel(f"{name} [{unit}/s]" if is_rate else f"{name} [{unit}]")
         ax.axhline(system.goal[i], color="0.6", lw=0.8, ls=":")
     ax = axes[system.n_states]
@@ -102,12 +141,15 @@ def plot_trajectory(times, states, inputs, gate, system: "System",
 
 
 def plot_balance_map(th1_values, th2_values, balanced, path: str | Path | None = None,
-                     title: str | None = None):
+                     title: str | None = None, diverged=None):
     """Balance map (thesis Fig. 3.6 style): black where the run from (th1, th2) balanced, red where not.
 
     ``th1_values`` (N1,) and ``th2_values`` (N2,) are the initial angles (rad) of
-    the grid, ``balanced`` an (N1, N2) boolean array indexed [th1, th2]. The title
-    gets the balanced fraction. Saves a PNG at ``path`` when given; returns the open Figure.
+    the grid, ``balanced`` an (N1, N2) boolean array indexed [th1, th2]. ``diverged``
+    (optional, same shape) marks runs that diverged: drawn orange, and labelled in the
+    legend when any did. The legend names each colour (balanced, not balanced[, diverged]);
+    the title gets the balanced fraction. Saves a PNG at ``path`` when given; returns the
+    open Figure.
     """
     th1 = _array("th1_values", th1_values, (1,))
     th2 = _array("th2_values", th2_values, (1,))
@@ -122,11 +164,25 @@ def plot_balance_map(th1_values, th2_values, balanced, path: str | Path | None =
         raise ValueError("balanced must be boolean (or 0/1)")
     balanced = balanced.astype(bool)
     fraction = balanced.mean() if balanced.size else 0.0
+    outcome = balanced.astype(int)  # 0 not balanced, 1 balanced, 2 diverged
+    labels = ["not balanced", "balanced"]
+    if diverged is not None:
+        diverged = np.asarray(diverged)
+        if diverged.shape != balanced.shape:
+            raise ValueError(f"diverged must have the shape of balanced {balanced.shape}, got {diverged.shape}")
+        diverged = diverged.astype(bool)
+        if diverged.any():
+            outcome[diverged & ~balanced] = 2
+            labels.append("diverged")
 
-    fig, ax = plt.subplots(figsize=(5.5, 5))
-    cmap = ListedColormap(["tab:red", "black"])
-    ax.pcolormesh(_edges(th1), _edges(th2), balanced.T.astype(int), cmap=cmap, vmin=0, vmax=1,
+    fig, ax = plt.subplots(figsize=(5.5, 5.4))
+    cmap = ListedColormap([BALANCE_COLOURS[label] for label in labels])
+    ax.pcolormesh(_edges(th1), _edges(th2), outcome.T, cmap=cmap, vmin=-0.5, vmax=len(labels) - 0.5,
                   edgecolors="white", linewidth=0.3 if balanced.size <= 2500 else 0.0)
+    handles = [Patch(facecolor=BALANCE_COLOURS[label], edgecolor="0.5", label=label)
+               for label in ("balanced", *[lb for lb in labels if lb != "balanced"])]
+    ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=len(handles),
+              fontsize=8, frameon=False)
     ax.set_xlabel("initial th1 [rad]")
     ax.set_ylabel("initial th2 [rad]")
     ax.set_aspect("equal" if _span(th1) and _span(th2) else "auto")

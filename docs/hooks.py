@@ -1,0 +1,57 @@
+"""MkDocs hooks of the hybridctl site (mkdocs.yml ``hooks:``).
+
+The docstrings show usage as doctest lines (``>>> call(...)``) without a Markdown fence.
+Rendered as Markdown they would run together into one paragraph (and ``x["a"]`` would read
+as a reference link), so a small Markdown preprocessor fences every run of ``>>>`` lines
+(with their ``...`` continuations and printed results) as Python code before the docstrings
+and pages are converted. It also drops Sphinx roles (``:func:`name``` -> ``name``), which
+Markdown would print literally.
+"""
+
+from __future__ import annotations
+
+import re
+
+from markdown import Extension
+from markdown.preprocessors import Preprocessor
+from mkdocs.plugins import event_priority
+
+_PROMPT = re.compile(r"^(\s*)>>> ?")
+_ROLE = re.compile(r":(?:py:)?(?:func|class|mod|meth|attr|data|obj|exc|const):(?=`)")
+
+
+class _DoctestFences(Preprocessor):
+    def run(self, lines: list[str]) -> list[str]:
+        out, i, fenced = [], 0, False
+        while i < len(lines):
+            line = lines[i]
+            if line.lstrip().startswith(("```", "~~~")):
+                fenced = not fenced
+            match = None if fenced else _PROMPT.match(line)
+            if match is None:
+                out.append(line if fenced else _ROLE.sub("", line))
+                i += 1
+                continue
+            indent = match.group(1)
+            block = []
+            while i < len(lines) and lines[i].strip() and lines[i].startswith(indent):
+                block.append(lines[i][len(indent):])
+                i += 1
+            if out and out[-1].strip():
+                out.append("")
+            out += [f"{indent}```python", *[indent + b for b in block], f"{indent}```", ""]
+        return out
+
+
+class DoctestFences(Extension):
+    """Fence doctest runs (``>>>`` lines) as Python code blocks."""
+
+    def extendMarkdown(self, md):  # noqa: N802 (Markdown's API name)
+        md.preprocessors.register(_DoctestFences(md), "hybridctl_doctest_fences", 40)
+
+
+@event_priority(100)  # before mkdocstrings reads the Markdown extensions
+def on_config(config):
+    """Add the doctest fences to the site's Markdown extensions."""
+    config.markdown_extensions.append(DoctestFences())
+    return config
