@@ -64,7 +64,8 @@ class BalanceMap:
         out = io.output_folder(out_dir)
         summary = self.summary()
         io.atomic_write_text(out / "balance_map.json", json.dumps(summary, indent=1))
-        fig = plot_balance_map(self.values1, self.values2, self.balanced, path=out / "balance_map.png",
+        fig = plot_balance_map(self.values1, self.values2, self.balanced, diverged=self.diverged,
+                               path=out / "balance_map.png",
                                title=f"{self.system}, {self.controller}, {self.duration:g} s")
         plt.close(fig)
         return summary

@@ -14,7 +14,7 @@ from .. import lazy_exports
 _HOMES = {
     "meshcat": ("add_meshcat", "replay_html", "start_meshcat"),
     "markov": ("plot_cumulative_mass", "plot_mesh_sizes", "plot_mesh_states", "plot_transition_sparsity"),
-    "plots": ("plot_balance_map", "plot_trajectory"),
+    "plots": ("plot_balance_map", "plot_trajectory", "wrap_about_goal"),
     "training": ("plot_training_curves",),
 }
 __getattr__, __dir__, __all__ = lazy_exports(__name__, _HOMES)
