@@ -168,6 +168,12 @@ def _adam(params, lr: float) -> torch.optim.Adam:
         return torch.optim.Adam(params, lr=lr)
 
 
+def set_lr(optimizer: torch.optim.Optimizer, lr: float) -> None:
+    """Set every parameter group's learning rate."""
+    for group in optimizer.param_groups:
+        group["lr"] = lr
+
+
 def _next_multiple(value: int, every: int) -> float:
     """The first multiple of ``every`` above ``value`` (inf when ``every`` is 0: never)."""
     return (value // every + 1) * every if every else math.inf
@@ -475,6 +481,15 @@ class SAC(VectorEnvAgent):
         Later training does not change it (call again for the newer policy).
         """
         return DeterministicPolicy(self.actor).to("cpu")
+
+    def after_restore(self, found: Path, meta: dict, bulky: bool) -> None:
+        """The env restarts its episodes; the optimizers take the config's learning rates (a restored
+        optimizer state carries the recorded ones: a resume forced to another lr must use it)."""
+        super().after_restore(found, meta, bulky)
+        set_lr(self.actor_opt, self.config.lr)
+        set_lr(self.q_opt, self.config.lr)
+        if self.alpha_opt is not None:
+            set_lr(self.alpha_opt, self.config.alpha_lr)
 
     def normalization(self) -> dict:
         """normalization.json: the observation transform (stateless)."""
