@@ -217,6 +217,14 @@ def test_cli_resume_of_an_ssac_run_as_sac_refuses_and_leaves_the_run(tmp_path, s
     assert json.loads((out / "eval.json").read_text()) == {"mine": 1}
 
 
+def test_cli_resume_on_another_system_refuses(tmp_path, sac_checkpoint, capsys):
+    out = tmp_path / "run"
+    shutil.copytree(sac_checkpoint, out / "checkpoint")
+    with pytest.raises(SystemExit):
+        main(["train", "sac", "pendulum", "--out", str(out), "--resume", "--steps", "800", *SAC_FLAGS])
+    assert "was trained on system 'acrobot', not 'pendulum'" in capsys.readouterr().err
+
+
 def test_ars_load_refuses_a_sac_checkpoint(sac_checkpoint):
     with pytest.raises(CheckpointError, match="damaged or not an ARS checkpoint"):
         ARS.load(sac_checkpoint)

@@ -18,7 +18,7 @@ from typing import Any, Callable
 
 from .. import io
 from ..learn import ARS, SAC, SSAC, ARSConfig, SACConfig, SSACConfig
-from ..learn.checkpoint import newest_checkpoint, read_json
+from ..learn.checkpoint import CheckpointError, newest_checkpoint, read_json
 from ..learn.run import describe_refused, resume_changes
 from ..systems import load
 
@@ -221,7 +221,7 @@ def train_and_evaluate(algorithm: str, system: str, out: str | Path | None = Non
                           command, report, force, overwrite)
     if init is not None:
         raise ValueError("--init applies to ars only")
-    load(system)  # a clear error for an unknown system name, before any work
+    system_name = load(system).name  # a clear error for an unknown system name, before any work
     config = make_config(algorithm, variant or "hybridctl", **settings)
     out = Path(out) if out is not None else default_run_dir(algorithm, system, settings.get("seed", 0))
     prepare_run_folder(out, resume, overwrite)
@@ -229,6 +229,10 @@ def train_and_evaluate(algorithm: str, system: str, out: str | Path | None = Non
     found = newest_run_checkpoint(out, strict=not force) if resume else None
     if found is not None:
         recorded = read_json(found / "config.json")
+        trained_on = (recorded.get("system") or {}).get("name")
+        if trained_on != system_name and not force:
+            raise CheckpointError(f"cannot resume: checkpoint {found} was trained on system {trained_on!r}, not "
+                                  f"{system_name!r} (--force resumes it on its own system {trained_on!r})")
         given = dict(settings)
         if variant is not None and algorithm == "ssac":
             run_variant = recorded.get("config", {}).get("variant_name", "hybridctl")

@@ -5,7 +5,8 @@ A checkpoint is ONE directory::
     model.pt            torch.save of plain tensors / dicts / numbers only
                         (network and optimizer state dicts, log alpha, RNG state);
                         read back with ``torch.load(..., weights_only=True)``
-    config.json         the full algorithm config, system name and spec overrides, versions
+    config.json         the algorithm, its full config, the system (name, spec overrides, the
+                        resolved spec values and their hash: :func:`system_record`), versions
     normalization.json  observation normalisation ({"type": "none"} when there is none)
     progress.json       env steps, episodes, counters, recent returns, env RNG state
     replay.pt           optional: the replay and needle buffers (oldest first)
@@ -19,6 +20,12 @@ target, fsyncs the files, renames an existing ``<path>`` to ``<path>.bak-XXXX``,
 renames the new directory into place and only then removes the backup. A crash at
 any point leaves either the old or the new checkpoint complete on disk (between the
 two renames, only the backup: :func:`resolve_checkpoint_dir` finds it).
+
+Loading checks what the checkpoint was made by and on: :func:`check_algorithm` (SAC does
+not load an SSAC checkpoint), :func:`check_plant` (another system, or the same system with
+other spec values, is refused naming each differing value; a checkpoint from before the
+spec hash was recorded is compared by name and spec overrides, with a warning). Both take
+``force=True`` to load anyway, with a warning.
 """
 
 from __future__ import annotations

@@ -14,8 +14,13 @@ tuple of :class:`Saved` entries), and writes only its algorithm: the loop inside
   :meth:`Learner.checkpoint_meta`), ``normalization.json``, ``progress.json`` and the
   bulky files (replay, gate data) that only a resumed run needs;
 * :meth:`Learner.run` -- the run context: torch threads, ``resume=True`` (newest
-  checkpoint in ``log_dir``), the log, one progress bar, callbacks, the final
-  checkpoint on success (none after an error: the last good one stays intact);
+  checkpoint in ``log_dir``; another algorithm's or plant's, an incomplete one or a
+  missing replay / gate data file is an error unless ``force``), the log, one progress
+  bar, callbacks, checkpoints by wall time (``config.checkpoint_minutes``, through
+  :meth:`Run.checkpoint_if_due`), the final checkpoint on success (none after an error:
+  the last good one stays intact);
+* :func:`resume_changes` -- the resume policy: which config fields a resume may change
+  (:data:`RESUME_APPLIED`) and which it refuses;
 * :func:`check_finite` -- the NaN guard (FloatingPointError before a bad step is applied);
 * :class:`EvalResult` -- what ``evaluate`` returns: typed fields and a plain dict;
 * :class:`Callback` -- hooks that receive the learner;

@@ -366,7 +366,8 @@ class SAC(VectorEnvAgent):
             callback: a :class:`~hybridctl.learn.run.Callback`, a list of them, or a
                 plain ``f(agent)`` called after every update round; False stops training.
             log_dir: where ``progress.csv``, ``training_curves.png``, the checkpoints
-                ``checkpoint/`` (every ``checkpoint_every`` env steps) and ``final/``
+                ``checkpoint/`` (every ``checkpoint_every`` env steps and at least every
+                ``checkpoint_minutes`` of wall time) and ``final/``
                 (at the end) go; TensorBoard scalars in ``tb/`` if available. None: no files.
             resume: continue from the newest checkpoint in ``log_dir`` (networks,
                 optimizers, counters, RNG states and, if it was saved, the replay). The
