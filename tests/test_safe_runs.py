@@ -314,6 +314,29 @@ def test_resume_refuses_a_missing_bulky_file_unless_forced(tmp_path, sac_checkpo
     assert (run / "final").is_dir()
 
 
+def test_a_checkpoint_saved_without_replay_resumes_saying_so(tmp_path):
+    SAC("acrobot", **SAC_TINY).save(tmp_path / "run" / "checkpoint")          # include_replay=False
+    assert "replay.pt" not in json.loads((tmp_path / "run" / "checkpoint" / "config.json").read_text())["files"]
+    agent = SAC.load(tmp_path / "run" / "checkpoint")
+    with pytest.warns(UserWarning, match="was saved without replay.pt .*starts without replay, needle"):
+        agent.learn(total_steps=8, log_dir=tmp_path / "run", resume=True, progress=False)
+
+
+def test_cli_resume_without_gate_data_refuses_before_training_and_force_continues(tmp_path, ssac_checkpoint,
+                                                                                   capsys):
+    out = tmp_path / "run"
+    shutil.copytree(ssac_checkpoint, out / "final")
+    (out / "final" / "gate_data.pt").unlink()
+    with pytest.raises(SystemExit):
+        main(["train", "ssac", "acrobot", "--resume", "--steps", "16", "--quiet", "--eval-episodes", "2",
+              "--out", str(out)])
+    captured = capsys.readouterr()
+    assert "missing file 'gate_data.pt' (gate_data, relabel_pool)" in captured.err and "resuming" not in captured.out
+    with pytest.warns(UserWarning, match="force: .* has no gate_data.pt"):
+        assert main(["train", "ssac", "acrobot", "--resume", "--force", "--steps", "16", "--quiet",
+                     "--eval-episodes", "2", "--out", str(out)]) == 0
+
+
 def test_resume_with_a_broken_checkpoint_is_an_error_naming_the_file(tmp_path, sac_checkpoint, capsys):
     """The user's case: final/ removed and checkpoint/model.pt deleted (was a TypeError)."""
     out = tmp_path / "run"

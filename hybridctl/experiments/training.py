@@ -242,6 +242,7 @@ def train_and_evaluate(algorithm: str, system: str, out: str | Path | None = Non
                 given = {**{k: v for k, v in preset.items() if base.get(k) != v}, **given}
         applied = resume_settings(found, recorded.get("config", {}), given, force, report)
         agent = algo.load(found, force=force, **applied)
+        agent.checkpointer.check_resumable(found, force)
         report(f"resuming {found} at {agent.num_timesteps} env steps"
                + (f", training to {agent.config.total_steps}" if "total_steps" in applied else ""))
     else:

@@ -520,6 +520,7 @@ class Checkpointer:
                 else:
                     torch.save(content, d / name)
             ckpt.write_json(d / CONFIG_FILE, {**learner.checkpoint_meta(), "format": ckpt.FORMAT_VERSION,
+                                              "files": sorted({*files, CONFIG_FILE, NORMALIZATION_FILE}),
                                               "versions": ckpt.versions()})
             ckpt.write_json(d / NORMALIZATION_FILE, learner.normalization())
 
@@ -566,7 +567,7 @@ class Checkpointer:
             if not item.restore or (item.bulky and not bulky):
                 continue
             if item.file not in cache:
-                cache[item.file] = self._read(found, item.file, force)
+                cache[item.file] = self._read(found, item.file, force, meta)
             content = cache[item.file]
             if content is None:  # a bulky file that was not saved
                 continue
@@ -585,17 +586,50 @@ class Checkpointer:
         learner.after_restore(found, meta, bulky)
         return found
 
-    def _read(self, found: Path, name: str, force: bool = False):
+    def missing_bulky(self, found: Path, meta: dict) -> list[tuple[str, bool]]:
+        """The bulky files (replay, gate data) the checkpoint at ``found`` lacks, each with whether it
+        should be there: config.json's ``files`` lists what was written (older checkpoints: the
+        bulky files are expected unless their config had ``save_replay`` False)."""
+        written = meta.get("files")
+        out = []
+        for name in dict.fromkeys(i.file for i in self.learner.saved if i.bulky):
+            if not (found / name).is_file():
+                expected = name in written if isinstance(written, list) else \
+                    bool((meta.get("config") or {}).get("save_replay", True))
+                out.append((name, expected))
+        return out
+
+    def check_resumable(self, path: str | Path, force: bool = False) -> Path:
+        """Raise :class:`CheckpointError` when a resume from ``path`` would lack a replay / gate data
+        file the checkpoint should hold (``force``: no error; the resume then says so)."""
+        found = ckpt.resolve_checkpoint_dir(path)
+        meta = ckpt.read_json(found / CONFIG_FILE)
+        for name, expected in self.missing_bulky(found, meta if isinstance(meta, dict) else {}):
+            if expected and not force:
+                raise CheckpointError(self._missing_message(found, name))
+        return found
+
+    def _missing_message(self, found: Path, name: str) -> str:
+        return (f"cannot resume from {found}: missing file {name!r} ({', '.join(self._entries(name))}); a resumed run "
+                f"without it would not be the same run. --force (force=True) resumes without it")
+
+    def _entries(self, name: str) -> list[str]:
+        return [i.attr.lstrip("_") for i in self.learner.saved if i.file == name]
+
+    def _read(self, found: Path, name: str, force: bool = False, meta: dict | None = None):
         path = found / name
         bulky = name not in ckpt.REQUIRED_FILES
-        keys = [i.key or name for i in self.learner.saved if i.file == name]
+        keys = self._entries(name)
         if not path.is_file():
             if not bulky:
                 raise CheckpointError(f"checkpoint {found} is incomplete: missing file {name!r}")
+            expected = dict(self.missing_bulky(found, meta or {})).get(name, True)
+            if not expected:  # saved without it on purpose (save_replay=False, save(include_replay=False))
+                warnings.warn(f"{found} was saved without {name} (save_replay=False or save(include_replay=False)): "
+                              f"the resumed run starts without {', '.join(keys)}", stacklevel=4)
+                return None
             if not force:
-                raise CheckpointError(
-                    f"cannot resume from {found}: missing file {name!r} ({', '.join(keys)}); a resumed run without it "
-                    f"would not be the same run. --force (force=True) resumes without it")
+                raise CheckpointError(self._missing_message(found, name))
             warnings.warn(f"force: {found} has no {name}: the resumed run starts without {', '.join(keys)}",
                           stacklevel=4)
             return None
