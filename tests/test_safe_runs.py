@@ -25,7 +25,7 @@ import pytest
 
 from hybridctl import systems
 from hybridctl.cli import main
-from hybridctl.experiments import PRETRAINED_ACROBOT, RunFolderError, mesh_report, prepare_run_folder
+from hybridctl.experiments import PRETRAINED_ACROBOT, RunFolderError, make_config, mesh_report, prepare_run_folder
 from hybridctl.learn import ARS, SAC, SSAC, CheckpointError, load_controller
 from hybridctl.learn.checkpoint import spec_hash, system_record
 from hybridctl.learn.gate import GateNet
@@ -99,12 +99,12 @@ def same_rows(a: list[dict], b: list[dict]) -> bool:
 def test_kill_9_ssac_then_resume_continues_from_the_checkpoint(tmp_path):
     """A real SSAC run checkpointing by wall time only (checkpoint_every 0), killed mid-run, resumed."""
     out = tmp_path / "ssac"
-    flags = ["--steps", "4000", "--checkpoint-every", "0", "--checkpoint-minutes", "0.01", *SSAC_FLAGS,
+    flags = ["--steps", "2400", "--checkpoint-every", "0", "--checkpoint-minutes", "0.01", *SSAC_FLAGS,
              "--out", str(out)]
     proc = start("train", "ssac", "acrobot", *flags)
     kill_when(proc, lambda: (progress_of(out / "checkpoint", "env_steps") or 0) >= 800)
     at = progress_of(out / "checkpoint", "env_steps")
-    assert 800 <= at < 4000 and not (out / "final").exists()
+    assert 800 <= at < 2400 and not (out / "final").exists()
     before = [r for r in read_rows(out / "progress.csv") if r["env_steps"] <= at]
     assert [r["env_steps"] for r in before] == list(range(400, at + 1, 400))
     proc = subprocess.run([sys.executable, "-m", "hybridctl.cli", "train", "ssac", "acrobot", "--resume", *flags],
@@ -113,9 +113,9 @@ def test_kill_9_ssac_then_resume_continues_from_the_checkpoint(tmp_path):
     assert f"resuming {out / 'checkpoint'} at {at} env steps" in proc.stdout
     rows = read_rows(out / "progress.csv")
     assert same_rows([r for r in rows if r["env_steps"] <= at], before)      # no row before the checkpoint lost
-    assert [r["env_steps"] for r in rows] == list(range(400, 4001, 400))     # and none twice
-    assert json.loads((out / "eval.json").read_text())["env_steps"] == 4000
-    assert json.loads((out / "final" / "progress.json").read_text())["env_steps"] == 4000
+    assert [r["env_steps"] for r in rows] == list(range(400, 2401, 400))     # and none twice
+    assert json.loads((out / "eval.json").read_text())["env_steps"] == 2400
+    assert json.loads((out / "final" / "progress.json").read_text())["env_steps"] == 2400
     assert json.loads((out / "final" / "config.json").read_text())["algorithm"] == "SSAC"
 
 
@@ -451,6 +451,16 @@ def test_mesh_refuses_a_folder_that_holds_a_run(tmp_path, capsys):
         mesh_report("rimless-wheel", training, box_size=0.01, progress=False, resume=True)
 
 
+def test_a_progress_row_cut_short_by_a_kill_is_dropped_on_resume(tmp_path):
+    from hybridctl.learn.run import RunLog
+
+    (tmp_path / "progress.csv").write_text("epoch,x\n1,0.5\n2,0.25\n3")     # the kill cut "30,..." to "3"
+    log = RunLog(tmp_path, ("epoch", "x"), "epoch", upto=10)
+    log.close()
+    assert [r["epoch"] for r in log.rows] == [1, 2]
+    assert (tmp_path / "progress.csv").read_text().splitlines() == ["epoch,x", "1,0.5", "2,0.25"]
+
+
 # ==================================================================== checkpoints by wall time
 
 def test_checkpoints_by_time_in_the_skeleton(tmp_path):
@@ -463,6 +473,8 @@ def test_checkpoints_by_time_in_the_skeleton(tmp_path):
     assert not (tmp_path / "off" / "checkpoint").exists() and (tmp_path / "off" / "final").is_dir()
     with pytest.raises(ValueError, match="checkpoint_minutes must be a finite number >= 0"):
         ARS("Pendulum-v1", checkpoint_minutes=-1, **small).learn(epochs=1, log_dir=tmp_path / "bad", progress=False)
+    with pytest.raises(ValueError, match="checkpoint_minutes must be a finite number >= 0"):
+        make_config("ssac", checkpoint_minutes=math.inf)      # before any work (the gate's warm start)
     agent = SAC("pendulum", **{**SAC_TINY, "checkpoint_every": 0}, checkpoint_minutes=1e-9)
     agent.learn(total_steps=64, log_dir=tmp_path / "sac", progress=False)
     assert progress_of(tmp_path / "sac" / "checkpoint", "env_steps") == 56   # the last step before the end

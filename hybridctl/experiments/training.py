@@ -19,7 +19,7 @@ from typing import Any, Callable
 from .. import io
 from ..learn import ARS, SAC, SSAC, ARSConfig, SACConfig, SSACConfig
 from ..learn.checkpoint import CheckpointError, newest_checkpoint, read_json
-from ..learn.run import describe_refused, resume_changes
+from ..learn.run import checkpoint_minutes, describe_refused, resume_changes
 from ..systems import load
 
 ALGORITHMS = {"sac": SAC, "ssac": SSAC, "ars": ARS}
@@ -68,6 +68,7 @@ def make_config(algorithm: str, variant: str = "hybridctl", **settings) -> SACCo
     except TypeError as exc:  # an unknown field name
         raise ValueError(f"{config_class.__name__}: {exc}") from exc
     config.validate()
+    checkpoint_minutes(config)  # the skeleton's time cadence: a bad value fails before any work
     return config
 
 

@@ -49,6 +49,7 @@ import time
 import warnings
 from collections.abc import Iterable
 from dataclasses import dataclass
+from io import StringIO
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
@@ -58,7 +59,8 @@ import torch
 from . import checkpoint as ckpt
 from .checkpoint import CONFIG_FILE, MODEL_FILE, NORMALIZATION_FILE, PROGRESS_FILE, CheckpointError
 
-__all__ = ["Learner", "Saved", "check_fields", "RESUME_APPLIED", "resume_changes", "describe_refused", "Checkpointer", "RunLog", "Run", "Callback", "CallbackList", "EvalResult",
+__all__ = ["Learner", "Saved", "check_fields", "RESUME_APPLIED", "resume_changes", "describe_refused",
+           "checkpoint_minutes", "Checkpointer", "RunLog", "Run", "Callback", "CallbackList", "EvalResult",
            "check_finite", "progress_bar", "seeded", "set_torch_threads", "MODEL_FILE", "PROGRESS_FILE"]
 
 PROGRESS_CSV = "progress.csv"
@@ -190,6 +192,16 @@ def describe_refused(found, refused: list[tuple[str, Any, Any]]) -> str:
     return (f"--resume from {found} with changed settings that change the algorithm: {fields}. A resumed run keeps "
             f"its recorded values for these (only {', '.join(RESUME_APPLIED)} may change); drop them, start a new run "
             f"(another --out, or --overwrite), or pass --force to apply them anyway")
+
+
+def checkpoint_minutes(config) -> float:
+    """``config.checkpoint_minutes`` (0 when the config has none), ValueError unless a finite number >= 0."""
+    minutes = getattr(config, "checkpoint_minutes", 0.0)
+    if (not isinstance(minutes, (int, float, np.number)) or isinstance(minutes, bool) or not math.isfinite(minutes)
+            or minutes < 0):
+        raise ValueError(f"{type(config).__name__}.checkpoint_minutes must be a finite number >= 0 "
+                         f"(0: no checkpoints by time), got {minutes!r}")
+    return float(minutes)
 
 
 # ============================================================================ evaluation results
@@ -382,7 +394,10 @@ class RunLog:
             return []
         if not self.path.is_file():  # a new folder for a learner that trained before: its rows so far
             return [dict(r) for r in fallback_rows if r.get(self.key, math.inf) <= upto]
-        with open(self.path, newline="") as fh:
+        text = self.path.read_text()
+        if text and not text.endswith("\n"):  # a row cut short by a kill: dropped (its key may be cut too)
+            text = text[:text.rfind("\n") + 1]
+        with StringIO(text, newline="") as fh:
             reader = csv.DictReader(fh)
             if self.key not in (reader.fieldnames or []):
                 raise ValueError(f"{self.path} has no {self.key!r} column: not a progress log of this learner; "
@@ -765,11 +780,7 @@ class Learner:
         checkpoint written.
         """
         log_dir = Path(log_dir) if log_dir is not None else None
-        minutes = getattr(self.config, "checkpoint_minutes", 0.0)
-        if (not isinstance(minutes, (int, float, np.number)) or isinstance(minutes, bool) or not math.isfinite(minutes)
-                or minutes < 0):
-            raise ValueError(f"{type(self.config).__name__}.checkpoint_minutes must be a finite number >= 0 "
-                             f"(0: no checkpoints by time), got {minutes!r}")
+        minutes = checkpoint_minutes(self.config)
         previous_threads = set_torch_threads(getattr(self.config, "torch_threads", 1))
         run = None
         try:
