@@ -33,6 +33,7 @@ from typing import Sequence
 import numpy as np
 import scipy.sparse as sp
 
+from ..io import atomic_write
 from ..parallel import make_backend
 from .markov import MFPTResult, _krylov_solve, absorbing_mfpt, states_that_can_fail_surely
 from .mesh import box_keys
@@ -165,17 +166,32 @@ class _Keys:
 
 def _save_checkpoint(path: Path, mesh_states: list, successors: list, box_size: float, n_disturbances: int,
                      wall_time: float = 0.0) -> None:
-    """Write the mesh so far to ``path`` (.npz) atomically: a temporary file, then a rename."""
-    tmp = path.with_name(path.name + ".tmp.npz")
-    np.savez(tmp, states=np.array(mesh_states), box_size=box_size, n_disturbances=n_disturbances, wall_time=wall_time,
-             successors=np.array(successors, dtype=np.int64).reshape(len(successors), n_disturbances))
-    os.replace(tmp, path)
+    """Write the mesh so far to ``path`` (.npz) atomically (:func:`hybridctl.io.atomic_write`: a
+    temporary file, fsynced, then a rename)."""
+    states = np.array(mesh_states)
+    succ = np.array(successors, dtype=np.int64).reshape(len(successors), n_disturbances)
+    atomic_write(path, lambda f: np.savez(f, states=states, box_size=box_size, n_disturbances=n_disturbances,
+                                          wall_time=wall_time, successors=succ))
+
+
+def _load_checkpoint(path: Path):
+    """The arrays of a mesh checkpoint, ValueError naming the file when it is damaged."""
+    try:
+        saved = np.load(path, allow_pickle=False)
+        data = {k: saved[k] for k in saved.files}
+    except Exception as exc:  # noqa: BLE001 - re-raised with the file named
+        raise ValueError(f"mesh checkpoint {path} is damaged ({type(exc).__name__}: {exc}); remove it to start "
+                         f"anew") from exc
+    missing = [k for k in ("states", "successors", "box_size", "n_disturbances") if k not in data]
+    if missing:
+        raise ValueError(f"mesh checkpoint {path} is damaged: it lacks {', '.join(missing)}")
+    return data
 
 
 def build_mesh(section_map: SectionMap, seeds, disturbances, box_size: float, mean=None, std=None,
                max_states: int = 1_000_000, backend: str = "serial", workers: int | None = None,
                batch_size: int = 256, checkpoint: str | os.PathLike | None = None, checkpoint_every: int = 20,
-               resume: bool = False, progress: bool = True) -> ReachableMesh:
+               resume: bool = False, progress: bool = True, checkpoint_minutes: float = 5.0) -> ReachableMesh:
     """Reachable-state mesh of ``section_map`` from ``seeds`` under ``disturbances`` (thesis Alg. 7).
 
     ``disturbances``: a :class:`FiniteDisturbances`, anything with ``finite_set()`` (e.g.
@@ -183,6 +199,11 @@ def build_mesh(section_map: SectionMap, seeds, disturbances, box_size: float, me
     side of a box in normalised units, ``(state - mean) / std`` (default mean 0, std 1: the
     state's own units). ``max_states``: a cap; when reached, building stops and the mesh is
     marked incomplete. Seeds that fail or are non-finite raise ValueError.
+
+    ``checkpoint``: a .npz file the mesh so far is written to (atomically) every
+    ``checkpoint_every`` batches and at least every ``checkpoint_minutes`` of wall time (0:
+    by batches only), and at the end; ``resume=True`` continues from it (a damaged one, or
+    one built with another box size or disturbance count, raises ValueError naming it).
     """
     from tqdm.auto import tqdm
 
@@ -209,13 +230,16 @@ def build_mesh(section_map: SectionMap, seeds, disturbances, box_size: float, me
     mesh_states: list[np.ndarray] = []
     successors: list[np.ndarray] = []
     earlier = 0.0
+    if not (isinstance(checkpoint_minutes, (int, float)) and math.isfinite(checkpoint_minutes)
+            and checkpoint_minutes >= 0):
+        raise ValueError(f"checkpoint_minutes must be a finite number >= 0, got {checkpoint_minutes!r}")
     if resume and path is not None and path.exists():
-        saved = np.load(path, allow_pickle=False)
+        saved = _load_checkpoint(path)
         if float(saved["box_size"]) != box_size or int(saved["n_disturbances"]) != len(values):
             raise ValueError(f"checkpoint {path} was built with box_size {float(saved['box_size']):g} and "
                              f"{int(saved['n_disturbances'])} disturbances, not {box_size:g} and {len(values)}")
         mesh_states = list(saved["states"])
-        earlier = float(saved["wall_time"]) if "wall_time" in saved.files else 0.0   # time of the earlier parts
+        earlier = float(saved["wall_time"]) if "wall_time" in saved else 0.0   # time of the earlier parts
         successors = list(saved["successors"])
         for i, k in enumerate(keys.keys(np.array(mesh_states))):
             keys.ids.setdefault(k, i + 1)
@@ -232,6 +256,7 @@ def build_mesh(section_map: SectionMap, seeds, disturbances, box_size: float, me
     complete = True
     bar = tqdm(total=len(mesh_states), initial=len(successors), desc="mesh", unit="state", disable=not progress)
     pool = make_backend(backend, workers)
+    last_checkpoint = time.monotonic()
     try:
         batches = 0
         while len(successors) < len(mesh_states):
@@ -259,9 +284,11 @@ def build_mesh(section_map: SectionMap, seeds, disturbances, box_size: float, me
             bar.total = len(mesh_states)
             bar.update(len(successors) - bar.n)
             batches += 1
-            if path is not None and (batches % checkpoint_every == 0 or not complete):
+            by_time = checkpoint_minutes > 0 and time.monotonic() - last_checkpoint >= 60.0 * checkpoint_minutes
+            if path is not None and (batches % checkpoint_every == 0 or by_time or not complete):
                 _save_checkpoint(path, mesh_states, successors, box_size, len(values),
                                  earlier + time.perf_counter() - start)
+                last_checkpoint = time.monotonic()
             if not complete:
                 break
     finally:

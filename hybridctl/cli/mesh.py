@@ -25,6 +25,13 @@ def add_parser(sub) -> None:
                    help="where section-map steps run: this process, local worker processes, or Ray")
     p.add_argument("--workers", type=positive(int), help="worker processes (default: all cores)")
     p.add_argument("--resume", action="store_true", help="continue from out/mesh_checkpoint.npz")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace the run the --out folder holds (without it, or --resume, such a folder is refused)")
+    p.add_argument("--checkpoint-every", type=positive(int), default=20, metavar="BATCHES",
+                   help="write out/mesh_checkpoint.npz every this many batches (default 20)")
+    p.add_argument("--checkpoint-minutes", type=float, default=5.0, metavar="MINUTES",
+                   help="and at least every this many minutes of wall time, so a kill loses minutes at most "
+                        "(0: by batches only; default 5)")
     p.add_argument("--out", default="runs/mesh", help="output folder")
     add_quiet_flag(p)
     add_debug_flag(p)
@@ -50,7 +57,8 @@ def run_mesh(args: argparse.Namespace) -> int:
                          slope_std=args.slope_std, disturbances=args.disturbances, max_states=args.max_states,
                          monte_carlo=args.monte_carlo, sizes=args.sizes, backend=args.backend,
                          workers=args.workers, resume=args.resume, progress=not args.quiet,
-                         command=args.command_line)
+                         command=args.command_line, overwrite=args.overwrite,
+                         checkpoint_every=args.checkpoint_every, checkpoint_minutes=args.checkpoint_minutes)
     if "error" in report:
         print(report["error"])
         return USAGE_ERROR

@@ -13,6 +13,7 @@ import argparse
 import dataclasses
 import inspect
 import json
+import textwrap
 import types
 import typing
 from typing import Any, Callable
@@ -20,6 +21,7 @@ from typing import Any, Callable
 from ..analysis.postprocess import FORMS as POSTPROCESS_FORMS
 from ..analysis.postprocess import KINDS as POSTPROCESS_KINDS
 from ..experiments import ALGORITHMS, SSAC_VARIANTS, train_and_evaluate
+from ..learn.run import RESUME_APPLIED
 from ..learn.sac import OBS_TRANSFORMS
 from ..learn.ssac import REWARDS
 from ..parallel import BACKENDS
@@ -261,7 +263,15 @@ def add_common_flags(parser: argparse.ArgumentParser, algorithm: str) -> set[str
     run = parser.add_argument_group("run")
     actions = [
         run.add_argument("--out", metavar="DIR", help="run folder (default runs/train/ALGO-SYSTEM-sSEED)"),
-        run.add_argument("--resume", action="store_true", help="continue from the run folder's newest checkpoint"),
+        run.add_argument("--resume", action="store_true", help="continue from the run folder's newest checkpoint "
+                         "(see 'Resuming' below)"),
+        run.add_argument("--force", action="store_true",
+                         help="with --resume: continue despite another algorithm or plant (spec values), changed "
+                              "math settings, or a missing/damaged replay.pt or gate_data.pt (each is reported); "
+                              "with --init: start from another env's checkpoint"),
+        run.add_argument("--overwrite", action="store_true",
+                         help="replace the run the --out folder holds (without it, or --resume, such a folder is "
+                              "refused)"),
         run.add_argument("--eval-episodes", type=positive(int), metavar="N",
                          help="episodes in eval.json (default " + ("5" if algorithm == "ars" else "100") + ")"),
         run.add_argument("--set", action="append", metavar="KEY=VALUE",
@@ -269,9 +279,9 @@ def add_common_flags(parser: argparse.ArgumentParser, algorithm: str) -> set[str
     ]
     if algorithm == "ssac":
         actions.append(run.add_argument(
-            "--variant", choices=SSAC_VARIANTS, default="hybridctl",
+            "--variant", choices=SSAC_VARIANTS, default=None,
             help="SSAC settings: hybridctl's defaults, the thesis' throughout (paper), or the author's code "
-                 "(author); field flags change the chosen preset"))
+                 "(author); field flags change the chosen preset (default: hybridctl; with --resume: the run's)"))
     if algorithm == "ars":
         actions.append(run.add_argument(
             "--init", metavar="CHECKPOINT", help="start from this checkpoint's policy and normalisation (the "
@@ -294,8 +304,7 @@ def add_parser(sub) -> None:
         q = learners.add_parser(
             algorithm, help=TITLES[algorithm], description=TITLES[algorithm] + ".",
             usage=f"%(prog)s SYSTEM [--FIELD VALUE ...] [--set KEY=VALUE ...] [--out DIR] [--resume] ...",
-            epilog=f"Every {config_name} field is a flag. With --resume the checkpoint's settings hold"
-                   + (" (except --steps)." if algorithm != "ars" else "; given flags replace them."))
+            epilog=f"Every {config_name} field is a flag.\n\n" + textwrap.fill(resume_help(algorithm), 100))
         add_system_argument(q, SYSTEM_HELP[algorithm])
         options[algorithm] = add_common_flags(q, algorithm) | add_config_flags(q, algorithm)
         q.set_defaults(func=run_train)
@@ -304,13 +313,34 @@ def add_parser(sub) -> None:
         q.unknown_flag_hint = _unknown_flag_hint(algorithm, options)
 
 
+def resume_help(algorithm: str) -> str:
+    """The resume policy of ``algorithm``, as ``hybridctl train ALGO --help`` prints it."""
+    fields = {f.name for f in dataclasses.fields(ALGORITHMS[algorithm].config_class)}
+    applied = ", ".join(name for name in RESUME_APPLIED if name in fields)
+    math_fields = "step_size, noise, n_directions, policy, postprocess, seed" if algorithm == "ars" else \
+        "lr, gamma, network sizes, batch sizes, seed, num_envs" + (", the preset" if algorithm == "ssac" else "")
+    bulky = "" if algorithm == "ars" else ", replay.pt" + (", gate_data.pt" if algorithm == "ssac" else "")
+    text = (f"Resuming (--resume): the run continues from the newest of OUT/checkpoint and OUT/final, with the "
+            f"checkpoint's settings. Given values of the run settings are applied: {applied}. Any other field "
+            f"given with a value other than the recorded one ({math_fields}, ...) changes the algorithm's math: "
+            f"the resume refuses, naming the field with its recorded and given value; --force applies it anyway. "
+            f"A checkpoint of another algorithm or plant, or a missing or damaged file (model.pt, config.json, "
+            f"normalization.json, progress.json{bulky}) is refused too, naming what differs or the file")
+    text += "; --force continues without replay.pt" + (" / gate_data.pt" if algorithm == "ssac" else "") + \
+        ", saying so." if bulky else "."
+    return text + (" A new run refuses a folder that already holds a run unless --resume or --overwrite. A "
+                   "checkpoint is written every checkpoint_every " + ("epochs" if algorithm == "ars" else "env steps")
+                   + " and at least every checkpoint_minutes of wall time.")
+
+
 @cli_errors
 def run_train(args: argparse.Namespace) -> int:
     """Train, checkpoint, evaluate and print the evaluation (exit 3 when training diverged)."""
     run = train_and_evaluate(args.algorithm, args.system, out=args.out, settings=config_settings(args),
-                             variant=getattr(args, "variant", "hybridctl"), resume=args.resume,
+                             variant=getattr(args, "variant", None), resume=args.resume,
                              init=getattr(args, "init", None), eval_episodes=args.eval_episodes,
-                             progress=not args.quiet, command=args.command_line)
+                             progress=not args.quiet, command=args.command_line, force=args.force,
+                             overwrite=args.overwrite)
     result, out = run.evaluation, run.out
     if args.algorithm == "ars":
         dims = result["mean_dimensions"]

@@ -19,6 +19,7 @@ from .. import io, viz
 from ..analysis import (GaussianDisturbance, RimlessWheel, build_mesh, mesh_sizes, monte_carlo_mfpt,
                         reachable_dimension)
 from ..drake import DrakeRimlessWheelMap
+from .training import MESH_MARKERS, prepare_run_folder
 
 MESH_MAPS = {"rimless-wheel": "analytic rimless wheel on rough terrain (Byl & Tedrake 2009)",
              "drake-rimless-wheel": "Drake's RimlessWheel, apex found by a witness function"}
@@ -38,7 +39,8 @@ def mesh_report(map_name: str = "rimless-wheel", out: str | Path = "runs/mesh", 
                 slope_mean: float = 0.15, slope_std: float = 0.06, disturbances: int = 25,
                 max_states: int = 1_000_000, monte_carlo: int = 0, sizes: Sequence[float] | None = None,
                 backend: str = "serial", workers: int | None = None, resume: bool = False,
-                progress: bool = True, command: str | None = None) -> dict:
+                progress: bool = True, command: str | None = None, overwrite: bool = False,
+                checkpoint_every: int = 20, checkpoint_minutes: float = 5.0) -> dict:
     """Mesh the states a map reaches from its rolling gait under Gaussian slopes; write the report.
 
     Seeds the mesh with the wheel's fixed point at ``slope_mean``; the mesh uses ``disturbances``
@@ -52,6 +54,12 @@ def mesh_report(map_name: str = "rimless-wheel", out: str | Path = "runs/mesh", 
             continuous slopes and with the mesh's slope set.
         sizes: further box sizes to mesh at (thesis Table 5.1); two complete ones give
             ``reachable_dimension``.
+        resume: continue the mesh from ``out/mesh_checkpoint.npz``.
+        overwrite: replace the run ``out`` holds. Without it (or ``resume``) a folder that
+            already holds a run (``mesh.npz``, ``mfpt.json``, a mesh checkpoint, a training
+            run) raises :class:`~hybridctl.experiments.RunFolderError`.
+        checkpoint_every, checkpoint_minutes: the mesh checkpoint's cadence in batches and in
+            minutes of wall time (at least every 5 minutes by default; 0: by batches only).
 
     Returns:
         The report: ``mesh``, ``mfpt`` (with ``from_seed``), ``monte_carlo``, ``mesh_sizes``,
@@ -65,10 +73,10 @@ def mesh_report(map_name: str = "rimless-wheel", out: str | Path = "runs/mesh", 
     seed = RimlessWheel().fixed_point(slope_mean)
     if not math.isfinite(seed):
         raise ValueError(f"--slope-mean {slope_mean} has no rolling gait to seed the mesh from")
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = prepare_run_folder(out, resume, overwrite, markers=MESH_MARKERS)
     mesh = build_mesh(section_map, [[seed]], slopes, box_size, max_states=max_states, backend=backend,
-                      workers=workers, checkpoint=out / "mesh_checkpoint.npz", resume=resume, progress=progress)
+                      workers=workers, checkpoint=out / "mesh_checkpoint.npz", resume=resume, progress=progress,
+                      checkpoint_every=checkpoint_every, checkpoint_minutes=checkpoint_minutes)
     report = {} if command is None else {"command": command}
     report.update({"map": map_name, "seed_state": [seed], "mesh": mesh.summary(),
                    "disturbance": {"slope_mean": slope_mean, "slope_std": slope_std, "count": disturbances}})

@@ -9,6 +9,7 @@ it with checkpoints and logs in a run folder, evaluate it and write ``eval.json`
 from __future__ import annotations
 
 import inspect
+import shutil
 import time
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field, is_dataclass
@@ -17,7 +18,8 @@ from typing import Any, Callable
 
 from .. import io
 from ..learn import ARS, SAC, SSAC, ARSConfig, SACConfig, SSACConfig
-from ..learn.checkpoint import newest_checkpoint
+from ..learn.checkpoint import CheckpointError, newest_checkpoint, read_json
+from ..learn.run import checkpoint_minutes, describe_refused, resume_changes
 from ..systems import load
 
 ALGORITHMS = {"sac": SAC, "ssac": SSAC, "ars": ARS}
@@ -66,6 +68,7 @@ def make_config(algorithm: str, variant: str = "hybridctl", **settings) -> SACCo
     except TypeError as exc:  # an unknown field name
         raise ValueError(f"{config_class.__name__}: {exc}") from exc
     config.validate()
+    checkpoint_minutes(config)  # the skeleton's time cadence: a bad value fails before any work
     return config
 
 
@@ -74,10 +77,85 @@ def default_run_dir(algorithm: str, system: str, seed: int = 0) -> Path:
     return Path(f"runs/train/{algorithm}-{system.replace('/', '_')}-s{seed}")
 
 
-def newest_run_checkpoint(out: str | Path) -> Path | None:
-    """The newest checkpoint of a run folder (``checkpoint/`` or ``final/``), None if it has none."""
+def newest_run_checkpoint(out: str | Path, strict: bool = False) -> Path | None:
+    """The newest checkpoint of a run folder (``checkpoint/`` or ``final/``), None if it has none.
+
+    ``strict``: one that exists but is incomplete or damaged raises CheckpointError naming it.
+    """
     out = Path(out)
-    return newest_checkpoint([out / "checkpoint", out / "final"])
+    return newest_checkpoint([out / "checkpoint", out / "final"], strict=strict)
+
+
+class RunFolderError(ValueError):
+    """A run folder that a new run would overwrite, or an ``--out`` that is not a folder."""
+
+
+TRAIN_MARKERS = ("checkpoint", "final", "progress.csv", "eval.json")
+"""What makes a folder hold a training run."""
+MESH_MARKERS = ("mesh.npz", "mfpt.json", "mesh_checkpoint.npz", "transition_matrix.npz")
+"""What makes a folder hold a mesh run."""
+RUN_OUTPUTS = (*TRAIN_MARKERS, *MESH_MARKERS, "tb", "training_curves.png", "sparsity.png", "cumulative_mass.png",
+               "states.png", "mesh_sizes.png")
+"""What ``overwrite`` removes from a run folder before a new run (nothing else is touched)."""
+
+
+def _held_runs(out: Path) -> list[str]:
+    """The run outputs in ``out`` (checkpoint backups ``NAME.bak-*`` / ``.tmp-*`` count too)."""
+    found = []
+    for name in (*TRAIN_MARKERS, *MESH_MARKERS):
+        if (out / name).exists() or any(out.glob(f"{name}.bak-*")):
+            found.append(name)
+    return found
+
+
+def prepare_run_folder(out: str | Path, resume: bool = False, overwrite: bool = False,
+                       markers: tuple[str, ...] = TRAIN_MARKERS) -> Path:
+    """Check (and create) the folder of a new run, or of the run that ``resume`` continues.
+
+    A folder that already holds a run (a checkpoint, ``final/``, ``progress.csv``, ``eval.json``,
+    ``mesh.npz``, ``mfpt.json``, ...) is refused unless ``resume`` (continue that run; it must
+    be a run of this kind, ``markers``) or ``overwrite`` (its run outputs, :data:`RUN_OUTPUTS`,
+    are removed first). Raises :class:`RunFolderError` naming the folder and both options, or
+    when ``out`` is a file.
+    """
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise RunFolderError(f"--out {out} is a file, not a folder: give a folder for the run's outputs")
+    if resume and overwrite:
+        raise RunFolderError("--resume and --overwrite exclude each other: --resume continues the run in the folder, "
+                             "--overwrite replaces it")
+    held = _held_runs(out) if out.is_dir() else []
+    if held and overwrite:
+        for name in RUN_OUTPUTS:
+            for path in [out / name, *out.glob(f"{name}.bak-*"), *out.glob(f"{name}.tmp-*")]:
+                if path.is_dir() and not path.is_symlink():
+                    shutil.rmtree(path)
+                elif path.exists() or path.is_symlink():
+                    path.unlink()
+    elif held and resume:
+        other = [name for name in held if name not in markers]
+        if other and not any(name in markers for name in held):
+            raise RunFolderError(f"{out} holds another kind of run ({', '.join(other)}), not one that --resume can "
+                                 f"continue; choose another --out, or --overwrite to replace it")
+    elif held:
+        raise RunFolderError(f"{out} already holds a run ({', '.join(held)}); pass --resume to continue that run, "
+                             f"or --overwrite to replace it (or choose another --out)")
+    out.mkdir(parents=True, exist_ok=True)
+    return out
+
+
+def resume_settings(found: Path, recorded: dict, settings: dict, force: bool, report: Callable[[str], None]) -> dict:
+    """The ``settings`` a resume from ``found`` applies (see :data:`~hybridctl.learn.run.RESUME_APPLIED`):
+    run settings always, math settings equal to the recorded ones; changed math settings raise
+    ValueError naming each field with its recorded and given value, unless ``force`` (applied,
+    and reported)."""
+    take, refused = resume_changes(recorded, settings)
+    if refused and not force:
+        raise ValueError(describe_refused(found, refused))
+    for name, old, new in refused:
+        report(f"--force: resuming with {name}={new!r} (the checkpoint's run had {old!r})")
+        take[name] = new
+    return take
 
 
 def _as_record(result) -> dict:
@@ -97,53 +175,84 @@ def _learn_accepts(agent, name: str) -> bool:
 
 
 def train_and_evaluate(algorithm: str, system: str, out: str | Path | None = None, settings: dict | None = None,
-                       variant: str = "hybridctl", resume: bool = False, init: str | Path | None = None,
+                       variant: str | None = None, resume: bool = False, init: str | Path | None = None,
                        eval_episodes: int | None = None, progress: bool = True, command: str | None = None,
-                       report: Callable[[str], None] | None = print) -> TrainingRun:
+                       report: Callable[[str], None] | None = print, force: bool = False,
+                       overwrite: bool = False) -> TrainingRun:
     """Train ``algorithm`` on ``system``, checkpointing into ``out``; evaluate; write ``out/eval.json``.
 
     Args:
         algorithm: ``"sac"``, ``"ssac"`` (a system name) or ``"ars"`` (a gymnasium env id or a
             system name).
         out: the run folder (default :func:`default_run_dir`): ``progress.csv``, ``checkpoint/``,
-            ``final/``, ``eval.json`` (and for SAC/SSAC ``training_curves.png``).
-        settings: config fields to change (see :func:`make_config`); on ``resume`` SAC/SSAC take
-            only ``total_steps`` from them (the rest comes from the checkpoint), ARS all of them.
-        variant: SSAC's preset (``"hybridctl"``, ``"paper"``, ``"author"``).
-        resume: continue from the run folder's newest checkpoint (a new run when it has none).
+            ``final/``, ``eval.json`` (and for SAC/SSAC ``training_curves.png``). A folder that
+            already holds a run is refused unless ``resume`` or ``overwrite``
+            (:func:`prepare_run_folder`).
+        settings: config fields to change (see :func:`make_config`). On ``resume`` the run
+            settings (:data:`~hybridctl.learn.run.RESUME_APPLIED`: total_steps / epochs,
+            checkpoint and log cadence, eval episodes, tensorboard, threads, backend) are
+            applied; any other field given with another value than the checkpoint's refuses
+            the resume, naming it (``force`` applies it anyway).
+        variant: SSAC's preset (``"hybridctl"``, ``"paper"``, ``"author"``; None: hybridctl, or on
+            resume the run's own); on resume another preset than the run's refuses (``force``).
+        resume: continue from the run folder's newest checkpoint (a new run when it has none);
+            a checkpoint of another algorithm or plant, or an incomplete or damaged one (also a
+            missing replay.pt / gate_data.pt), refuses naming what differs or the file.
         init: ARS only: start from this checkpoint's policy and normalisation (the thesis trains
             750 identity epochs, then 250 with post-processing).
         eval_episodes: deterministic episodes in ``eval.json`` (default SAC/SSAC 100, ARS the
             config's ``eval_episodes``).
         command: the command line, recorded in ``eval.json``.
         report: called with each line of the run's account (default ``print``; None: silent).
+        force: resume despite another algorithm or plant, changed math settings, or a missing
+            replay / gate data file (each said in a warning or a report line).
+        overwrite: replace the run the folder holds (its run outputs are removed first).
 
     Raises:
-        ValueError: a bad setting or an unknown system; CheckpointError: an unreadable
-        checkpoint; FloatingPointError: training diverged (the last checkpoint stays intact).
+        ValueError: a bad setting, an unknown system, a folder holding another run
+        (:class:`RunFolderError`) or a refused resume; CheckpointError: an unreadable or
+        mismatched checkpoint; FloatingPointError: training diverged (the last checkpoint
+        stays intact).
     """
     report = report or _silent
     settings = dict(settings or {})
     algo = learner_class(algorithm)
     if algorithm == "ars":
-        return _train_ars(system, out, settings, variant, resume, init, eval_episodes, progress, command, report)
+        return _train_ars(system, out, settings, variant or "hybridctl", resume, init, eval_episodes, progress,
+                          command, report, force, overwrite)
     if init is not None:
         raise ValueError("--init applies to ars only")
-    load(system)  # a clear error for an unknown system name, before any work
-    config = make_config(algorithm, variant, **settings)
+    system_name = load(system).name  # a clear error for an unknown system name, before any work
+    config = make_config(algorithm, variant or "hybridctl", **settings)
     out = Path(out) if out is not None else default_run_dir(algorithm, system, settings.get("seed", 0))
+    prepare_run_folder(out, resume, overwrite)
     start = time.perf_counter()
-    found = newest_run_checkpoint(out) if resume else None
+    found = newest_run_checkpoint(out, strict=not force) if resume else None
     if found is not None:
-        agent = algo.load(found, **{k: v for k, v in settings.items() if k == "total_steps"})
-        report(f"resuming {found} at {agent.num_timesteps} env steps")
+        recorded = read_json(found / "config.json")
+        trained_on = (recorded.get("system") or {}).get("name")
+        if trained_on != system_name and not force:
+            raise CheckpointError(f"cannot resume: checkpoint {found} was trained on system {trained_on!r}, not "
+                                  f"{system_name!r} (--force resumes it on its own system {trained_on!r})")
+        given = dict(settings)
+        if variant is not None and algorithm == "ssac":
+            run_variant = recorded.get("config", {}).get("variant_name", "hybridctl")
+            if variant != run_variant:  # the preset's fields, as if each were given
+                preset = asdict(SSACConfig.variant(variant))
+                base = asdict(SSACConfig.variant(run_variant)) if run_variant in SSAC_VARIANTS else {}
+                given = {**{k: v for k, v in preset.items() if base.get(k) != v}, **given}
+        applied = resume_settings(found, recorded.get("config", {}), given, force, report)
+        agent = algo.load(found, force=force, **applied)
+        agent.checkpointer.check_resumable(found, force)
+        report(f"resuming {found} at {agent.num_timesteps} env steps"
+               + (f", training to {agent.config.total_steps}" if "total_steps" in applied else ""))
     else:
         if resume:
             report(f"--resume: no checkpoint under {out}; starting a new run")
         report(f"{algo.algorithm_name} on {system}: {config.total_steps} env steps, seed {config.seed}"
                + (" (warm-starting the gate first)" if algorithm == "ssac" else ""))
         agent = algo(system, config=config)
-    agent.learn(progress=progress, log_dir=out, resume=resume)
+    agent.learn(progress=progress, log_dir=out, resume=resume, force=force)
     record = _as_record(agent.evaluate(episodes=eval_episodes or DEFAULT_EVAL_EPISODES[algorithm]))
     if command is not None:
         record["command"] = command
@@ -156,23 +265,26 @@ def train_and_evaluate(algorithm: str, system: str, out: str | Path | None = Non
 
 
 def _train_ars(env: str, out, settings: dict, variant: str, resume: bool, init, eval_episodes, progress: bool,
-               command: str | None, report: Callable[[str], None]) -> TrainingRun:
+               command: str | None, report: Callable[[str], None], force: bool = False,
+               overwrite: bool = False) -> TrainingRun:
     """:func:`train_and_evaluate` for ARS V2-t with optional dimension post-processing (thesis Ch. 4)."""
     make_config("ars", variant, **settings)  # bad settings fail before any checkpoint is read
     out = Path(out) if out is not None else default_run_dir("ars", env, settings.get("seed", 0))
-    found = newest_run_checkpoint(out) if resume else None
+    prepare_run_folder(out, resume, overwrite)
+    found = newest_run_checkpoint(out, strict=not force) if resume else None
     if found is not None:
-        agent = ARS.load(found, **settings)
+        applied = resume_settings(found, read_json(found / "config.json").get("config", {}), settings, force, report)
+        agent = ARS.load(found, env=env, force=force, **applied)
         report(f"resuming {found} at epoch {agent.epoch}")
     elif init is not None:
-        agent = ARS.load(init, env=env, **settings)
+        agent = ARS.load(init, env=env, force=force, **settings)
         report(f"starting from {init} (epoch {agent.epoch}); training to epoch {agent.config.epochs}")
     else:
         agent = ARS(env, ARSConfig(**settings))
         report(f"ARS on {env}: {agent.config.epochs} epochs, seed {agent.config.seed}, "
                f"post-processor {agent.config.postprocess}, backend {agent.config.backend}")
     if _learn_accepts(agent, "resume"):
-        agent.learn(log_dir=out, progress=progress, resume=resume)
+        agent.learn(log_dir=out, progress=progress, resume=resume, force=force)
     else:
         agent.learn(log_dir=out, progress=progress)
     record = _as_record(agent.evaluate(episodes=eval_episodes or agent.config.eval_episodes, measure=True))

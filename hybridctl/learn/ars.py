@@ -37,6 +37,7 @@ import copy
 import dataclasses
 import math
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
@@ -52,6 +53,7 @@ from ..analysis.variation import madogram, variogram
 from ..envs import env_id
 from ..parallel import BACKENDS, cached_env, make_backend
 from ..systems import known_systems
+from ..systems import load as load_system
 from . import checkpoint as ckpt
 from .config_check import check_types
 from .run import PROGRESS_FILE, EvalResult, Learner, Saved, check_fields, check_finite, seeded, set_torch_threads
@@ -78,6 +80,8 @@ class ARSConfig:
     workers: int | None = None       # None: every core (processes) or the cluster's CPUs (ray)
     address: str | None = None       # Ray cluster address (backend "ray"); None starts a local instance
     checkpoint_every: int = 10       # epochs between atomic checkpoints
+    checkpoint_minutes: float = 5.0  # hybridctl: also a checkpoint at least every this many minutes of wall time
+    #                                  (checked after each epoch), so a kill loses minutes at most (0: by epochs only)
     eval_episodes: int = 5           # thesis Ch. 4: 5 rollouts per seed for the metrics
     torch_threads: int = 1           # hybridctl: torch threads of the learner's own process (torch policies)
 
@@ -432,7 +436,7 @@ class ARS(Learner):
                 "episode_steps": steps / len(results)}
 
     def learn(self, epochs: int | None = None, log_dir: str | Path | None = None, progress: bool = True,
-              backend=None, resume: bool = False, callback=None) -> "ARS":
+              backend=None, resume: bool = False, callback=None, force: bool = False) -> "ARS":
         """Train until ``epochs`` epochs in total (default ``config.epochs``); checkpoint every
         ``checkpoint_every`` epochs into ``log_dir/checkpoint`` and finally ``log_dir/final``.
 
@@ -440,13 +444,15 @@ class ARS(Learner):
         is none). Without it training continues from the agent's state (e.g. after
         :meth:`load`); either way progress.csv keeps the rows up to the agent's epoch.
         ``callback``: :class:`~hybridctl.learn.run.Callback` objects or ``f(agent)``, called
-        after every epoch; False stops training.
+        after every epoch; False stops training. ``force``: resume from a checkpoint of another
+        env or algorithm (with a warning). A checkpoint is also written at least every
+        ``checkpoint_minutes`` of wall time.
         """
         target = self.config.epochs if epochs is None else int(epochs)
         if target < 1:
             raise ValueError(f"epochs must be >= 1, got {target}")
         with self.run(log_dir, resume, progress, callback, total=target, unit="epoch",
-                      desc=f"ARS {self.env_name}") as run:
+                      desc=f"ARS {self.env_name}", force=force) as run:
             own_backend = backend is None
             pool = backend or make_backend(self.config.backend, self.config.workers, self.config.address)
             try:
@@ -461,8 +467,9 @@ class ARS(Learner):
                     run.advance(1, ret=f"{row['mean_raw_return']:.1f}", dim=f"{row['mean_dimension']:.2f}",
                                 sps=f"{row['steps_per_s']:.0f}")
                     run.after_update()
-                    if self.epoch % self.config.checkpoint_every == 0:
-                        run.checkpoint()
+                    by_epochs = self.epoch % self.config.checkpoint_every == 0
+                    if by_epochs or self.epoch < target:  # by time: not at the end (final/ follows)
+                        run.checkpoint_if_due(by_epochs)
             finally:
                 if own_backend:
                     pool.close()
@@ -524,9 +531,33 @@ class ARS(Learner):
 
     def checkpoint_meta(self) -> dict:
         """config.json: the env (id and kwargs), the policy's dimensions and the config."""
-        return {"algorithm": self.algorithm_name, "env": self.env_name, "env_kwargs": self.env_kwargs,
+        meta = {"algorithm": self.algorithm_name, "env": self.env_name, "env_kwargs": self.env_kwargs,
                 "obs_dim": self.policy.obs_dim, "act_dim": self.policy.act_dim,
                 "config": dataclasses.asdict(self.config)}
+        if isinstance(self.env, str) and self.env in known_systems():  # a system's env: its spec too
+            meta["system"] = ckpt.system_record(load_system(self.env))
+        return meta
+
+    def check_checkpoint(self, found: Path, meta: dict, normalization: dict, force: bool = False) -> None:
+        """The checkpoint must come from this env (id and kwargs; a system's spec values too) and
+        hold a running-mean-std normalisation of this observation size (``force``: a warning)."""
+        problems = []
+        if meta.get("env") != self.env_name:
+            problems.append(f"checkpoint {found} was trained on env {meta.get('env')!r}; this env is "
+                            f"{self.env_name!r}")
+        elif (meta.get("env_kwargs") or {}) != ckpt.to_jsonable(self.env_kwargs or {}):
+            problems.append(f"checkpoint {found} was trained on {self.env_name} with env_kwargs "
+                            f"{meta.get('env_kwargs')}; this env has {self.env_kwargs}")
+        if problems:
+            if not force:
+                raise ckpt.CheckpointError(f"{'; '.join(problems)} ({ckpt.FORCE_HINT})")
+            warnings.warn(f"force: loading anyway: {'; '.join(problems)}", stacklevel=3)
+        elif "system" in meta and isinstance(self.env, str) and self.env in known_systems():
+            ckpt.check_plant(found, meta["system"], load_system(self.env), force)
+        if normalization.get("type") != "running_mean_std" or len(normalization.get("mean", [])) != \
+                self.policy.obs_dim:
+            raise ckpt.CheckpointError(f"{found / ckpt.NORMALIZATION_FILE} is damaged or not an ARS normalisation of "
+                                       f"{self.policy.obs_dim} observations: {str(normalization)[:120]}")
 
     def normalization(self) -> dict:
         """normalization.json: the running mean and std (model.pt holds the exact sums)."""
@@ -534,18 +565,27 @@ class ARS(Learner):
 
     @classmethod
     def load(cls, path: str | Path, env: str | Callable[[], gym.Env] | None = None,
-             policy: torch.nn.Module | None = None, **overrides) -> "ARS":
+             policy: torch.nn.Module | None = None, force: bool = False, **overrides) -> "ARS":
         """Restore a checkpoint. ``env`` is required when it was trained on a factory rather than an
-        id, ``policy`` when it was trained with a custom torch module."""
+        id, ``policy`` when it was trained with a custom torch module.
+
+        Raises :class:`~hybridctl.learn.checkpoint.CheckpointError` for another algorithm's
+        checkpoint, another env (id, kwargs or a system's spec values) or a missing or damaged
+        file; ``force=True`` loads another algorithm's or env's anyway (with a warning).
+        """
         folder = ckpt.resolve_checkpoint_dir(path)
         meta = ckpt.read_json(folder / ckpt.CONFIG_FILE)
-        if meta.get("algorithm") != cls.algorithm_name:
-            raise ckpt.CheckpointError(f"{folder} holds a {meta.get('algorithm')!r} checkpoint, not ARS")
-        config = ARSConfig(**{**meta["config"], **overrides})
+        if not isinstance(meta, dict) or not isinstance(meta.get("config"), dict) or "env" not in meta:
+            raise ckpt.CheckpointError(f"{folder / ckpt.CONFIG_FILE} is damaged or not an ARS checkpoint's: it "
+                                       f"lacks 'config' or 'env'")
+        ckpt.check_algorithm(folder, meta.get("algorithm") or "(no algorithm)", (cls.algorithm_name,),
+                             cls.algorithm_name, force)
+        names = {f.name for f in dataclasses.fields(ARSConfig)}
+        config = ARSConfig(**{**{k: v for k, v in meta["config"].items() if k in names}, **overrides})
         agent = cls(env if env is not None else meta["env"], config, env_kwargs=meta.get("env_kwargs"), policy=policy)
         if (agent.policy.obs_dim, agent.policy.act_dim) != (meta["obs_dim"], meta["act_dim"]):
             raise ckpt.CheckpointError(
                 f"{folder} was trained on {meta['env']} with {meta['obs_dim']} observations and {meta['act_dim']} "
                 f"actions; this env has {agent.policy.obs_dim} and {agent.policy.act_dim}")
-        agent.checkpointer.restore(folder)
+        agent.checkpointer.restore(folder, force=force)
         return agent

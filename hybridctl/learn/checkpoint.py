@@ -5,7 +5,8 @@ A checkpoint is ONE directory::
     model.pt            torch.save of plain tensors / dicts / numbers only
                         (network and optimizer state dicts, log alpha, RNG state);
                         read back with ``torch.load(..., weights_only=True)``
-    config.json         the full algorithm config, system name and spec overrides, versions
+    config.json         the algorithm, its full config, the system (name, spec overrides, the
+                        resolved spec values and their hash: :func:`system_record`), versions
     normalization.json  observation normalisation ({"type": "none"} when there is none)
     progress.json       env steps, episodes, counters, recent returns, env RNG state
     replay.pt           optional: the replay and needle buffers (oldest first)
@@ -19,12 +20,21 @@ target, fsyncs the files, renames an existing ``<path>`` to ``<path>.bak-XXXX``,
 renames the new directory into place and only then removes the backup. A crash at
 any point leaves either the old or the new checkpoint complete on disk (between the
 two renames, only the backup: :func:`resolve_checkpoint_dir` finds it).
+
+Loading checks what the checkpoint was made by and on: :func:`check_algorithm` (SAC does
+not load an SSAC checkpoint), :func:`check_plant` (another system, or the same system with
+other spec values, is refused naming each differing value; a checkpoint from before the
+spec hash was recorded is compared by name and spec overrides, with a warning). Both take
+``force=True`` to load anyway, with a warning.
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 import platform
+import warnings
 from pathlib import Path
 from typing import Iterable
 
@@ -32,6 +42,7 @@ import numpy as np
 import torch
 
 from .. import io as _io
+from ..systems import load as load_system
 
 MODEL_FILE = "model.pt"
 CONFIG_FILE = "config.json"
@@ -103,17 +114,127 @@ def load_tensors(path: Path, device: str | torch.device = "cpu") -> dict:
         raise CheckpointError(f"could not read {path}: {type(exc).__name__}: {exc}") from exc
 
 
-def newest_checkpoint(candidates: Iterable[str | os.PathLike], key: str = "env_steps") -> Path | None:
+def newest_checkpoint(candidates: Iterable[str | os.PathLike], key: str = "env_steps",
+                      strict: bool = False) -> Path | None:
     """Among existing checkpoint directories, the one whose progress.json ``key`` counter (env
-    steps, epochs; env steps where it lacks ``key``) is largest: the first on a tie, None if none."""
+    steps, epochs; env steps where it lacks ``key``) is largest: the first on a tie, None if none.
+
+    ``strict`` (resuming): a candidate that exists but is incomplete or unreadable raises
+    :class:`CheckpointError` naming it and the missing file, instead of being skipped.
+    """
     best, best_count = None, -1
     for cand in candidates:
+        cand = Path(cand)
         try:
             found = resolve_checkpoint_dir(cand)
-        except CheckpointError:
+            progress = read_json(found / PROGRESS_FILE)
+            count = int(progress.get(key, progress.get("env_steps", 0)))
+        except (CheckpointError, TypeError, ValueError, AttributeError) as exc:
+            exists = cand.exists() or any(cand.parent.glob(f"{cand.name}.bak-*"))
+            if strict and exists:
+                raise CheckpointError(f"cannot resume: {exc} (--force resumes from the other checkpoint of the "
+                                      f"run folder, if any, or starts anew)") from exc
             continue
-        progress = read_json(found / PROGRESS_FILE)
-        count = int(progress.get(key, progress.get("env_steps", 0)))
         if count > best_count:
             best, best_count = found, count
     return best
+
+
+# ============================================================================ what a checkpoint was trained on
+
+FORCE_HINT = "pass force=True (CLI: --force) to load it anyway"
+
+
+def spec_hash(values: dict) -> str:
+    """SHA-256 (first 16 hex digits) of the canonical JSON of resolved spec values (sorted keys,
+    numpy arrays as lists, no whitespace): equal for equal plants, whatever the override spelling."""
+    text = json.dumps(to_jsonable(values), sort_keys=True, separators=(",", ":"), allow_nan=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def system_record(system) -> dict:
+    """config.json's ``system``: name, spec overrides, the resolved spec values and their hash."""
+    spec = getattr(system, "spec", None)
+    values = to_jsonable(dict(getattr(spec, "values", {}) or {}))
+    return {"name": system.name, "overrides": to_jsonable(dict(getattr(spec, "overrides", {}) or {})),
+            "spec_hash": spec_hash(values), "spec_values": values}
+
+
+def _shown(value) -> str:
+    return json.dumps(to_jsonable(value))
+
+
+def plant_differences(found: Path, recorded: dict | None, system) -> tuple[list[str], bool]:
+    """How the system a checkpoint at ``found`` recorded (config.json ``system``) differs from ``system``.
+
+    Returns (one line per difference, whether the whole spec could be compared). A
+    checkpoint without ``spec_hash`` (written before it was recorded) is compared by system
+    name and spec overrides only.
+    """
+    recorded = recorded or {}
+    name = recorded.get("name")
+    if name != system.name:
+        return [f"checkpoint {found} was trained on system {name!r}, but this system is {system.name!r}"], True
+    current = system_record(system)
+    complete = "spec_hash" in recorded
+    if not complete:  # an old checkpoint: what its overrides make of today's spec is all there is to compare
+        try:
+            saved_values = system_record(load_system(name, **(recorded.get("overrides") or {})))["spec_values"]
+        except (ValueError, KeyError, TypeError) as exc:
+            return [f"checkpoint {found} was trained on {name} with spec overrides "
+                    f"{_shown(recorded.get('overrides'))}, which no longer apply ({exc})"], False
+    elif recorded["spec_hash"] == current["spec_hash"]:
+        return [], True
+    else:
+        saved_values = recorded.get("spec_values") or {}
+    lines = []
+    for key in sorted(set(saved_values) | set(current["spec_values"])):
+        old, new = saved_values.get(key, "(absent)"), current["spec_values"].get(key, "(absent)")
+        if old != new:
+            lines.append(f"checkpoint {found} was trained on {name} with {key}={_shown(old)}; this system has "
+                         f"{_shown(new)}")
+    if not complete:
+        return [f"{line} (an old checkpoint: only its spec overrides are recorded)" for line in lines], False
+    return lines or [f"checkpoint {found} was trained on {name} with spec hash {recorded['spec_hash']}; this "
+                     f"system has {current['spec_hash']}"], True
+
+
+def check_plant(found: Path, recorded: dict | None, system, force: bool = False) -> None:
+    """Raise :class:`CheckpointError` naming what differs when the checkpoint at ``found`` was trained
+    on another plant than ``system`` (``force``: warn instead). An old checkpoint without a spec
+    hash is checked by name and overrides, with a warning that nothing more can be checked."""
+    lines, complete = plant_differences(found, recorded, system)
+    if lines:
+        message = "; ".join(lines)
+        if not force:
+            raise CheckpointError(f"{message} ({FORCE_HINT})")
+        warnings.warn(f"force: loading anyway: {message}", stacklevel=3)
+    if not complete:
+        warnings.warn(f"checkpoint {found} records no spec hash (written before hybridctl recorded one): only the "
+                      f"system name and spec overrides were checked, nothing more can be checked", stacklevel=3)
+
+
+def check_algorithm(found: Path, written_by: str | None, accepted: Iterable[str], loader: str,
+                    force: bool = False) -> None:
+    """Raise :class:`CheckpointError` when the checkpoint at ``found`` was written by another algorithm
+    than ``accepted`` (``force``: warn instead; what the classes share is then loaded)."""
+    accepted = tuple(accepted)
+    if written_by is None or written_by in accepted:
+        return
+    message = (f"checkpoint {found} was written by {written_by}, not {loader} (use {written_by}.load, or for "
+               f"the CLI `hybridctl train {written_by.lower()}`)")
+    if not force:
+        raise CheckpointError(f"{message}; {FORCE_HINT}")
+    warnings.warn(f"force: loading anyway: {message}", stacklevel=3)
+
+
+def read_model(path: Path, required: Iterable[str] = (), device: str | torch.device = "cpu") -> dict:
+    """model.pt at ``path`` (``load_tensors``), raising :class:`CheckpointError` naming the file and
+    the keys it lacks when it is not a dict holding every ``required`` key."""
+    model = load_tensors(path, device)
+    if not isinstance(model, dict):
+        raise CheckpointError(f"{path} is damaged: expected a dict of tensors, got {type(model).__name__}")
+    missing = [k for k in required if k not in model]
+    if missing:
+        raise CheckpointError(f"{path} is damaged or not this learner's: it lacks {', '.join(map(repr, missing))}")
+    return model

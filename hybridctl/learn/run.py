@@ -14,8 +14,13 @@ tuple of :class:`Saved` entries), and writes only its algorithm: the loop inside
   :meth:`Learner.checkpoint_meta`), ``normalization.json``, ``progress.json`` and the
   bulky files (replay, gate data) that only a resumed run needs;
 * :meth:`Learner.run` -- the run context: torch threads, ``resume=True`` (newest
-  checkpoint in ``log_dir``), the log, one progress bar, callbacks, the final
-  checkpoint on success (none after an error: the last good one stays intact);
+  checkpoint in ``log_dir``; another algorithm's or plant's, an incomplete one or a
+  missing replay / gate data file is an error unless ``force``), the log, one progress
+  bar, callbacks, checkpoints by wall time (``config.checkpoint_minutes``, through
+  :meth:`Run.checkpoint_if_due`), the final checkpoint on success (none after an error:
+  the last good one stays intact);
+* :func:`resume_changes` -- the resume policy: which config fields a resume may change
+  (:data:`RESUME_APPLIED`) and which it refuses;
 * :func:`check_finite` -- the NaN guard (FloatingPointError before a bad step is applied);
 * :class:`EvalResult` -- what ``evaluate`` returns: typed fields and a plain dict;
 * :class:`Callback` -- hooks that receive the learner;
@@ -40,9 +45,11 @@ import contextlib
 import csv
 import dataclasses
 import math
+import time
 import warnings
 from collections.abc import Iterable
 from dataclasses import dataclass
+from io import StringIO
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
@@ -52,7 +59,8 @@ import torch
 from . import checkpoint as ckpt
 from .checkpoint import CONFIG_FILE, MODEL_FILE, NORMALIZATION_FILE, PROGRESS_FILE, CheckpointError
 
-__all__ = ["Learner", "Saved", "check_fields", "Checkpointer", "RunLog", "Run", "Callback", "CallbackList", "EvalResult",
+__all__ = ["Learner", "Saved", "check_fields", "RESUME_APPLIED", "resume_changes", "describe_refused",
+           "checkpoint_minutes", "Checkpointer", "RunLog", "Run", "Callback", "CallbackList", "EvalResult",
            "check_finite", "progress_bar", "seeded", "set_torch_threads", "MODEL_FILE", "PROGRESS_FILE"]
 
 PROGRESS_CSV = "progress.csv"
@@ -134,6 +142,66 @@ def check_fields(config, integers_from_1: Iterable[str] = (), integers_from_0: I
         value = getattr(config, name)
         if not (isinstance(value, (int, float, np.number)) and 0.0 <= value <= 1.0):
             raise ValueError(f"{cls}.{name} must be in [0, 1], got {value!r}")
+
+
+# ============================================================================ resuming with changed settings
+
+RESUME_APPLIED = ("total_steps", "epochs", "checkpoint_every", "checkpoint_minutes", "log_every", "tensorboard",
+                  "save_replay", "torch_threads", "backend", "workers", "address", "eval_episodes")
+"""Config fields a resumed run takes from the command line: how long to train and how to record,
+checkpoint, evaluate and parallelise it. They do not change the algorithm's math. Every other
+field (learning rates, gamma, network sizes, batch sizes, seed, num_envs, ...) does: a resume
+with another value refuses, naming the field (``force`` applies it anyway)."""
+
+
+def resume_changes(recorded: dict, settings: dict, applied: Iterable[str] = RESUME_APPLIED
+                   ) -> tuple[dict, list[tuple[str, Any, Any]]]:
+    """Split the ``settings`` given for a resume against the checkpoint's ``recorded`` config.
+
+    Returns (the settings to apply: the ``applied`` fields and those equal to the recorded
+    value, the changed math fields as (field, recorded value, given value)).
+    """
+    applied = set(applied)
+    take, refused = {}, []
+    for name, value in settings.items():
+        old = recorded.get(name, _MISSING_SETTING)
+        same = old is not _MISSING_SETTING and _same_value(old, value)
+        if name in applied or same:
+            take[name] = value
+        else:
+            refused.append((name, None if old is _MISSING_SETTING else old, value))
+    return take, refused
+
+
+_MISSING_SETTING = object()
+
+
+def _same_value(a, b) -> bool:
+    """Equal as JSON would store them (2e6 == 2000000, a tuple == a list)."""
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return len(a) == len(b) and all(_same_value(x, y) for x, y in zip(a, b))
+    if isinstance(a, (int, float)) and isinstance(b, (int, float)) and not isinstance(a, bool) \
+            and not isinstance(b, bool):
+        return float(a) == float(b)
+    return a == b
+
+
+def describe_refused(found, refused: list[tuple[str, Any, Any]]) -> str:
+    """The error text of a resume with changed math settings, naming each field and both values."""
+    fields = "; ".join(f"{name}: recorded {old!r}, given {new!r}" for name, old, new in refused)
+    return (f"--resume from {found} with changed settings that change the algorithm: {fields}. A resumed run keeps "
+            f"its recorded values for these (only {', '.join(RESUME_APPLIED)} may change); drop them, start a new run "
+            f"(another --out, or --overwrite), or pass --force to apply them anyway")
+
+
+def checkpoint_minutes(config) -> float:
+    """``config.checkpoint_minutes`` (0 when the config has none), ValueError unless a finite number >= 0."""
+    minutes = getattr(config, "checkpoint_minutes", 0.0)
+    if (not isinstance(minutes, (int, float, np.number)) or isinstance(minutes, bool) or not math.isfinite(minutes)
+            or minutes < 0):
+        raise ValueError(f"{type(config).__name__}.checkpoint_minutes must be a finite number >= 0 "
+                         f"(0: no checkpoints by time), got {minutes!r}")
+    return float(minutes)
 
 
 # ============================================================================ evaluation results
@@ -326,7 +394,10 @@ class RunLog:
             return []
         if not self.path.is_file():  # a new folder for a learner that trained before: its rows so far
             return [dict(r) for r in fallback_rows if r.get(self.key, math.inf) <= upto]
-        with open(self.path, newline="") as fh:
+        text = self.path.read_text()
+        if text and not text.endswith("\n"):  # a row cut short by a kill: dropped (its key may be cut too)
+            text = text[:text.rfind("\n") + 1]
+        with StringIO(text, newline="") as fh:
             reader = csv.DictReader(fh)
             if self.key not in (reader.fieldnames or []):
                 raise ValueError(f"{self.path} has no {self.key!r} column: not a progress log of this learner; "
@@ -464,6 +535,7 @@ class Checkpointer:
                 else:
                     torch.save(content, d / name)
             ckpt.write_json(d / CONFIG_FILE, {**learner.checkpoint_meta(), "format": ckpt.FORMAT_VERSION,
+                                              "files": sorted({*files, CONFIG_FILE, NORMALIZATION_FILE}),
                                               "versions": ckpt.versions()})
             ckpt.write_json(d / NORMALIZATION_FILE, learner.normalization())
 
@@ -483,26 +555,34 @@ class Checkpointer:
             return torch.as_tensor(np.asarray(value))
         return value
 
-    def restore(self, path: str | Path, bulky: bool = False) -> Path:
+    def restore(self, path: str | Path, bulky: bool = False, force: bool = False) -> Path:
         """Load the entries of the checkpoint at ``path`` (bulky ones too if ``bulky``) into the learner.
 
-        Raises :class:`CheckpointError` naming the directory, the file or the missing entry,
-        and when the checkpoint was written by an incompatible algorithm.
+        Every file an entry lives in is read and checked: a missing, damaged or incomplete
+        one raises :class:`CheckpointError` naming it (and the entry it lacks), as does a
+        checkpoint written by another algorithm or on another plant
+        (:meth:`Learner.check_checkpoint`). ``force``: another algorithm or plant is loaded
+        with a warning (what the classes share), and a resume continues without a missing
+        or damaged bulky file (replay, gate data), saying so.
         """
         learner = self.learner
         found = ckpt.resolve_checkpoint_dir(path)
         meta = ckpt.read_json(found / CONFIG_FILE)
-        written_by = meta.get("algorithm")
-        if written_by is not None and written_by not in learner.compatible_algorithms:
-            raise CheckpointError(f"checkpoint {found} was written by {written_by}, not {learner.algorithm_name} "
-                                  f"(use {written_by}.load)")
-        learner.check_checkpoint(found, meta, ckpt.read_json(found / NORMALIZATION_FILE))
+        if not isinstance(meta, dict) or not isinstance(meta.get("config", {}), dict):
+            raise CheckpointError(f"{found / CONFIG_FILE} is damaged: expected an object with 'algorithm' and "
+                                  f"'config'")
+        ckpt.check_algorithm(found, meta.get("algorithm"), learner.compatible_algorithms, learner.algorithm_name,
+                             force)
+        normalization = ckpt.read_json(found / NORMALIZATION_FILE)
+        if not isinstance(normalization, dict) or "type" not in normalization:
+            raise CheckpointError(f"{found / NORMALIZATION_FILE} is damaged: expected an object with 'type'")
+        learner.check_checkpoint(found, meta, normalization, force=force)
         cache: dict[str, Any] = {}
         for item in learner.saved:
             if not item.restore or (item.bulky and not bulky):
                 continue
             if item.file not in cache:
-                cache[item.file] = self._read(found, item.file)
+                cache[item.file] = self._read(found, item.file, force, meta)
             content = cache[item.file]
             if content is None:  # a bulky file that was not saved
                 continue
@@ -511,22 +591,74 @@ class Checkpointer:
                 if item.optional:
                     continue
                 raise CheckpointError(f"{found / item.file} lacks {item.key!r}")
-            self._load(item, value)
+            try:
+                self._load(item, value)
+            except CheckpointError:
+                raise
+            except (RuntimeError, KeyError, ValueError, TypeError, AttributeError) as exc:
+                raise CheckpointError(f"{found / item.file}: {item.key or 'its content'!r} does not fit this "
+                                      f"{learner.algorithm_name} ({type(exc).__name__}: {exc})") from exc
         learner.after_restore(found, meta, bulky)
         return found
 
-    def _read(self, found: Path, name: str):
+    def missing_bulky(self, found: Path, meta: dict) -> list[tuple[str, bool]]:
+        """The bulky files (replay, gate data) the checkpoint at ``found`` lacks, each with whether it
+        should be there: config.json's ``files`` lists what was written (older checkpoints: the
+        bulky files are expected unless their config had ``save_replay`` False)."""
+        written = meta.get("files")
+        out = []
+        for name in dict.fromkeys(i.file for i in self.learner.saved if i.bulky):
+            if not (found / name).is_file():
+                expected = name in written if isinstance(written, list) else \
+                    bool((meta.get("config") or {}).get("save_replay", True))
+                out.append((name, expected))
+        return out
+
+    def check_resumable(self, path: str | Path, force: bool = False) -> Path:
+        """Raise :class:`CheckpointError` when a resume from ``path`` would lack a replay / gate data
+        file the checkpoint should hold (``force``: no error; the resume then says so)."""
+        found = ckpt.resolve_checkpoint_dir(path)
+        meta = ckpt.read_json(found / CONFIG_FILE)
+        for name, expected in self.missing_bulky(found, meta if isinstance(meta, dict) else {}):
+            if expected and not force:
+                raise CheckpointError(self._missing_message(found, name))
+        return found
+
+    def _missing_message(self, found: Path, name: str) -> str:
+        return (f"cannot resume from {found}: missing file {name!r} ({', '.join(self._entries(name))}); a resumed run "
+                f"without it would not be the same run. --force (force=True) resumes without it")
+
+    def _entries(self, name: str) -> list[str]:
+        return [i.attr.lstrip("_") for i in self.learner.saved if i.file == name]
+
+    def _read(self, found: Path, name: str, force: bool = False, meta: dict | None = None):
         path = found / name
+        bulky = name not in ckpt.REQUIRED_FILES
+        keys = self._entries(name)
         if not path.is_file():
-            if name in ckpt.REQUIRED_FILES:
+            if not bulky:
                 raise CheckpointError(f"checkpoint {found} is incomplete: missing file {name!r}")
-            keys = [i.key for i in self.learner.saved if i.file == name]
-            warnings.warn(f"{found} has no {name}: the resumed run starts without {', '.join(keys) or 'it'}",
+            expected = dict(self.missing_bulky(found, meta or {})).get(name, True)
+            if not expected:  # saved without it on purpose (save_replay=False, save(include_replay=False))
+                warnings.warn(f"{found} was saved without {name} (save_replay=False or save(include_replay=False)): "
+                              f"the resumed run starts without {', '.join(keys)}", stacklevel=4)
+                return None
+            if not force:
+                raise CheckpointError(self._missing_message(found, name))
+            warnings.warn(f"force: {found} has no {name}: the resumed run starts without {', '.join(keys)}",
                           stacklevel=4)
             return None
-        if name.endswith(".json"):
-            return ckpt.read_json(path)
-        return ckpt.load_tensors(path, getattr(self.learner, "device", "cpu"))
+        try:
+            content = ckpt.read_json(path) if name.endswith(".json") else ckpt.load_tensors(
+                path, getattr(self.learner, "device", "cpu"))
+            if not isinstance(content, dict):
+                raise CheckpointError(f"{path} is damaged: expected a dict, got {type(content).__name__}")
+        except CheckpointError as exc:
+            if not (bulky and force):
+                raise
+            warnings.warn(f"force: {exc}; the resumed run starts without {', '.join(keys)}", stacklevel=4)
+            return None
+        return content
 
     def _load(self, item: Saved, value) -> None:
         learner = self.learner
@@ -603,8 +735,9 @@ class Learner:
         """normalization.json: the observation normalisation ({"type": "none"} when there is none)."""
         return {"type": "none"}
 
-    def check_checkpoint(self, found: Path, meta: dict, normalization: dict) -> None:
-        """Hook: raise CheckpointError when the checkpoint at ``found`` does not fit this learner."""
+    def check_checkpoint(self, found: Path, meta: dict, normalization: dict, force: bool = False) -> None:
+        """Hook: raise CheckpointError when the checkpoint at ``found`` does not fit this learner
+        (another plant, normalisation); ``force``: warn instead where loading can go on."""
 
     def before_checkpoint(self) -> None:
         """Hook: bring the declared state up to date before it is written."""
@@ -633,28 +766,34 @@ class Learner:
     # ------------------------------------------------------------------ the run context
     @contextlib.contextmanager
     def run(self, log_dir: str | Path | None, resume: bool, progress: bool, callback, total: int,
-            unit: str = "step", desc: str | None = None) -> Iterator["Run"]:
+            unit: str = "step", desc: str | None = None, force: bool = False) -> Iterator["Run"]:
         """The context of one ``learn`` call (see :class:`Run`).
 
         On entry: torch threads, ``resume`` (restore the newest of ``log_dir/checkpoint``
         and ``log_dir/final``; a warning and the learner's current state when there is
-        none), the run log, the progress bar, ``on_training_start``. On a normal exit: the
-        final checkpoint ``log_dir/final``, the curves, ``on_training_end``. On an error:
-        files closed, no checkpoint written.
+        none; an incomplete or damaged one, or one of another algorithm or plant, is an
+        error unless ``force``), the run log, the progress bar, ``on_training_start``.
+        During the run: a checkpoint ``log_dir/checkpoint`` at least every
+        ``config.checkpoint_minutes`` of wall time (:meth:`Run.checkpoint_if_due`; 0: by the
+        learner's step cadence only). On a normal exit: the final checkpoint
+        ``log_dir/final``, the curves, ``on_training_end``. On an error: files closed, no
+        checkpoint written.
         """
         log_dir = Path(log_dir) if log_dir is not None else None
+        minutes = checkpoint_minutes(self.config)
         previous_threads = set_torch_threads(getattr(self.config, "torch_threads", 1))
         run = None
         try:
             if resume:
                 if log_dir is None:
                     raise ValueError("learn(resume=True) needs the log_dir of the run to resume")
-                found = ckpt.newest_checkpoint([log_dir / "checkpoint", log_dir / "final"], self.log_key)
+                found = ckpt.newest_checkpoint([log_dir / "checkpoint", log_dir / "final"], self.log_key,
+                                               strict=not force)
                 if found is None:
                     warnings.warn(f"resume=True but no checkpoint in {log_dir}; starting from the learner's current "
                                   f"state ({self.log_key} {self.progress_count})", stacklevel=3)
                 else:
-                    self.checkpointer.restore(found, bulky=True)
+                    self.checkpointer.restore(found, bulky=True, force=force)
             log = None
             if log_dir is not None:
                 log = RunLog(log_dir, self.log_columns, self.log_key, self.progress_count, self.log_int_columns,
@@ -662,7 +801,7 @@ class Learner:
                              fallback_rows=self.log_rows)
                 self.log_rows = list(log.rows)
             run = Run(self, log_dir, log, CallbackList.of(callback),
-                      progress_bar(progress, total, self.progress_count, unit, desc))
+                      progress_bar(progress, total, self.progress_count, unit, desc), checkpoint_seconds=60.0 * minutes)
             run.callbacks.on_training_start(self)
             yield run
             if log_dir is not None:
@@ -682,9 +821,23 @@ class Run:
     ``log_dir/checkpoint``; ``stopped`` turns True when a callback returned False.
     """
 
-    def __init__(self, learner: Learner, log_dir: Path | None, log: RunLog | None, callbacks: CallbackList, bar):
+    def __init__(self, learner: Learner, log_dir: Path | None, log: RunLog | None, callbacks: CallbackList, bar,
+                 checkpoint_seconds: float = 0.0):
         self.learner, self.log_dir, self.logger, self.callbacks, self.bar = learner, log_dir, log, callbacks, bar
         self.stopped = False
+        self.checkpoint_seconds = float(checkpoint_seconds)
+        self._last_checkpoint = time.monotonic()
+
+    def checkpoint_due(self) -> bool:
+        """Whether ``checkpoint_seconds`` of wall time passed since the run began or last checkpointed."""
+        return self.checkpoint_seconds > 0 and time.monotonic() - self._last_checkpoint >= self.checkpoint_seconds
+
+    def checkpoint_if_due(self, by_steps: bool = False) -> Path | None:
+        """Write ``log_dir/checkpoint`` when the learner's step cadence says so (``by_steps``) or the
+        time cadence is due (a kill then loses at most ``checkpoint_minutes``); else nothing."""
+        if by_steps or self.checkpoint_due():
+            return self.checkpoint()
+        return None
 
     def advance(self, n: int, **postfix) -> None:
         """``n`` steps done: move the bar (with ``postfix`` shown), call ``on_step``."""
@@ -709,6 +862,7 @@ class Run:
 
     def checkpoint(self, name: str = "checkpoint") -> Path | None:
         """Write ``log_dir/name`` (with the bulky files if the config says so) and the curves."""
+        self._last_checkpoint = time.monotonic()
         if self.log_dir is None:
             return None
         path = self.learner.checkpointer.save(self.log_dir / name, include_bulky=self.learner._checkpoint_with_data())

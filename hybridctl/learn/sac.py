@@ -121,6 +121,8 @@ class SACConfig:
     torch_threads: int = 1              # hybridctl measurement (2 cores): 2 threads give no speed-up on these
     #                                     tiny ops (~2.4 ms per gradient step either way); 1 leaves a core free
     checkpoint_every: int = 100_000     # env steps between checkpoints in log_dir/checkpoint (0: none)
+    checkpoint_minutes: float = 5.0     # hybridctl: also a checkpoint at least every this many minutes of wall
+    #                                     time, so a kill loses minutes at most (0: by env steps only)
     log_every: int = 10_000             # env steps between progress.csv rows
     save_replay: bool = True            # checkpoints in learn() include replay.pt (resume restores the buffers)
     tensorboard: bool = True            # also write TensorBoard scalars when torch.utils.tensorboard imports
@@ -173,6 +175,12 @@ def _adam(params, lr: float) -> torch.optim.Adam:
         return torch.optim.Adam(params, lr=lr)
 
 
+def set_lr(optimizer: torch.optim.Optimizer, lr: float) -> None:
+    """Set every parameter group's learning rate."""
+    for group in optimizer.param_groups:
+        group["lr"] = lr
+
+
 def _next_multiple(value: int, every: int) -> float:
     """The first multiple of ``every`` above ``value`` (inf when ``every`` is 0: never)."""
     return (value // every + 1) * every if every else math.inf
@@ -197,7 +205,7 @@ class SAC(VectorEnvAgent):
 
     config_class = SACConfig
     algorithm_name = "SAC"
-    compatible_algorithms = ("SAC", "SSAC")  # an SSAC checkpoint holds a whole SAC agent
+    compatible_algorithms = ("SAC",)  # an SSAC checkpoint holds a whole SAC agent: SAC.load(..., force=True)
     log_columns = ("env_steps", "episodes", "mean_return", "success_rate", "q_loss", "pi_loss", "alpha",
                    "steps_per_s", "wall_time", "gradient_steps", "needle_size")
     log_int_columns = ("env_steps", "episodes", "gradient_steps", "needle_size")
@@ -352,7 +360,7 @@ class SAC(VectorEnvAgent):
 
     # ======================================================================== learn
     def learn(self, total_steps: int | None = None, progress: bool = True, callback=None,
-              log_dir: str | Path | None = None, resume: bool = False) -> "SAC":
+              log_dir: str | Path | None = None, resume: bool = False, force: bool = False) -> "SAC":
         """Train until ``num_timesteps`` reaches ``total_steps`` (default ``config.total_steps``).
 
         ``total_steps`` is the run's total (not an increment): a resumed run or a second
@@ -365,18 +373,21 @@ class SAC(VectorEnvAgent):
             callback: a :class:`~hybridctl.learn.run.Callback`, a list of them, or a
                 plain ``f(agent)`` called after every update round; False stops training.
             log_dir: where ``progress.csv``, ``training_curves.png``, the checkpoints
-                ``checkpoint/`` (every ``checkpoint_every`` env steps) and ``final/``
+                ``checkpoint/`` (every ``checkpoint_every`` env steps and at least every
+                ``checkpoint_minutes`` of wall time) and ``final/``
                 (at the end) go; TensorBoard scalars in ``tb/`` if available. None: no files.
             resume: continue from the newest checkpoint in ``log_dir`` (networks,
                 optimizers, counters, RNG states and, if it was saved, the replay). The
                 episodes that were running are lost: the env restarts. Without a
                 checkpoint there, training starts fresh (with a warning).
+            force: resume from a checkpoint of another algorithm or plant, or without
+                its replay / gate data file (each with a warning).
 
         Raises FloatingPointError if a loss becomes NaN/Inf (checkpoints stay as they were).
         """
         cfg = self.config
         total = int(cfg.total_steps if total_steps is None else total_steps)
-        with self.run(log_dir, resume, progress, callback, total) as run:
+        with self.run(log_dir, resume, progress, callback, total, force=force) as run:
             if self._obs is None:
                 obs, _ = self.env.reset(seed=self._env_seed)
                 self._env_seed = None
@@ -407,9 +418,11 @@ class SAC(VectorEnvAgent):
                     run.log(self._log_row((self.num_timesteps - last_log_steps) / max(now - last_log_time, 1e-9)))
                     last_log_time, last_log_steps = now, self.num_timesteps
                     next_log = _next_multiple(self.num_timesteps, cfg.log_every)
-                if self.num_timesteps >= next_ckpt:
+                by_steps = self.num_timesteps >= next_ckpt
+                if by_steps:
                     next_ckpt = _next_multiple(self.num_timesteps, cfg.checkpoint_every)
-                    run.checkpoint()
+                if by_steps or self.num_timesteps < total:  # by time: not at the end (final/ follows)
+                    run.checkpoint_if_due(by_steps)
         return self
 
     def collect(self) -> None:
@@ -476,6 +489,15 @@ class SAC(VectorEnvAgent):
         Later training does not change it (call again for the newer policy).
         """
         return DeterministicPolicy(self.actor).to("cpu")
+
+    def after_restore(self, found: Path, meta: dict, bulky: bool) -> None:
+        """The env restarts its episodes; the optimizers take the config's learning rates (a restored
+        optimizer state carries the recorded ones: a resume forced to another lr must use it)."""
+        super().after_restore(found, meta, bulky)
+        set_lr(self.actor_opt, self.config.lr)
+        set_lr(self.q_opt, self.config.lr)
+        if self.alpha_opt is not None:
+            set_lr(self.alpha_opt, self.config.alpha_lr)
 
     def normalization(self) -> dict:
         """normalization.json: the observation transform (stateless)."""

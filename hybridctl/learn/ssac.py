@@ -50,7 +50,7 @@ from ..systems.control import cost_to_go, hysteresis, saturate
 from ..systems.spec import REWARD_KINDS
 from .gate import GateConfig, GateNet, fit_gate, label_states, warm_start_gate
 from .run import Saved, check_fields
-from .sac import SAC, SACConfig
+from .sac import SAC, SACConfig, set_lr
 
 GATE_DATA_FILE = "gate_data.pt"
 REWARDS = REWARD_KINDS  # one list of reward kinds, in the spec module
@@ -394,6 +394,7 @@ class SSAC(SAC):
     def after_restore(self, found: Path, meta: dict, bulky: bool) -> None:
         """The env switches with the restored gate; the running episodes' LQR flags are dropped."""
         super().after_restore(found, meta, bulky)
+        set_lr(self.gate_opt, self.config.gate_lr)
         self.gate.eval()
         self.env.set_gate(self.gate)
         self.gate_info = meta.get("gate", {}).get("info", {})

@@ -199,19 +199,18 @@ class VectorEnvAgent(Learner):
             warnings.warn("could not restore the env's RNG state; episodes will differ", stacklevel=2)
 
     def checkpoint_meta(self) -> dict:
-        """config.json: algorithm, config, system (name and spec overrides), dimensions, decision period."""
-        spec = getattr(self.system, "spec", None)
+        """config.json: algorithm, config, system (name, spec overrides, resolved spec values and their
+        hash: :func:`~hybridctl.learn.checkpoint.system_record`), dimensions, decision period."""
         return {"algorithm": self.algorithm_name, "config": dataclasses.asdict(self.config),
-                "system": {"name": self.system.name, "overrides": getattr(spec, "overrides", {}) or {}},
+                "system": ckpt.system_record(self.system),
                 "obs_dim": self.obs_dim, "action_dim": self.action_dim, "action_scale": self.action_scale.tolist(),
                 "decision_period": getattr(self.env, "decision_period", None)}
 
-    def check_checkpoint(self, found: Path, meta: dict, normalization: dict) -> None:
-        """The checkpoint must come from this system and use this observation normalisation."""
-        if meta.get("system", {}).get("name") != self.system.name:
-            raise ckpt.CheckpointError(f"checkpoint {found} was trained on system "
-                                       f"{meta.get('system', {}).get('name')!r}, but the env is system "
-                                       f"{self.system.name!r}")
+    def check_checkpoint(self, found: Path, meta: dict, normalization: dict, force: bool = False) -> None:
+        """The checkpoint must come from this plant (system name and spec values, see
+        :func:`~hybridctl.learn.checkpoint.check_plant`; ``force``: a warning) and use this
+        observation normalisation."""
+        ckpt.check_plant(found, meta.get("system"), self.system, force)
         if normalization != self.normalization():
             raise ckpt.CheckpointError(f"checkpoint {found} normalization {normalization} differs from the agent's "
                                        f"{self.normalization()} (config obs_transform)")
@@ -221,23 +220,34 @@ class VectorEnvAgent(Learner):
         self._obs, self._env_seed = None, None
 
     @classmethod
-    def load(cls, path: str | Path, env=None, **overrides):
+    def load(cls, path: str | Path, env=None, force: bool = False, **overrides):
         """Load a checkpoint directory written by ``save`` (or by ``learn``).
 
         ``env``: None (a TorchVectorEnv of the checkpoint's system, with its spec
-        overrides), a system name, a System or a vector env; it must be the system the
-        checkpoint was trained on. ``overrides`` replace config fields (e.g. ``num_envs``).
-        The replay buffer is not loaded (``learn(resume=True)`` does that).
+        overrides), a system name, a System or a vector env; it must be the plant the
+        checkpoint was trained on (system name and resolved spec values). ``overrides``
+        replace config fields (e.g. ``num_envs``). The replay buffer is not loaded
+        (``learn(resume=True)`` does that).
+
+        Raises :class:`~hybridctl.learn.checkpoint.CheckpointError` naming what differs for
+        a checkpoint of another algorithm (``SAC.load`` of an SSAC checkpoint) or plant, and
+        naming the file for a missing or damaged one. ``force=True``: load another
+        algorithm's or plant's checkpoint anyway (with a warning).
         """
         found = ckpt.resolve_checkpoint_dir(path)
         meta = ckpt.read_json(found / ckpt.CONFIG_FILE)
-        saved_system = meta.get("system", {}).get("name")
+        if not isinstance(meta, dict) or not isinstance(meta.get("config"), dict) or not isinstance(
+                meta.get("system"), dict):
+            raise ckpt.CheckpointError(f"{found / ckpt.CONFIG_FILE} is damaged or not a {cls.algorithm_name} "
+                                       f"checkpoint's: it lacks 'config' or 'system'")
+        ckpt.check_algorithm(found, meta.get("algorithm"), cls.compatible_algorithms, cls.algorithm_name, force)
+        saved_system = meta["system"].get("name")
         if env is None:
             env = load_system(saved_system, **meta["system"].get("overrides", {}))
         env_system = env if isinstance(env, str) else env.name if isinstance(env, System) else env.system.name
-        if env_system != saved_system:
+        if env_system != saved_system and not force:
             raise ckpt.CheckpointError(f"checkpoint {found} was trained on system {saved_system!r}, "
-                                       f"but the env is system {env_system!r}")
+                                       f"but the env is system {env_system!r} ({ckpt.FORCE_HINT})")
         fields = {f.name for f in dataclasses.fields(cls.config_class)}
         saved = {k: v for k, v in meta["config"].items() if k in fields}
         config = dataclasses.replace(cls.config_class(**saved), **overrides)
@@ -245,7 +255,7 @@ class VectorEnvAgent(Learner):
         if (agent.obs_dim, agent.action_dim) != (meta.get("obs_dim"), meta.get("action_dim")):
             raise ckpt.CheckpointError(f"checkpoint {found} has obs/action dims {meta.get('obs_dim')}/"
                                        f"{meta.get('action_dim')}, the env {agent.obs_dim}/{agent.action_dim}")
-        agent.checkpointer.restore(found, bulky=False)
+        agent.checkpointer.restore(found, bulky=False, force=force)
         return agent
 
     @classmethod
