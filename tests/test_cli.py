@@ -354,3 +354,11 @@ def test_help_lists_the_systems_and_every_default(capsys):
             assert "default" in formatter._get_help_string(action), (parser.prog, action.option_strings)
             checked += 1
     assert checked >= 10  # the walk reached the sub-commands (config-field flags state their defaults in their help)
+
+
+def test_output_into_a_closed_pipe_is_not_an_error():
+    """`hybridctl systems | head -1`: no 'Broken pipe' error, exit 0."""
+    proc = subprocess.run(f"{sys.executable} -m hybridctl.cli systems | head -1", shell=True, cwd=ROOT,
+                          capture_output=True, text=True, timeout=120, executable="/bin/bash")
+    assert proc.stdout.startswith("acrobot")
+    assert "Broken pipe" not in proc.stderr and "Traceback" not in proc.stderr

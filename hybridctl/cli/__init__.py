@@ -13,6 +13,7 @@ Add --debug to see the traceback of an error.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 from . import balance_map, demo, mesh, simulate, systems, train
@@ -45,4 +46,9 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
     args.command_line = command_line(argv)
-    return args.func(args)
+    try:
+        return args.func(args)
+    except BrokenPipeError:  # `hybridctl systems | head`: the reader left; not an error of ours
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())  # Python's exit flush would fail again
+        return 0

@@ -68,8 +68,8 @@ def cli_errors(command: Callable[[argparse.Namespace], int]) -> Callable[[argpar
             print(f"error: {error_message(exc)}", file=sys.stderr)
             return DIVERGED
         except EXPECTED_ERRORS as exc:
-            if getattr(args, "debug", False):
-                raise
+            if getattr(args, "debug", False) or isinstance(exc, BrokenPipeError):
+                raise  # a closed pipe is handled by main: the reader left
             message = f"error: {error_message(exc)}"
             print(message, file=sys.stderr)
             raise CommandError(message) from None
