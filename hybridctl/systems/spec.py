@@ -30,6 +30,11 @@ USER_SPEC_ENV = "HYBRIDCTL_SYSTEMS"
 
 INTEGRATORS = ("euler", "runge_kutta2")
 REWARD_KINDS = ("tip_height", "quadratic", "tip_height_centered")
+# thesis Ch. 7 (analytic policy gradients): see System.reward; their settings reward.alive_bonus,
+# reward.velocity_penalty and reward.position_weight are optional (default 0) and >= 0
+CH7_REWARD_KINDS = ("angle_squared", "angle_cosine", "tip_distance")
+CH7_REWARD_SETTINGS = ("reward.alive_bonus", "reward.velocity_penalty", "reward.position_weight")
+REWARD_KINDS = REWARD_KINDS + CH7_REWARD_KINDS
 
 _PI_EXPR = re.compile(r"^\s*(-)?\s*(?:(\d+(?:\.\d*)?)\s*\*\s*)?pi\s*(?:/\s*(\d+(?:\.\d*)?))?\s*$")
 
@@ -298,6 +303,9 @@ def validate(spec: Spec) -> None:
             raise spec.error(key, f"must be a whole multiple of integrator.dt ({dt}), got {spec.get(key)}")
     if spec.get("reward.kind") not in REWARD_KINDS:
         raise spec.error("reward.kind", f"must be one of {REWARD_KINDS}")
+    for key in CH7_REWARD_SETTINGS:  # Ch. 7 reward settings (optional)
+        if spec.has(key):
+            _require_positive(spec, key, allow_zero=True)
     Q = np.atleast_2d(spec.get("lqr.Q"))
     R = np.atleast_2d(spec.get("lqr.R"))
     if Q.shape != (n, n) or not np.allclose(Q, Q.T) or np.linalg.eigvalsh(Q).min() < -1e-12:
