@@ -390,6 +390,7 @@ class APG(Learner):
         self.wall_time = 0.0
         self.history: list[dict] = []
         self.log_rows: list[dict] = []
+        self.last_scores = torch.full((self.K,), -math.inf, dtype=torch.float64)
         self._obs_sums = None   # observation sums of the current epoch (for the normalisation)
 
     @staticmethod
@@ -522,6 +523,7 @@ class APG(Learner):
             elite = torch.argsort(scores, descending=True, stable=True)[:cfg.elites]
             self.members = finals
             grad_norm = float(norms[torch.isfinite(norms)].median()) if torch.isfinite(norms).any() else grad_norm
+        self.last_scores = scores          # this epoch's ranking scores [K] (-inf: diverged)
         top = int(torch.argmax(torch.nan_to_num(scores, nan=-math.inf)))
         if cfg.method in ("apg", "shapg", "papg"):   # the best member NOW is the result (not the initial one)
             self.best, self.best_score = finals[top].clone(), float(scores[top])
