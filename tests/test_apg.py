@@ -274,3 +274,23 @@ def test_observation_is_periodic_in_the_angles():
     y[0, 1] += 2 * math.pi
     assert torch.allclose(observe(system, x), observe(system, y))
     assert observe(system, x).shape == (1, 5)
+
+
+def test_benchmark_reports_ratios_and_batched_equals_loop(tmp_path):
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    out = tmp_path / "apg.json"
+    proc = subprocess.run([sys.executable, str(root / "benchmarks" / "apg.py"), "--quick", "--horizon", "3",
+                           "--repeats", "1", "--out", str(out)], cwd=root, capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    report = json.loads(proc.stdout)
+    assert report == json.loads(out.read_text())
+    assert report["setting"]["population"] == 24 and report["setting"]["batch"] == 4
+    assert report["setting"]["state_steps_per_iteration"] == 24 * 4 * 3
+    assert all(v > 0 and math.isfinite(v) for v in report["ratios"].values())
+    assert report["check"]["max_relative_difference_batched_vs_loop"] < 1e-4
