@@ -107,8 +107,8 @@ def test_ch7_rewards_from_upright_and_the_smooth_option():
     assert torch.allclose(tip.reward(t), torch.as_tensor(tip.reward(np.stack([y, tip.goal]))))
     with pytest.raises(systems.SpecError, match="must be one of"):
         systems.load("acrobot", reward__kind="nope")
-    with pytest.raises(ValueError, match="APGConfig.reward must be one of"):
-        APGConfig(reward="tip_height").validate()
+    with pytest.raises(ValueError, match="APGConfig.reward_kind must be one of"):
+        APGConfig(reward_kind="tip_height").validate()
 
 
 # ----------------------------------------------------------------------------- gradients
@@ -190,11 +190,15 @@ def test_presets_name_their_differences():
             thesis.horizon, thesis.init_std, thesis.lr_start, thesis.lr_end) == (24, 8, 100, 200, 4, 500, 0.05,
                                                                                  1e-3, 1e-6)
     short = APGConfig.preset("thesis", method="shapg")
-    assert (short.short_horizon, short.clip, short.betas) == (32, 1.0, (0.7, 0.95))
+    assert (short.short_horizon, short.clip, short.beta1, short.beta2) == (32, 1.0, 0.7, 0.95)
     reduced = APGConfig.preset("reduced")
     assert reduced.population < 24 and reduced.horizon < 500
     with pytest.raises(ValueError, match="known: thesis, reduced"):
         APGConfig.preset("fast")
+    with pytest.raises(ValueError, match="APGConfig.policy must be"):
+        APGConfig(policy="mlp:").validate()
+    agent = APG("pendulum", APGConfig(policy="mlp:8,4", population=2, elites=1))
+    assert [l.n_out for l in agent.pop.layers] == [8, 4, 1]
 
 
 def test_papg_returns_the_best_member_not_the_initial_parameters():

@@ -86,7 +86,7 @@ class APGConfig:
 
     method: str = "ce-apg"             # one of METHODS
     # --- task
-    reward: str = "angle_squared"      # a Ch. 7 reward kind of the spec (systems.spec.CH7_REWARD_KINDS); thesis
+    reward_kind: str = "angle_squared"  # a Ch. 7 reward kind of the spec (systems.spec.CH7_REWARD_KINDS); thesis
     #                                    Sec. 7.2.3-7.2.4 (acrobot, cart-pole); "tip_distance" eqs. 7.5-7.8
     alive_bonus: float = 0.0           # reward.alive_bonus; author's acrobot / double cart-pole: 10
     velocity_penalty: float = 0.0      # reward.velocity_penalty; author's acrobot / double cart-pole: 0.01
@@ -98,8 +98,7 @@ class APGConfig:
     observation: str = "trig"          # "trig": [cart x, sin, cos of each angle error, velocities]; "state":
     #                                    the wrapped state error (jumps at +-pi). hybridctl choice.
     # --- policy
-    policy: str = "gru"                # "gru" (thesis Sec. 7.3.4), "mlp", "linear"
-    hidden: tuple[int, ...] = ()       # mlp widths
+    policy: str = "gru"                # "gru" (thesis Sec. 7.3.4), "linear" or "mlp:W1,W2,..." (ReLU widths)
     init_std: float = 0.05             # sigma_0 and the initial perturbation of zero weights, thesis Sec. 7.3.7
     normalize: bool = True             # running obs statistics, updated once per epoch, frozen during APG
     #                                    (implementation notes Ch. 7)
@@ -109,7 +108,8 @@ class APGConfig:
     apg_iterations: int = 100          # APG iterations per CE epoch, thesis Sec. 7.3.7 ("APG Epochs")
     lr_start: float = 1e-3             # thesis Sec. 7.3.7: 1e-3 -> 1e-6,
     lr_end: float = 1e-6               # log-linear over the CE epochs (implementation notes Ch. 7)
-    betas: tuple[float, float] = (0.9, 0.999)  # Adam defaults (the author's optax.adam); shapg: (0.7, 0.95)
+    beta1: float = 0.9                 # Adam betas: optax/torch defaults (the author's optax.adam);
+    beta2: float = 0.999               # shapg: (0.7, 0.95) as Brax APG 0.14 and SHAC
     truncation: int | None = None      # cut the graph every this many steps; None: full BPTT (thesis)
     clip: float | None = None          # gradient clipping; None: off (the author's, effectively)
     clip_mode: str = "norm"            # "norm" (per member's global norm) or "value" (elementwise)
@@ -133,17 +133,19 @@ class APGConfig:
                                             "elites", "rank_window", "epochs", "checkpoint_every", "eval_episodes",
                                             "torch_threads"),
                      integers_from_0=("seed",), positive=("lr_start", "lr_end", "grad_bound"))
-        for name, options in (("method", METHODS), ("policy", POLICY_KINDS), ("observation", OBSERVATIONS),
+        parse_policy(self.policy)
+        for name, options in (("method", METHODS), ("observation", OBSERVATIONS),
                               ("clip_mode", ("norm", "value")), ("dtype", ("float32", "float64"))):
             if getattr(self, name) not in options:
                 raise ValueError(f"APGConfig.{name} must be one of {options}, got {getattr(self, name)!r}")
-        if self.reward not in systems_mod.spec.CH7_REWARD_KINDS:
-            raise ValueError(f"APGConfig.reward must be one of {systems_mod.spec.CH7_REWARD_KINDS}, "
-                             f"got {self.reward!r}")
+        if self.reward_kind not in systems_mod.spec.CH7_REWARD_KINDS:
+            raise ValueError(f"APGConfig.reward_kind must be one of {systems_mod.spec.CH7_REWARD_KINDS}, "
+                             f"got {self.reward_kind!r}")
         if self.elites > self.population:
             raise ValueError(f"APGConfig.elites ({self.elites}) must be <= population ({self.population})")
-        if not (len(self.betas) == 2 and all(0.0 <= b < 1.0 for b in self.betas)):
-            raise ValueError(f"APGConfig.betas must be two numbers in [0, 1), got {self.betas!r}")
+        for name in ("beta1", "beta2"):
+            if not 0.0 <= getattr(self, name) < 1.0:
+                raise ValueError(f"APGConfig.{name} must be in [0, 1), got {getattr(self, name)!r}")
         if not 0.0 <= self.init_std or not math.isfinite(self.init_std):
             raise ValueError(f"APGConfig.init_std must be a finite number >= 0, got {self.init_std!r}")
         for name in ("truncation", "clip", "control_period", "start_noise"):
@@ -154,8 +156,6 @@ class APGConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"APGConfig.{name} must be a finite number >= 0, got {value!r}")
-        if self.policy == "mlp" and not self.hidden:
-            raise ValueError("APGConfig.hidden must give the mlp's widths, e.g. (32, 32)")
 
     @classmethod
     def preset(cls, name: str = "thesis", method: str = "ce-apg", **overrides) -> "APGConfig":
@@ -179,7 +179,7 @@ class APGConfig:
         if method == "apg":
             values["population"], values["elites"] = 1, 1
         if method == "shapg":
-            values.update(clip=1.0, clip_mode="norm", betas=(0.7, 0.95))
+            values.update(clip=1.0, clip_mode="norm", beta1=0.7, beta2=0.95)
         if method == "cem":
             values["epochs"] = 2000
         if name == "reduced":
@@ -195,6 +195,21 @@ class APGConfig:
 
 
 # ============================================================================ the pieces
+
+
+def parse_policy(text: str) -> tuple[str, tuple[int, ...]]:
+    """"gru" -> ("gru", ()); "linear" -> ("linear", ()); "mlp:32,32" -> ("mlp", (32, 32))."""
+    if text in ("gru", "linear"):
+        return text, ()
+    if isinstance(text, str) and text.startswith("mlp:"):
+        try:
+            widths = tuple(int(w) for w in text[4:].split(",") if w)
+        except ValueError:
+            widths = ()
+        if widths and all(w > 0 for w in widths):
+            return "mlp", widths
+    raise ValueError(f"APGConfig.policy must be one of {POLICY_KINDS[0]!r}, 'linear' or 'mlp:W1,W2,...' "
+                     f"(positive widths), got {text!r}")
 
 
 def lr_schedule(config: APGConfig, epoch: int) -> float:
@@ -372,9 +387,10 @@ class APG(Learner):
         self.period, self.substeps = float(period), int(round(ratio))
         self.K = 1 if cfg.method == "apg" else cfg.population
         obs_dim = observation_size(self.system, cfg.observation)
+        kind, widths = parse_policy(cfg.policy)
         with seeded(cfg.seed):
-            self.pop = PolicyPopulation.build(cfg.policy, obs_dim, self.system.n_actions, self.system.action_limit,
-                                              members=self.K, hidden=tuple(cfg.hidden), init_std=cfg.init_std,
+            self.pop = PolicyPopulation.build(kind, obs_dim, self.system.n_actions, self.system.action_limit,
+                                              members=self.K, hidden=widths, init_std=cfg.init_std,
                                               dtype=self.dtype)
         P = self.pop.n_params
         # CEM / CE-APG: theta = 0 with std sigma_0 (the author's zero-initialised weights); PAPG/APG: members
@@ -384,7 +400,7 @@ class APG(Learner):
         self.members = self.pop.to_flat().double()
         self.best = self.members[0].clone()
         self.best_score = -math.inf
-        self.adam = BatchedAdam(self.K, P, cfg.betas)
+        self.adam = BatchedAdam(self.K, P, (cfg.beta1, cfg.beta2))
         self.stats = torch.zeros(2 * obs_dim + 1, dtype=torch.float64)   # sum, sum of squares, count
         self.epoch = self.iterations = self.env_steps = self.nan_grads = self.large_grads = 0
         self.wall_time = 0.0
@@ -396,7 +412,7 @@ class APG(Learner):
     @staticmethod
     def _system(system: str | System, cfg: APGConfig) -> System:
         """The system with the config's Ch. 7 reward (as spec overrides, recorded in the spec)."""
-        reward = {"reward__kind": cfg.reward, "reward__alive_bonus": float(cfg.alive_bonus),
+        reward = {"reward__kind": cfg.reward_kind, "reward__alive_bonus": float(cfg.alive_bonus),
                   "reward__velocity_penalty": float(cfg.velocity_penalty),
                   "reward__position_weight": float(cfg.position_weight)}
         if isinstance(system, System):
@@ -511,7 +527,7 @@ class APG(Learner):
                 self.env_steps += self.K * cfg.batch * cfg.horizon
             else:
                 finals, history, norms = self._apg_phase(candidates, lr, BatchedAdam(self.K, self.pop.n_params,
-                                                                                       cfg.betas))
+                                                                                       (cfg.beta1, cfg.beta2)))
                 scores = history[-cfg.rank_window:].mean(0)
                 grad_norm = float(norms[torch.isfinite(norms)].median()) if torch.isfinite(norms).any() else grad_norm
             new_mean, new_std, elite = cem_update(self.mean, finals, scores, cfg.elites)
@@ -636,10 +652,7 @@ class APG(Learner):
         meta = ckpt.read_json(folder / ckpt.CONFIG_FILE)
         if meta.get("algorithm") != cls.algorithm_name:
             raise ckpt.CheckpointError(f"{folder} holds a {meta.get('algorithm')!r} checkpoint, not APG")
-        raw = dict(meta["config"])
-        for key in ("hidden", "betas"):
-            raw[key] = tuple(raw[key])
-        config = APGConfig(**{**raw, **overrides})
+        config = APGConfig(**{**meta["config"], **overrides})
         system = systems_mod.load(meta["system"], **meta.get("system_overrides", {}))
         agent = cls(system, config)
         agent.checkpointer.restore(folder)
