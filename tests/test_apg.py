@@ -298,3 +298,40 @@ def test_benchmark_reports_ratios_and_batched_equals_loop(tmp_path):
     assert report["setting"]["state_steps_per_iteration"] == 24 * 4 * 3
     assert all(v > 0 and math.isfinite(v) for v in report["ratios"].values())
     assert report["check"]["max_relative_difference_batched_vs_loop"] < 1e-4
+
+
+@pytest.mark.parametrize("overrides, message", [
+    ({"horizon": 1.5}, "APGConfig.horizon must be an integer"),
+    ({"lr_start": float("nan")}, "APGConfig.lr_start must be a finite number"),
+    ({"method": "ppo"}, "APGConfig.method must be one of"),
+    ({"elites": 30}, r"APGConfig.elites \(30\) must be <= population"),
+    ({"beta1": 1.0}, r"APGConfig.beta1 must be in \[0, 1\)"),
+    ({"clip": 0.0}, "APGConfig.clip must be None or a finite number > 0"),
+    ({"velocity_penalty": -1.0}, "APGConfig.velocity_penalty must be a finite number >= 0"),
+    ({"control_period": 0.013}, "must be a whole multiple"),
+])
+def test_bad_settings_are_named(overrides, message):
+    with pytest.raises(ValueError, match=message):
+        APG("cartpole", APGConfig(**overrides))
+
+
+def test_cli_trains_and_resumes_ce_apg(tmp_path):
+    import json
+    import subprocess
+    import sys
+
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    out = tmp_path / "run"
+    base = [sys.executable, "-m", "hybridctl.cli", "train", "ce-apg", "pendulum", "--preset", "reduced",
+            "--apg-iterations", "1", "--horizon", "5", "--population", "3", "--elites", "2", "--out", str(out),
+            "--eval-episodes", "2", "--quiet"]
+    first = subprocess.run(base + ["--epochs", "1"], capture_output=True, text=True, timeout=300, cwd=root)
+    assert first.returncode == 0, first.stderr[-2000:]
+    second = subprocess.run(base + ["--epochs", "2", "--resume"], capture_output=True, text=True, timeout=300,
+                            cwd=root)
+    assert second.returncode == 0 and "resuming" in second.stdout, second.stderr[-2000:]
+    record = json.loads((out / "eval.json").read_text())
+    assert record["epochs"] == 2 and record["env_steps"] == 2 * 3 * 4 * 5 and record["episodes"] == 2
+    assert "stabilised" in second.stdout
