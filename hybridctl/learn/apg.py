@@ -64,7 +64,7 @@ from .policies import KINDS as POLICY_KINDS
 from .policies import Policy, PolicyPopulation
 from .run import PROGRESS_FILE, EvalResult, Learner, Saved, check_fields, check_finite, seeded
 
-__all__ = ["APG", "APGConfig", "BatchedAdam", "METHODS", "PRESETS", "observe", "population_returns",
+__all__ = ["APG", "APGConfig", "BatchedAdam", "ClosedLoopPolicy", "METHODS", "PRESETS", "observe", "population_returns",
            "member_gradients", "lr_schedule", "cem_update"]
 
 METHODS = ("apg", "shapg", "papg", "cem", "ce-apg")
@@ -346,6 +346,24 @@ def cem_update(mean: torch.Tensor, candidates: torch.Tensor, scores: torch.Tenso
     return new_mean, new_std, order
 
 
+class ClosedLoopPolicy(torch.nn.Module):
+    """A trained policy on raw states: ``forward(x [B, n], h [B, hidden]) -> (action [B, m], h)``,
+    the observation (:func:`observe`) included; ``initial_state(batch)`` the zero state. What the
+    Drake block ``hybridctl.drake.RecurrentTorchPolicy`` runs."""
+
+    def __init__(self, system: System, policy: Policy, observation: str = "trig"):
+        super().__init__()
+        self.system, self.policy, self.observation = system, policy, observation
+
+    def initial_state(self, batch: int = 1) -> torch.Tensor:
+        """Zero recurrent state [batch, hidden]."""
+        return self.policy.initial_state(batch)
+
+    def forward(self, x: torch.Tensor, state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Action and next recurrent state for raw states x."""
+        return self.policy(observe(self.system, x.to(self.policy.population.dtype), self.observation), state)
+
+
 # ============================================================================ the learner
 
 
@@ -605,6 +623,10 @@ class APG(Learner):
             raise ValueError(f"which must be 'best' or 'mean', got {which!r}")
         theta = self.mean if which == "mean" else self.best
         return Policy(self.pop.resized(1, theta.to(self.dtype)[None]))
+
+    def closed_loop_policy(self, which: str | None = None) -> ClosedLoopPolicy:
+        """:meth:`policy` with the observation, on raw states (for Drake's RecurrentTorchPolicy)."""
+        return ClosedLoopPolicy(self.system, self.policy(which), self.config.observation)
 
     def evaluate(self, episodes: int | None = None, seed: int = 12345, which: str | None = None,
                  horizon: int | None = None, keep_states: bool = False) -> EvalResult:
