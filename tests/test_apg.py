@@ -107,6 +107,8 @@ def test_ch7_rewards_from_upright_and_the_smooth_option():
     assert torch.allclose(tip.reward(t), torch.as_tensor(tip.reward(np.stack([y, tip.goal]))))
     with pytest.raises(systems.SpecError, match="must be one of"):
         systems.load("acrobot", reward__kind="nope")
+    with pytest.raises(systems.SpecError, match="velocity_penalty.*>= 0"):
+        systems.load("acrobot", velocity_penalty=-0.01)
     with pytest.raises(ValueError, match="APGConfig.reward_kind must be one of"):
         APGConfig(reward_kind="tip_height").validate()
 
