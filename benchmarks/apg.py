@@ -3,7 +3,7 @@ population x batch of 24 x 4 over T = 500 policy steps (thesis Sec. 7.3.7), agai
 loop over the 24 members and (b) a zeroth-order (ES) estimate of the same cost, in the same run.
 Prints one JSON document.
 
-    .venv/bin/python benchmarks/apg.py [--quick] [--horizon T] [--system NAME] [--dtype float32|float64] [--period S]
+    .venv/bin/python benchmarks/apg.py [--quick] [--horizon T] [--system NAME] [--dtype float32|float64] [--period S] [--compile]
                                        [--repeats R] [--out FILE] [--threads N]
 
 One APG iteration = the batched rollout of K members x N starts (the GRU policy of the thesis,
@@ -33,7 +33,7 @@ import torch  # noqa: E402
 
 from common import emit, machine_info  # noqa: E402
 from hybridctl import systems  # noqa: E402
-from hybridctl.learn.apg import member_gradients, observation_size, population_returns  # noqa: E402
+from hybridctl.learn.apg import compiled_policy_step, member_gradients, observation_size, population_returns  # noqa: E402,E501
 from hybridctl.learn.policies import PolicyPopulation  # noqa: E402
 
 POPULATION, BATCH, HORIZON = 24, 4, 500
@@ -53,7 +53,7 @@ def _time(fn, repeats: int, warm_up: bool = True) -> dict:
 
 
 def run(system_name: str = "acrobot", horizon: int = HORIZON, dtype: str = "float32", repeats: int = 3,
-        threads: int = 1, quick: bool = False, period: float = PERIOD) -> dict:
+        threads: int = 1, quick: bool = False, period: float = PERIOD, compile: bool = False) -> dict:
     """Time the batched APG iteration, the member loop and the ES peer; the report as a dict."""
     torch.set_num_threads(threads)
     system = systems.load(system_name, reward__kind="angle_squared")
@@ -68,6 +68,10 @@ def run(system_name: str = "acrobot", horizon: int = HORIZON, dtype: str = "floa
 
     def batched():
         returns, *_ = population_returns(system, pop, x0, horizon, substeps)
+        return member_gradients(pop, -returns.mean(1))
+
+    def fused():   # the same iteration with the per-step work through torch.compile
+        returns, *_ = population_returns(system, pop, x0, horizon, substeps, step=compiled_policy_step())
         return member_gradients(pop, -returns.mean(1))
 
     def loop():
@@ -87,13 +91,29 @@ def run(system_name: str = "acrobot", horizon: int = HORIZON, dtype: str = "floa
     # the batched gradients are the member loop's (checked here, so a fast wrong answer shows)
     agree = max(float((a - b[0]).abs().max() / (b[0].abs().max() + 1e-30)) for a, b in zip(batched(), loop()))
     steps_per_iteration = POPULATION * BATCH * horizon
-    results = {}
-    for name, fn in (("batched_population", batched), ("member_loop", loop), ("es_forward_only", es)):
+    results, checks = {}, {}
+    runs = [("batched_population", batched), ("member_loop", loop), ("es_forward_only", es)]
+    if compile:
+        start = time.perf_counter()
+        reference = batched()
+        compiled = fused()
+        checks["compile_s"] = time.perf_counter() - start
+        checks["max_relative_difference_compiled_vs_eager"] = float((compiled - reference).abs().max()
+                                                                    / reference.abs().max())
+        runs.insert(1, ("batched_population_compiled", fused))
+    for name, fn in runs:
         t = _time(fn, repeats, warm_up=name != "member_loop")   # the check above warmed the loop up
         t.update(iterations_per_s=1.0 / t["median_s"], state_steps_per_s=steps_per_iteration / t["median_s"],
                  physics_steps_per_s=steps_per_iteration * substeps / t["median_s"])
         results[name] = t
     b, l, e = (results[k]["median_s"] for k in ("batched_population", "member_loop", "es_forward_only"))
+    ratios = {"batched_vs_member_loop": l / b, "apg_iteration_over_es_iteration": b / e,
+              "es_iteration_over_apg_iteration": e / b}
+    projection = {"ce_apg_epoch_s": 100 * b, "ce_apg_200_epochs_h": 200 * 100 * b / 3600}
+    if compile:
+        c = results["batched_population_compiled"]["median_s"]
+        ratios.update(compiled_vs_eager=b / c, compiled_vs_member_loop=l / c, apg_compiled_over_es_iteration=c / e)
+        projection.update(ce_apg_epoch_s_compiled=100 * c, ce_apg_200_epochs_h_compiled=200 * 100 * c / 3600)
     return {
         "benchmark": "apg",
         "timestamp": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
@@ -106,12 +126,10 @@ def run(system_name: str = "acrobot", horizon: int = HORIZON, dtype: str = "floa
                     "state_steps_per_iteration": steps_per_iteration,
                     "unit": "state-steps = policy steps (K x N x T); physics steps = x substeps"},
         "results": results,
-        "ratios": {"batched_vs_member_loop": l / b, "apg_iteration_over_es_iteration": b / e,
-                   "es_iteration_over_apg_iteration": e / b},
-        "projection": {"ce_apg_epoch_s": 100 * b, "ce_apg_200_epochs_h": 200 * 100 * b / 3600,
-                       "note": "100 APG iterations of the 24 x 4 population per CE epoch (thesis Sec. 7.3.7), "
-                               "scaled from the measured iteration at this horizon"},
-        "check": {"max_relative_difference_batched_vs_loop": agree},
+        "ratios": ratios,
+        "projection": {**projection, "note": "100 APG iterations of the 24 x 4 population per CE epoch (thesis "
+                                             "Sec. 7.3.7), scaled from the measured iteration at this horizon"},
+        "check": {"max_relative_difference_batched_vs_loop": agree, **checks},
     }
 
 
@@ -123,6 +141,8 @@ def main(argv=None) -> int:
     parser.add_argument("--system", default="acrobot")
     parser.add_argument("--period", type=float, default=PERIOD,
                         help=f"seconds per policy step (default {PERIOD}: the author's acrobot)")
+    parser.add_argument("--compile", action="store_true",
+                        help="also time the iteration with the per-step work through torch.compile")
     parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     parser.add_argument("--repeats", type=int, default=None, help="timed calls per measurement (default 3)")
     parser.add_argument("--out", type=Path, help="also write the JSON to this file")
@@ -132,7 +152,8 @@ def main(argv=None) -> int:
     repeats = args.repeats if args.repeats is not None else (2 if args.quick else 3)
     if horizon < 1 or repeats < 1 or args.threads < 1 or not args.period > 0:
         parser.error("--horizon, --repeats and --threads must be >= 1, --period > 0")
-    emit(run(args.system, horizon, args.dtype, repeats, args.threads, args.quick, args.period), args.out)
+    emit(run(args.system, horizon, args.dtype, repeats, args.threads, args.quick, args.period,
+             args.compile), args.out)
     return 0
 
 

@@ -337,3 +337,17 @@ def test_cli_trains_and_resumes_ce_apg(tmp_path):
     record = json.loads((out / "eval.json").read_text())
     assert record["epochs"] == 2 and record["env_steps"] == 2 * 3 * 4 * 5 and record["episodes"] == 2
     assert "stabilised" in second.stdout
+
+
+@pytest.mark.slow
+def test_compiled_step_gives_the_eager_gradients():
+    """torch.compile of the per-step work (about 30 s to compile here): the same gradients."""
+    from hybridctl.learn.apg import compiled_policy_step
+
+    system = systems.load("cartpole", reward__kind="angle_squared")
+    pop = PolicyPopulation.gru(5, 1, system.action_limit, members=3, dtype=torch.float64, init_std=0.2,
+                               generator=torch.Generator().manual_seed(5))
+    x0 = torch.as_tensor(system.initial_state.nominal[None] + 0.1)
+    eager = member_gradients(pop, -population_returns(system, pop, x0, 6, 5)[0].mean(1))
+    fused = member_gradients(pop, -population_returns(system, pop, x0, 6, 5, step=compiled_policy_step())[0].mean(1))
+    assert torch.allclose(eager, fused, rtol=1e-9, atol=1e-9 * float(eager.abs().max()))
