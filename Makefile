@@ -28,6 +28,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/dynamics.py
 	$(BIN)/python benchmarks/mesh_dimension.py
 	$(BIN)/python benchmarks/mfpt.py
+	$(BIN)/python benchmarks/apg.py --compile
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache
