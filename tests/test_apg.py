@@ -225,6 +225,21 @@ def test_ce_apg_improves_a_short_pendulum_swing_up():
     assert agent.history[-1]["env_steps"] == 3 * 6 * 6 * 2 * 40   # K x N x T x iterations, honestly
 
 
+def test_stabilisation_rate_counts_a_policy_that_holds_the_goal():
+    """A start at the goal with zero parameters (zero force) stays there: stabilised; hanging down: not."""
+    agent = APG("cartpole", small("papg", start_noise=None, horizon=40))
+    agent.best = torch.zeros_like(agent.best)
+    agent.system.initial_state.nominal[:] = agent.system.goal       # every held-out start at the goal
+    agent.system.initial_state.low[:] = 0.0
+    agent.system.initial_state.high[:] = 0.0
+    held = agent.evaluate(episodes=2)
+    assert held["success_rate"] == 1.0 and held["upright_rate"] == 1.0 and held["mean_return"] == 0.0
+    hanging = APG("cartpole", small("papg", horizon=40))
+    hanging.best = torch.zeros_like(hanging.best)
+    out = hanging.evaluate(episodes=2)
+    assert out["success_rate"] == 0.0 and out["upright_rate"] == 0.0
+
+
 def test_bad_gradients_are_skipped_counted_and_isolated():
     agent = APG("cartpole", small("papg", population=3))
     theta = agent.members.clone()

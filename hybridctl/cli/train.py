@@ -333,7 +333,8 @@ def run_train(args: argparse.Namespace) -> int:
     result, out = run.evaluation, run.out
     if args.algorithm in APG_METHODS:
         print(f"return of the {result['which']} policy over {result['episodes']} held-out starts: "
-              f"{result['mean_return']:.1f} +- {result['std_return']:.1f}; stabilised {result['success_rate']:.0%}; "
+              f"{result['mean_return']:.1f} +- {result['std_return']:.1f}; stabilised {result['success_rate']:.0%} "
+              f"(pole upright {result['upright_rate']:.0%}); "
               f"{result['env_steps']} env steps; wrote {out}/final, progress.csv, eval.json")
         return 0
     if args.algorithm == "ars":

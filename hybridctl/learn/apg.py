@@ -656,8 +656,11 @@ class APG(Learner):
     def evaluate(self, episodes: int | None = None, seed: int = 12345, which: str | None = None,
                  horizon: int | None = None, keep_states: bool = False) -> EvalResult:
         """Returns of the trained policy on held-out starts, and the stabilisation rate: the share of
-        episodes whose last second (of decision-rate states) stays within the spec's success eps of
-        the goal (thesis eq. 3.2 with lookback = one second)."""
+        episodes whose last second (of policy-step states) stays within the spec's success eps of
+        the goal (thesis eq. 3.2 with lookback = one second; the L2 norm over every coordinate, a
+        cart's position and the velocities included). ``upright_rate``: the share whose angle
+        errors alone all stay below eps over the last second (the pole held up, the cart anywhere).
+        ``best_training_return``: the best member's training score (the author's metric)."""
         n = episodes or self.config.eval_episodes
         policy = self.policy(which)
         x0 = self.starts(n, [seed, 2])
@@ -672,7 +675,12 @@ class APG(Learner):
         ok = np.isfinite(s).all(axis=(1, 2))
         if ok.any():
             balanced[ok] = is_balanced(s[ok], self.system, lookback=lookback)
+        upright = np.zeros(n, dtype=bool)
+        if ok.any():   # the angles alone (a cart may sit anywhere): every angle error below eps for the last second
+            err = self.system.state_error(s[ok][:, -lookback:, :].copy())[..., self.system.angle_indices]
+            upright[ok] = (np.abs(err) < self.system.success.eps).all(axis=(1, 2))
         out = EvalResult.from_returns(r[np.isfinite(r)], success_rate=float(balanced.mean()),
+                                      upright_rate=float(upright.mean()),
                                       first={"episodes": n, "seed": seed},
                                       which=which or ("mean" if self.config.method in ("cem", "ce-apg") else "best"),
                                       diverged=int((~np.isfinite(r)).sum()), best_training_return=self.best_score)
