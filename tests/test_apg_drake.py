@@ -88,3 +88,20 @@ def test_the_hybrid_diagram_takes_a_recurrent_swing_up():
     second = simulate(diagram, agent.system.nudged_nominal_state(), duration=0.5)   # a fresh Context each run
     assert np.isfinite(first.x).all() and np.abs(first.u).max() > 0
     assert np.array_equal(first.x, second.x)
+
+
+def test_named_controller_runs_an_apg_checkpoint(tmp_path):
+    from hybridctl import systems
+    from hybridctl.drake import simulate
+    from hybridctl.experiments.controllers import build_named_diagram
+
+    agent = APG("cartpole", APGConfig(method="ce-apg", population=3, elites=2, apg_iterations=1, horizon=5,
+                                      epochs=1, dtype="float64"))
+    agent.learn(log_dir=tmp_path, progress=False)
+    system = systems.load("cartpole")
+    diagram = build_named_diagram(system, f"ce-apg:{tmp_path / 'final'}")
+    assert isinstance(diagram.swingup, RecurrentTorchPolicy) and diagram.swingup.period == agent.period
+    traj = simulate(diagram, system.nudged_nominal_state(), duration=0.3)
+    assert np.isfinite(traj.x).all()
+    with pytest.raises(ValueError, match="was trained on cartpole, not acrobot"):
+        build_named_diagram(systems.load("acrobot"), f"apg:{tmp_path / 'final'}")
