@@ -366,3 +366,22 @@ def test_compiled_step_gives_the_eager_gradients():
     eager = member_gradients(pop, -population_returns(system, pop, x0, 6, 5)[0].mean(1))
     fused = member_gradients(pop, -population_returns(system, pop, x0, 6, 5, step=compiled_policy_step())[0].mean(1))
     assert torch.allclose(eager, fused, rtol=1e-9, atol=1e-9 * float(eager.abs().max()))
+
+
+def test_fig_7_1_diagnostics_gradient_norm_grows_with_horizon_and_landscape_probe():
+    from hybridctl.learn.apg import gradient_norms_by_horizon, returns_along_direction
+
+    system = systems.load("acrobot", reward__kind="angle_squared")
+    pop = PolicyPopulation.gru(6, 1, system.action_limit, members=2, dtype=torch.float64, init_std=0.3,
+                               generator=torch.Generator().manual_seed(6))
+    x0 = torch.as_tensor(system.initial_state.nominal[None] + np.array([[0.01, 0.0, 0.0, 0.0]]))
+    rows = gradient_norms_by_horizon(system, pop, x0, [5, 150], substeps=4)
+    assert [r["horizon"] for r in rows] == [5, 150]
+    assert all(b > 10 * a for a, b in zip(rows[0]["grad_norm"], rows[1]["grad_norm"]))
+    d = torch.randn(pop.n_params, dtype=torch.float64, generator=torch.Generator().manual_seed(7))
+    before = pop.to_flat()
+    landscape = returns_along_direction(system, pop, x0, 20, 4, d, [-0.1, 0.0, 0.1])
+    assert torch.equal(pop.to_flat(), before) and len(landscape) == 3
+    centre = float(population_returns(system, pop, x0, 20, 4)[0][0].detach().mean())
+    assert math.isclose(landscape[1], centre, rel_tol=1e-12)
+    assert landscape[0] != landscape[2]

@@ -65,7 +65,8 @@ from .policies import Policy, PolicyPopulation
 from .run import PROGRESS_FILE, EvalResult, Learner, Saved, check_fields, check_finite, seeded
 
 __all__ = ["APG", "APGConfig", "BatchedAdam", "ClosedLoopPolicy", "policy_step", "compiled_policy_step", "METHODS", "PRESETS", "observe", "population_returns",
-           "member_gradients", "lr_schedule", "cem_update"]
+           "member_gradients", "lr_schedule", "cem_update",
+           "gradient_norms_by_horizon", "returns_along_direction"]
 
 METHODS = ("apg", "shapg", "papg", "cem", "ce-apg")
 PRESETS = ("thesis", "reduced")
@@ -386,6 +387,34 @@ class ClosedLoopPolicy(torch.nn.Module):
     def forward(self, x: torch.Tensor, state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Action and next recurrent state for raw states x."""
         return self.policy(observe(self.system, x.to(self.policy.population.dtype), self.observation), state)
+
+
+# ============================================================================ diagnostics (thesis Fig. 7.1)
+
+
+def gradient_norms_by_horizon(system: System, pop: PolicyPopulation, x0: torch.Tensor, horizons, substeps: int,
+                              observation: str = "trig") -> list[dict]:
+    """The APG gradient's norm (per member, [K]) and the mean return for each horizon in ``horizons``:
+    why full BPTT through chaotic dynamics explodes (Metz et al. 2021; thesis Sec. 7.1.4)."""
+    out = []
+    for horizon in horizons:
+        returns, *_ = population_returns(system, pop, x0, int(horizon), substeps, observation)
+        grad = member_gradients(pop, -returns.mean(1))
+        out.append({"horizon": int(horizon), "grad_norm": grad.norm(dim=1).tolist(),
+                    "mean_return": returns.detach().mean(1).tolist()})
+    return out
+
+
+def returns_along_direction(system: System, pop: PolicyPopulation, x0: torch.Tensor, horizon: int, substeps: int,
+                            direction: torch.Tensor, scales, observation: str = "trig") -> list[float]:
+    """R(theta + s d) of member 0 for each s in ``scales`` (thesis Fig. 7.1: the return landscape along
+    a random direction d), evaluated as one batch (one member per scale); theta is left unchanged."""
+    scales = [float(v) for v in scales]
+    theta = pop.to_flat()[0]
+    probe = pop.resized(len(scales), torch.stack([theta + v * direction.to(theta.dtype) for v in scales]))
+    with torch.no_grad():
+        returns, *_ = population_returns(system, probe, x0, horizon, substeps, observation)
+    return returns.mean(1).double().tolist()
 
 
 # ============================================================================ the learner
