@@ -38,6 +38,14 @@ stays intact (the training skeleton writes none after an error).
 Interactions are counted honestly: K x N x T policy steps per APG iteration (x the
 integrator sub-steps per policy step for the physics steps, logged separately).
 
+Speed: ``APGConfig.compile`` runs the per-step work (observe, act, sub-steps, reward) through
+``torch.compile``; measured here (benchmarks/apg.py, 24 x 4 x 500 acrobot, float32, 1 thread)
+1.22 s per eager iteration, 0.23 s compiled, 30 s for the loop over members.
+
+Status (what a later session should know): on this machine's cart-pole the reduced preset and a
+12-epoch 24 x 4 x 200 CE-APG run raise the return well above hanging still but do not yet
+stabilise the pole (upright_rate 0); the thesis' settings take ~1.3 h compiled and have not been run.
+
 >>> agent = APG("cartpole", APGConfig.preset("reduced", method="ce-apg"))
 >>> agent.learn(log_dir="runs/ce-apg-cartpole")                   # progress, CSV, checkpoints
 >>> agent.evaluate(episodes=16)                                   # held-out starts, stabilisation rate
