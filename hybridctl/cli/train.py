@@ -22,13 +22,18 @@ from ..analysis.postprocess import FORMS as POSTPROCESS_FORMS
 from ..analysis.postprocess import KINDS as POSTPROCESS_KINDS
 from ..experiments import ALGORITHMS, SSAC_VARIANTS, train_and_evaluate
 from ..learn.run import RESUME_APPLIED
+from ..learn.apg import METHODS as APG_METHODS
+from ..learn.apg import OBSERVATIONS as APG_OBSERVATIONS
+from ..learn.apg import PRESETS as APG_PRESETS
+from ..systems.spec import CH7_REWARD_KINDS
 from ..learn.sac import OBS_TRANSFORMS
 from ..learn.ssac import REWARDS
 from ..parallel import BACKENDS
 from ._common import add_system_argument, CommandParser, add_debug_flag, add_quiet_flag, cli_errors, positive
 
 CHOICES = {"obs_transform": OBS_TRANSFORMS, "reward": REWARDS, "gate_class_weight_from": ("warm", "all"),
-           "postprocess": POSTPROCESS_KINDS, "postprocess_form": POSTPROCESS_FORMS, "backend": BACKENDS}
+           "postprocess": POSTPROCESS_KINDS, "postprocess_form": POSTPROCESS_FORMS, "backend": BACKENDS,
+           "reward_kind": CH7_REWARD_KINDS, "observation": APG_OBSERVATIONS, "clip_mode": ("norm", "value")}
 """The fixed sets that the configs' ``validate()`` accepts, by field name."""
 
 ALIASES = {"total_steps": ("--steps",)}
@@ -38,6 +43,7 @@ POSITIVE_FIELDS = {"total_steps", "epochs", "workers"}
 """Fields whose flags reject values <= 0 at parse time, as the first command line did."""
 
 NOT_FLAGS = {"ssac": {"variant_name"}, "ars": {"eval_episodes"}}
+NOT_FLAGS.update({method: {"method", "eval_episodes"} for method in APG_METHODS})  # set by the sub-command
 """Config fields without a generated flag: ``variant_name`` is set by ``--variant``; ARS's
 ``eval_episodes`` is the common ``--eval-episodes``."""
 
@@ -49,7 +55,13 @@ SYSTEM_HELP = {"sac": None, "ssac": None,  # None: the known systems (systems_he
                "ars": "gymnasium env id (e.g. Hopper-v5) or system name"}
 TITLES = {"sac": "plain SAC (thesis Ch. 3 baseline) on a system's torch vector env",
           "ssac": "Switched SAC (thesis Ch. 3): learned swing-up + learned gate + LQR",
-          "ars": "ARS V2-t with dimension post-processing (thesis Ch. 4) on a gymnasium env or system"}
+          "ars": "ARS V2-t with dimension post-processing (thesis Ch. 4) on a gymnasium env or system",
+          "apg": "analytic policy gradients, full BPTT (thesis Ch. 7)",
+          "shapg": "short-horizon APG (32-step unrolls, Brax APG / SHAC style) (thesis Ch. 7 peer)",
+          "papg": "parallel APG: K APG runs, the best member returned (thesis Sec. 7.5)",
+          "cem": "cross-entropy method on the policy parameters (thesis Sec. 7.3.2, 7.5)",
+          "ce-apg": "cross-entropy analytic policy gradients, Alg. 9 (thesis Ch. 7)"}
+SYSTEM_HELP.update({method: None for method in APG_METHODS})
 CONFIG_DEST = "config:"
 """Namespace prefix of the generated config-field options (set only when given)."""
 
@@ -273,7 +285,8 @@ def add_common_flags(parser: argparse.ArgumentParser, algorithm: str) -> set[str
                          help="replace the run the --out folder holds (without it, or --resume, such a folder is "
                               "refused)"),
         run.add_argument("--eval-episodes", type=positive(int), metavar="N",
-                         help="episodes in eval.json (default " + ("5" if algorithm == "ars" else "100") + ")"),
+                         help="episodes in eval.json (default " + ("5" if algorithm == "ars" else "16, held-out starts"
+                                                                 if algorithm in APG_METHODS else "100") + ")"),
         run.add_argument("--set", action="append", metavar="KEY=VALUE",
                          help="override a config field, e.g. --set polyak=0.9 (repeatable; value read as JSON)"),
     ]
@@ -282,6 +295,11 @@ def add_common_flags(parser: argparse.ArgumentParser, algorithm: str) -> set[str
             "--variant", choices=SSAC_VARIANTS, default=None,
             help="SSAC settings: hybridctl's defaults, the thesis' throughout (paper), or the author's code "
                  "(author); field flags change the chosen preset (default: hybridctl; with --resume: the run's)"))
+    if algorithm in APG_METHODS:
+        actions.append(run.add_argument(
+            "--preset", choices=APG_PRESETS, default=None,
+            help="settings: the thesis' (Sec. 7.3.7) or 'reduced' (trains in minutes; see APGConfig.preset); "
+                 "field flags change the chosen preset (default: thesis; with --resume: the run's)"))
     if algorithm == "ars":
         actions.append(run.add_argument(
             "--init", metavar="CHECKPOINT", help="start from this checkpoint's policy and normalisation (the "
@@ -337,11 +355,18 @@ def resume_help(algorithm: str) -> str:
 def run_train(args: argparse.Namespace) -> int:
     """Train, checkpoint, evaluate and print the evaluation (exit 3 when training diverged)."""
     run = train_and_evaluate(args.algorithm, args.system, out=args.out, settings=config_settings(args),
-                             variant=getattr(args, "variant", None), resume=args.resume,
+                             variant=getattr(args, "preset", None) or getattr(args, "variant", None),
+                             resume=args.resume,
                              init=getattr(args, "init", None), eval_episodes=args.eval_episodes,
                              progress=not args.quiet, command=args.command_line, force=args.force,
                              overwrite=args.overwrite)
     result, out = run.evaluation, run.out
+    if args.algorithm in APG_METHODS:
+        print(f"return of the {result['which']} policy over {result['episodes']} held-out starts: "
+              f"{result['mean_return']:.1f} +- {result['std_return']:.1f}; stabilised {result['success_rate']:.0%} "
+              f"(pole upright {result['upright_rate']:.0%}); "
+              f"{result['env_steps']} env steps; wrote {out}/final, progress.csv, eval.json")
+        return 0
     if args.algorithm == "ars":
         dims = result["mean_dimensions"]
         print(f"return over {result['episodes']} episodes: {result['mean_return']:.1f} +- {result['std_return']:.1f}; "

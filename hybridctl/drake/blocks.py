@@ -104,6 +104,63 @@ class TorchPolicy(HeldController):
         self.module = module
 
 
+class RecurrentTorchPolicy(LeafSystem):
+    """A recurrent torch policy as a Drake block: ``(action, h) = module(state, h)`` every ``period``.
+
+    ``module`` has ``initial_state(batch)`` (zero state [batch, hidden]) and
+    ``forward(x [1, n], h [1, hidden]) -> (action [1, m], h)`` on raw plant states (our
+    convention), e.g. :meth:`hybridctl.learn.APG.closed_loop_policy`. The recurrent state h lives
+    in the Context as discrete state (group 1, beside the held action in group 0), so the
+    block resets with the Context, and a periodic discrete update (offset 0) computes the
+    action and the next h together, under ``torch.no_grad`` in the module's dtype. The action
+    is held over the period (zero-order hold), as the torch rollout holds it.
+
+    Ports: input ``state`` (n_states), output ``command`` (n_actions).
+    """
+
+    def __init__(self, module: torch.nn.Module, n_states: int, n_actions: int, period: float,
+                 limit: float | None = None, name: str = "swingup"):
+        super().__init__()
+        if not isinstance(module, torch.nn.Module) or not hasattr(module, "initial_state"):
+            raise TypeError("module must be a torch.nn.Module with initial_state(batch) and "
+                            f"forward(x, h) -> (action, h), got {type(module).__name__}")
+        self.module = module.eval()
+        self.period = _check_period(period)
+        self.n_actions = int(n_actions)
+        self._limit = None if limit is None else float(limit)
+        h0 = module.initial_state(1)
+        self._dtype = h0.dtype
+        self.hidden_dim = int(h0.shape[-1])
+        self.DeclareVectorInputPort("state", n_states)
+        self._held = self.DeclareDiscreteState(np.zeros(self.n_actions))
+        # Drake needs a non-empty vector: a stateless policy keeps one unused entry
+        self._hidden = self.DeclareDiscreteState(np.zeros(max(self.hidden_dim, 1)))
+        self.DeclarePeriodicDiscreteUpdateEvent(self.period, 0.0, self._update)
+        self.DeclareStateOutputPort("command", self._held)
+        self.set_name(name)
+
+    def compute(self, x: np.ndarray, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(action, next h) for one state and recurrent state (the action clipped to ``limit``)."""
+        with torch.no_grad():
+            xt = torch.as_tensor(np.asarray(x, dtype=float), dtype=self._dtype).reshape(1, -1)
+            ht = torch.as_tensor(np.asarray(h, dtype=float)[:self.hidden_dim], dtype=self._dtype).reshape(1, -1)
+            u, h_next = self.module(xt, ht)
+        u = u.reshape(-1).double().numpy().copy()
+        if u.shape != (self.n_actions,):
+            raise ValueError(f"{self.get_name()}: the module returned shape {u.shape}, expected ({self.n_actions},)")
+        if self._limit is not None:
+            u = np.clip(u, -self._limit, self._limit)
+        return u, h_next.reshape(-1).double().numpy().copy()
+
+    def _update(self, context: Context, discrete_state: DiscreteValues) -> None:
+        x = self.get_input_port(0).Eval(context)
+        h = context.get_discrete_state(self._hidden).CopyToVector()
+        u, h_next = self.compute(x, h)
+        discrete_state.set_value(self._held, u)
+        if self.hidden_dim:
+            discrete_state.set_value(self._hidden, h_next)
+
+
 class Gate(LeafSystem):
     """Classifier gate with hysteresis (thesis Sec. 3.3).
 

@@ -20,7 +20,7 @@ from ..systems import System
 from ..systems import plants as _plants
 from ..systems.control import CostToGoGate
 from ..viz.meshcat import add_meshcat
-from .blocks import Gate, HeldController, ModeSwitch, TorchPolicy
+from .blocks import Gate, HeldController, ModeSwitch, RecurrentTorchPolicy, TorchPolicy
 from .controllers import LQRController, energy_swingup
 
 
@@ -66,8 +66,11 @@ def _swingup_block(system: System, swingup, period: float | None):
         fn = energy_swingup(system)
         return HeldController(fn, system.n_states, system.n_actions, period or system.control_period,
                               limit=system.action_limit, name="swingup")
-    if isinstance(swingup, HeldController):
+    if isinstance(swingup, (HeldController, RecurrentTorchPolicy)):
         return swingup
+    if isinstance(swingup, torch.nn.Module) and hasattr(swingup, "initial_state"):   # recurrent (APG's GRU)
+        return RecurrentTorchPolicy(swingup, system.n_states, system.n_actions, period or system.swingup_period,
+                                    limit=system.action_limit, name="swingup")
     if isinstance(swingup, torch.nn.Module):
         return TorchPolicy(swingup, system.n_states, system.n_actions, period or system.swingup_period,
                            limit=system.action_limit, name="swingup")

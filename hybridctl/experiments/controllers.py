@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..drake import HybridDiagram, build_hybrid_diagram
-from ..learn import load_controller
+from ..learn import APG, load_controller
+from ..learn.apg import METHODS as APG_METHODS
 from ..systems import System
 
 
@@ -29,6 +30,8 @@ CONTROLLERS = {
     "zero": "no input (passive dynamics)",
     "ssac:PATH": "learned swing-up + learned gate (hysteresis) + LQR from an SSAC checkpoint directory",
     "sac:PATH": "learned swing-up only from a SAC checkpoint directory (gate always off)",
+    "ce-apg:PATH": "learned recurrent swing-up from an APG/PAPG/CEM/CE-APG checkpoint (thesis Ch. 7; also "
+                   "apg:, papg:, cem:, shapg:) + cost-to-go gate (hysteresis) + LQR",
 }
 
 
@@ -59,5 +62,13 @@ def build_named_diagram(system: System, controller: str = "energy", **kwargs) ->
         kwargs.setdefault("gate_on", gate_meta.get("gate_on"))
         kwargs.setdefault("gate_off", gate_meta.get("gate_off"))
         return build_hybrid_diagram(system, swingup=policy, gate=gate, **kwargs)
+    if sep and kind in APG_METHODS:   # thesis Ch. 7: the trained GRU with its hidden state in the Context
+        if not path:
+            raise ValueError(f"controller {controller!r} needs a checkpoint path after '{kind}:'")
+        agent = APG.load(path)
+        if agent.system.name != system.name:
+            raise ValueError(f"{path} was trained on {agent.system.name}, not {system.name}")
+        kwargs.setdefault("swingup_period", agent.period)
+        return build_hybrid_diagram(system, swingup=agent.closed_loop_policy(), **kwargs)
     raise ValueError(f"unknown controller {controller!r}; known: "
                      + ", ".join(f"{k} ({v})" for k, v in CONTROLLERS.items()))

@@ -17,12 +17,16 @@ from pathlib import Path
 from typing import Any, Callable
 
 from .. import io
-from ..learn import ARS, SAC, SSAC, ARSConfig, SACConfig, SSACConfig
+from ..learn import APG, ARS, SAC, SSAC, ARSConfig, SACConfig, SSACConfig
+from ..learn.apg import METHODS as APG_METHODS
+from ..learn.apg import PRESETS as APG_PRESETS
+from ..learn.apg import APGConfig
 from ..learn.checkpoint import CheckpointError, newest_checkpoint, read_json
 from ..learn.run import checkpoint_minutes, describe_refused, resume_changes
 from ..systems import load
 
 ALGORITHMS = {"sac": SAC, "ssac": SSAC, "ars": ARS}
+ALGORITHMS.update({method: APG for method in APG_METHODS})   # thesis Ch. 7: apg, shapg, papg, cem, ce-apg
 """Learner class by ``hybridctl train`` name; each has ``config_class``."""
 
 SSAC_VARIANTS = ("hybridctl", "paper", "author")
@@ -61,6 +65,8 @@ def make_config(algorithm: str, variant: str = "hybridctl", **settings) -> SACCo
     values raise ValueError naming them.
     """
     config_class = learner_class(algorithm).config_class
+    if algorithm in APG_METHODS:   # variant: the preset ("thesis" or "reduced"; "hybridctl" means "thesis")
+        return APGConfig.preset("thesis" if variant == "hybridctl" else variant, method=algorithm, **settings)
     if algorithm != "ssac" and variant != "hybridctl":
         raise ValueError("--variant applies to ssac only")
     try:
@@ -217,6 +223,9 @@ def train_and_evaluate(algorithm: str, system: str, out: str | Path | None = Non
     report = report or _silent
     settings = dict(settings or {})
     algo = learner_class(algorithm)
+    if algorithm in APG_METHODS:
+        return _train_apg(algorithm, system, out, settings, variant, resume, eval_episodes, progress, command, report,
+                          force, overwrite)
     if algorithm == "ars":
         return _train_ars(system, out, settings, variant or "hybridctl", resume, init, eval_episodes, progress,
                           command, report, force, overwrite)
@@ -291,5 +300,44 @@ def _train_ars(env: str, out, settings: dict, variant: str, resume: bool, init, 
     if command is not None:
         record["command"] = command
     record.update({"epochs": agent.epoch, "env_steps": agent.env_steps, "train_wall_time_s": agent.wall_time})
+    io.write_json(out / "eval.json", record)
+    return TrainingRun(agent, out, record)
+
+
+def _train_apg(method: str, system: str, out, settings: dict, preset: str | None, resume: bool, eval_episodes,
+               progress: bool, command: str | None, report: Callable[[str], None], force: bool = False,
+               overwrite: bool = False) -> TrainingRun:
+    """:func:`train_and_evaluate` for the analytic-policy-gradient learners (thesis Ch. 7): the same
+    run-folder refusal, resume checks and resume policy as the other learners."""
+    if preset not in (None, "hybridctl", *APG_PRESETS):
+        raise ValueError(f"unknown preset {preset!r} for {method}; known: {', '.join(APG_PRESETS)}")
+    system_name = load(system).name  # a clear error for an unknown system name, before any work
+    config = make_config(method, preset or "thesis", **settings)
+    out = Path(out) if out is not None else default_run_dir(method, system, config.seed)
+    prepare_run_folder(out, resume, overwrite)
+    found = newest_run_checkpoint(out, strict=not force) if resume else None
+    if found is not None:
+        recorded = read_json(found / "config.json")
+        if recorded.get("system") != system_name and not force:
+            raise CheckpointError(f"cannot resume: checkpoint {found} was trained on system "
+                                  f"{recorded.get('system')!r}, not {system_name!r}")
+        given = dict(settings)
+        if preset is not None:  # the preset's fields, as if each were given
+            given = {**{k: v for k, v in asdict(APGConfig.preset(preset, method=method)).items()
+                        if recorded.get("config", {}).get(k, v) != v}, **given}
+        applied = resume_settings(found, recorded.get("config", {}), given, force, report)
+        agent = APG.load(found, force=force, **applied)
+        report(f"resuming {found} at epoch {agent.epoch}")
+    else:
+        agent = APG(system, config)
+        report(f"{method} on {system}: {config.epochs} epochs of {config.population if method != 'apg' else 1} x "
+               f"{config.batch} x {config.horizon} steps, seed {config.seed}")
+    agent.learn(log_dir=out, progress=progress)
+    record = _as_record(agent.evaluate(episodes=eval_episodes or agent.config.eval_episodes))
+    if command is not None:
+        record["command"] = command
+    record.update({"method": method, "epochs": agent.epoch, "iterations": agent.iterations,
+                   "env_steps": agent.env_steps, "nan_grads": agent.nan_grads, "large_grads": agent.large_grads,
+                   "train_wall_time_s": agent.wall_time})
     io.write_json(out / "eval.json", record)
     return TrainingRun(agent, out, record)

@@ -1,5 +1,6 @@
 """Learning: SAC and Switched SAC on batched torch envs (thesis Ch. 3), gate learning, checkpoints;
-ARS with dimension post-processing and parallel rollouts, failure rates under disturbances (Ch. 4).
+ARS with dimension post-processing and parallel rollouts, failure rates under disturbances (Ch. 4);
+analytic policy gradients through the torch dynamics: APG, PAPG, CEM, CE-APG with GRU policies (Ch. 7).
 Every learner stands on the training skeleton of :mod:`.run` (run log, checkpoints, resume,
 callbacks, NaN guard, evaluation results).
 
@@ -8,10 +9,12 @@ callbacks, NaN guard, evaluation results).
 >>> agent = SSAC("acrobot", seed=0).learn(log_dir="runs/ssac")
 """
 
+from .apg import APG, APGConfig
 from .ars import ARS, ARSConfig
 from .checkpoint import CheckpointError, resolve_checkpoint_dir, write_checkpoint_dir
 from .export import load_controller
 from .gate import GateConfig, GateNet, fit_gate, gate_metrics, warm_start_gate
+from .policies import Policy, PolicyPopulation
 from .networks import Actor, DeterministicPolicy, ObsTransform, QNetwork
 from .replay import EpisodeStaging, ReplayBuffer, sample_mixed
 from .run import Callback, CallbackList, Checkpointer, EvalResult, Learner, RunLog, Saved, check_finite
@@ -20,7 +23,7 @@ from .robustness import failure_rates
 from ..parallel import ProcessBackend, RayBackend, SerialBackend, make_backend
 from .ssac import SSAC, GateDataset, SSACConfig
 
-__all__ = ["SAC", "SACConfig", "SSAC", "SSACConfig", "GateDataset", "Actor", "QNetwork", "ObsTransform",
+__all__ = ["APG", "APGConfig", "Policy", "PolicyPopulation", "SAC", "SACConfig", "SSAC", "SSACConfig", "GateDataset", "Actor", "QNetwork", "ObsTransform",
            "DeterministicPolicy", "ReplayBuffer", "EpisodeStaging", "sample_mixed", "plot_training_curves",
            "CheckpointError", "resolve_checkpoint_dir", "write_checkpoint_dir", "GateConfig", "GateNet",
            "fit_gate", "gate_metrics", "warm_start_gate", "load_controller", "ARS", "ARSConfig", "failure_rates",

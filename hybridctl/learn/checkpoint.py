@@ -43,6 +43,7 @@ import torch
 
 from .. import io as _io
 from ..systems import load as load_system
+from ..systems.spec import OPTIONAL_DEFAULTS
 
 MODEL_FILE = "model.pt"
 CONFIG_FILE = "config.json"
@@ -189,14 +190,15 @@ def plant_differences(found: Path, recorded: dict | None, system) -> tuple[list[
         saved_values = recorded.get("spec_values") or {}
     lines = []
     for key in sorted(set(saved_values) | set(current["spec_values"])):
-        old, new = saved_values.get(key, "(absent)"), current["spec_values"].get(key, "(absent)")
+        # a key the other side lacks holds its optional default (a spec key added after the checkpoint)
+        absent = OPTIONAL_DEFAULTS.get(key, "(absent)")
+        old, new = saved_values.get(key, absent), current["spec_values"].get(key, absent)
         if old != new:
             lines.append(f"checkpoint {found} was trained on {name} with {key}={_shown(old)}; this system has "
                          f"{_shown(new)}")
     if not complete:
         return [f"{line} (an old checkpoint: only its spec overrides are recorded)" for line in lines], False
-    return lines or [f"checkpoint {found} was trained on {name} with spec hash {recorded['spec_hash']}; this "
-                     f"system has {current['spec_hash']}"], True
+    return lines, True  # hashes that differ only by optional keys at their defaults: the same plant
 
 
 def check_plant(found: Path, recorded: dict | None, system, force: bool = False) -> None:

@@ -19,7 +19,8 @@ import torch
 
 from . import control
 from .dynamics import ChainDynamics, ChainParams
-from .spec import (GateSection, InitialStateSection, SpecError, Spec, SuccessSection, SwingupSection, known_systems,
+from .spec import CH7_REWARD_KINDS
+from .spec import (OPTIONAL_DEFAULTS, GateSection, InitialStateSection, SpecError, Spec, SuccessSection, SwingupSection, known_systems,
                    read_spec, typed_sections)
 
 __all__ = ["System", "load", "known_systems", "SpecError", "Spec", "check_array", "control", "GateSection",
@@ -92,6 +93,12 @@ class System:
         self.description: str = spec.get("system.description", "")
         self.drake_model: str | None = spec.get("model.drake", None)  # name of a pydrake.examples plant, if any
         self.reward_kind: str = spec.get("reward.kind")
+        # Ch. 7 reward settings (optional keys, default 0; used by the Ch. 7 kinds only)
+        self.reward_alive_bonus = float(spec.get("reward.alive_bonus", OPTIONAL_DEFAULTS["reward.alive_bonus"]))
+        self.reward_velocity_penalty = float(spec.get("reward.velocity_penalty",
+                                                      OPTIONAL_DEFAULTS["reward.velocity_penalty"]))
+        self.reward_position_weight = float(spec.get("reward.position_weight",
+                                                     OPTIONAL_DEFAULTS["reward.position_weight"]))
         self.chain = self._chain_params()
         self.dynamics = ChainDynamics(self.chain)
         self._lqr_cache: dict = {}
@@ -198,6 +205,8 @@ class System:
         """
         if self.reward_kind == "tip_height":
             return self.dynamics.tip_height(x)
+        if self.reward_kind in CH7_REWARD_KINDS:
+            return self.ch7_reward(x)
         err = self.state_error(x)[..., : self.n_states // 2]
         if self.reward_kind == "tip_height_centered":
             linear = [i for i in range(self.n_states // 2) if i not in self.angle_indices]
@@ -205,6 +214,56 @@ class System:
                 return self.dynamics.tip_height(x)
             return self.dynamics.tip_height(x) - 0.1 * (err[..., linear] ** 2).sum(-1)
         return -0.1 * (err * err).sum(-1)
+
+    def ch7_reward(self, x):
+        """The thesis' Ch. 7 rewards (analytic policy gradients), from the spec's ``reward.kind``.
+
+        Angles phi are ``state_error``'s (wrapped, measured from upright; relative joint
+        angles as the state holds them); dphi their velocities; p the non-angle positions
+        (a cart's x). With b = ``reward.alive_bonus``, c = ``reward.velocity_penalty``,
+        w = ``reward.position_weight`` (all 0 unless set):
+
+        * ``angle_squared``: b - sum phi^2 - w sum p^2 - c sum dphi^2. With b = c = w = 0
+          it is the thesis' acrobot -phi1^2 - phi2^2 (Sec. 7.2.3) and cart-pole -phi^2
+          (Sec. 7.2.4); the author's acrobot is b = 10, c = 0.01, his double cart-pole
+          b = 10, w = 1, c = 0.01 (implementation notes Ch. 7). -phi^2 jumps at phi = +-pi.
+        * ``angle_cosine``: the smooth option, 2 (1 - cos phi) in place of phi^2 (equal to
+          second order at upright, no jump at +-pi).
+        * ``tip_distance``: thesis eqs. 7.5-7.7: b - (0.05 x_tip^2 + (y_tip - y_des)^2) -
+          c sum dphi^2, the distal tip's position (x_tip: horizontal, with the cart;
+          y_tip: height above the pivot; y_des: its upright height). Eq. 7.6's alive bonus
+          is b = 10; eq. 7.8 prints the velocity term as the signed sum dphi1 + dphi2, which
+          pays for spinning one way, so the squared form (weight c) is used instead.
+
+        Our systems keep their own parameters (the thesis' Brax models differ), so returns
+        are not comparable number for number with the thesis' tables.
+        """
+        n_q = self.n_states // 2
+        err = self.state_error(x)
+        angles = list(self.angle_indices)
+        linear = [i for i in range(n_q) if i not in angles]
+        phi, dphi = err[..., angles], err[..., [n_q + i for i in angles]]
+        penalty = self.reward_velocity_penalty * (dphi * dphi).sum(-1)
+        if self.reward_kind == "tip_distance":
+            absolute, base = self.dynamics.absolute_angles(x[..., :n_q])
+            lengths = np.asarray(self.chain.link_length, dtype=float)
+            if isinstance(x, torch.Tensor):
+                lengths = torch.as_tensor(lengths, dtype=x.dtype, device=x.device)
+                sin, cos = torch.sin, torch.cos
+            else:
+                sin, cos = np.sin, np.cos
+            x_tip = (lengths * sin(absolute)).sum(-1) + (base[..., 0] if base is not None else 0.0)
+            y_tip = -(lengths * cos(absolute)).sum(-1)
+            distance = 0.05 * x_tip * x_tip + (y_tip - float(self.chain.link_length.sum())) ** 2
+            return self.reward_alive_bonus - distance - penalty
+        if self.reward_kind == "angle_cosine":
+            cost = (2.0 * (1.0 - (phi.cos() if isinstance(phi, torch.Tensor) else np.cos(phi)))).sum(-1)
+        else:
+            cost = (phi * phi).sum(-1)
+        if linear:
+            p = err[..., linear]
+            cost = cost + self.reward_position_weight * (p * p).sum(-1)
+        return self.reward_alive_bonus - cost - penalty
 
     def sample_initial_states(self, n: int, generator: np.random.Generator | None = None) -> np.ndarray:
         """n initial states from the spec's uniform distribution (nominal + U(low, high))."""

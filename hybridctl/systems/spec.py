@@ -30,6 +30,11 @@ USER_SPEC_ENV = "HYBRIDCTL_SYSTEMS"
 
 INTEGRATORS = ("euler", "runge_kutta2")
 REWARD_KINDS = ("tip_height", "quadratic", "tip_height_centered")
+# thesis Ch. 7 (analytic policy gradients): see System.reward; their settings reward.alive_bonus,
+# reward.velocity_penalty and reward.position_weight are optional (default 0) and >= 0
+CH7_REWARD_KINDS = ("angle_squared", "angle_cosine", "tip_distance")
+CH7_REWARD_SETTINGS = ("reward.alive_bonus", "reward.velocity_penalty", "reward.position_weight")
+REWARD_KINDS = REWARD_KINDS + CH7_REWARD_KINDS
 
 _PI_EXPR = re.compile(r"^\s*(-)?\s*(?:(\d+(?:\.\d*)?)\s*\*\s*)?pi\s*(?:/\s*(\d+(?:\.\d*)?))?\s*$")
 
@@ -298,6 +303,9 @@ def validate(spec: Spec) -> None:
             raise spec.error(key, f"must be a whole multiple of integrator.dt ({dt}), got {spec.get(key)}")
     if spec.get("reward.kind") not in REWARD_KINDS:
         raise spec.error("reward.kind", f"must be one of {REWARD_KINDS}")
+    for key in CH7_REWARD_SETTINGS:  # Ch. 7 reward settings (optional)
+        if spec.has(key):
+            _require_positive(spec, key, allow_zero=True)
     Q = np.atleast_2d(spec.get("lqr.Q"))
     R = np.atleast_2d(spec.get("lqr.R"))
     if Q.shape != (n, n) or not np.allclose(Q, Q.T) or np.linalg.eigvalsh(Q).min() < -1e-12:
@@ -331,6 +339,16 @@ def validate(spec: Spec) -> None:
 THESIS_LABEL_HORIZON = 2.5
 """s: the thesis labels gate data by 2.5 s LQR rollouts (implementation notes, Ch. 3).
 The default of ``gate.label_horizon`` for a spec that does not set it."""
+
+OPTIONAL_DEFAULTS = {
+    "gate.label_horizon": THESIS_LABEL_HORIZON,
+    "reward.alive_bonus": 0.0,        # thesis Ch. 7 reward settings: off unless a spec sets them
+    "reward.velocity_penalty": 0.0,
+    "reward.position_weight": 0.0,
+}
+"""Optional spec keys and the value a spec that does not set them has. One source for the
+readers and for checkpoint plant records: a key added to the specs after a checkpoint was
+written is no difference while it holds this value."""
 
 
 @dataclass(frozen=True)
@@ -395,7 +413,7 @@ def typed_sections(spec: Spec) -> dict:
     gate = GateSection(
         on=float(spec.get("gate.on")), off=float(spec.get("gate.off")),
         cost_scale=float(spec.get("gate.cost_scale")),
-        label_horizon=float(spec.get("gate.label_horizon", THESIS_LABEL_HORIZON)),
+        label_horizon=float(spec.get("gate.label_horizon", OPTIONAL_DEFAULTS["gate.label_horizon"])),
         warm_near=optional_spread("gate.warm_near"), warm_far=optional_spread("gate.warm_far"), system=spec.name)
     success = SuccessSection(eps=float(spec.get("success.eps")), lookback=int(spec.get("success.lookback")))
     initial = InitialStateSection(*(np.asarray(spec.get(f"initial_state.{k}"), dtype=float).copy()

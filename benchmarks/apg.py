@@ -1,0 +1,161 @@
+"""Analytic policy gradients: APG iterations/s and state-steps/s through forward and backward for a
+population x batch of 24 x 4 over T = 500 policy steps (thesis Sec. 7.3.7), against (a) a Python
+loop over the 24 members and (b) a zeroth-order (ES) estimate of the same cost, in the same run.
+Prints one JSON document.
+
+    .venv/bin/python benchmarks/apg.py [--quick] [--horizon T] [--system NAME] [--dtype float32|float64] [--period S] [--compile]
+                                       [--repeats R] [--out FILE] [--threads N]
+
+One APG iteration = the batched rollout of K members x N starts (the GRU policy of the thesis,
+one action held over the spec's swing-up period, i.e. ``substeps`` integrator steps) and one
+backward, giving every member its exact gradient. The member loop does the same work one member
+at a time. The ES peer estimates ONE policy's gradient from K perturbations x N starts of the
+same rollout, forward only (no graph), i.e. the same number of state steps: the ratio says what
+an exact gradient costs over a zeroth-order estimate built from as many rollouts.
+
+Every number is the median of ``repeats`` timed calls after a warm-up, measured in this one run,
+so ratios compare like with like under the same machine load (which is recorded).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import statistics
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import torch  # noqa: E402
+
+from common import emit, machine_info  # noqa: E402
+from hybridctl import systems  # noqa: E402
+from hybridctl.learn.apg import compiled_policy_step, member_gradients, observation_size, population_returns  # noqa: E402,E501
+from hybridctl.learn.policies import PolicyPopulation  # noqa: E402
+
+POPULATION, BATCH, HORIZON = 24, 4, 500
+PERIOD = 0.04   # s per policy step: the author's acrobot (dt 0.01 x 4 substeps, implementation notes Ch. 7)
+
+
+def _time(fn, repeats: int, warm_up: bool = True) -> dict:
+    """Median wall seconds of ``fn()`` over ``repeats`` calls after one warm-up call."""
+    if warm_up:
+        fn()
+    walls = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        walls.append(time.perf_counter() - start)
+    return {"median_s": statistics.median(walls), "min_s": min(walls), "max_s": max(walls), "repeats": repeats}
+
+
+def run(system_name: str = "acrobot", horizon: int = HORIZON, dtype: str = "float32", repeats: int = 3,
+        threads: int = 1, quick: bool = False, period: float = PERIOD, compile: bool = False) -> dict:
+    """Time the batched APG iteration, the member loop and the ES peer; the report as a dict."""
+    torch.set_num_threads(threads)
+    system = systems.load(system_name, reward__kind="angle_squared")
+    torch_dtype = torch.float64 if dtype == "float64" else torch.float32
+    substeps = max(1, int(round(period / system.dt)))
+    obs = observation_size(system)
+    pop = PolicyPopulation.gru(obs, system.n_actions, system.action_limit, members=POPULATION, dtype=torch_dtype,
+                               generator=torch.Generator().manual_seed(0))
+    x0 = torch.as_tensor(system.initial_state.nominal, dtype=torch_dtype).repeat(BATCH, 1)
+    x0 = x0 + 0.01 * torch.rand(x0.shape, dtype=torch_dtype, generator=torch.Generator().manual_seed(1))
+    members = [pop.resized(1, pop.to_flat()[k:k + 1]) for k in range(POPULATION)]
+
+    def batched():
+        returns, *_ = population_returns(system, pop, x0, horizon, substeps)
+        return member_gradients(pop, -returns.mean(1))
+
+    def fused():   # the same iteration with the per-step work through torch.compile
+        returns, *_ = population_returns(system, pop, x0, horizon, substeps, step=compiled_policy_step())
+        return member_gradients(pop, -returns.mean(1))
+
+    def loop():
+        return [member_gradients(m, -population_returns(system, m, x0, horizon, substeps)[0].mean(1))
+                for m in members]
+
+    es_pop = pop.resized(POPULATION, pop.to_flat()[:1].repeat(POPULATION, 1))
+    noise = torch.randn((POPULATION // 2, pop.n_params), dtype=torch_dtype, generator=torch.Generator().manual_seed(2))
+    theta = pop.to_flat()[0]
+
+    def es():   # antithetic ES: 12 directions x (+, -) = 24 perturbed copies of ONE policy, forward only
+        with torch.no_grad():
+            es_pop.from_flat(torch.cat([theta + 0.02 * noise, theta - 0.02 * noise]))
+            r = population_returns(system, es_pop, x0, horizon, substeps)[0].mean(1)
+            return ((r[:POPULATION // 2] - r[POPULATION // 2:]) @ noise) / (2 * 0.02 * noise.shape[0])
+
+    # the batched gradients are the member loop's (checked here, so a fast wrong answer shows)
+    agree = max(float((a - b[0]).abs().max() / (b[0].abs().max() + 1e-30)) for a, b in zip(batched(), loop()))
+    steps_per_iteration = POPULATION * BATCH * horizon
+    results, checks = {}, {}
+    runs = [("batched_population", batched), ("member_loop", loop), ("es_forward_only", es)]
+    if compile:
+        start = time.perf_counter()
+        reference = batched()
+        compiled = fused()
+        checks["compile_s"] = time.perf_counter() - start
+        checks["max_relative_difference_compiled_vs_eager"] = float((compiled - reference).abs().max()
+                                                                    / reference.abs().max())
+        runs.insert(1, ("batched_population_compiled", fused))
+    for name, fn in runs:
+        t = _time(fn, repeats, warm_up=name != "member_loop")   # the check above warmed the loop up
+        t.update(iterations_per_s=1.0 / t["median_s"], state_steps_per_s=steps_per_iteration / t["median_s"],
+                 physics_steps_per_s=steps_per_iteration * substeps / t["median_s"])
+        results[name] = t
+    b, l, e = (results[k]["median_s"] for k in ("batched_population", "member_loop", "es_forward_only"))
+    ratios = {"batched_vs_member_loop": l / b, "apg_iteration_over_es_iteration": b / e,
+              "es_iteration_over_apg_iteration": e / b}
+    projection = {"ce_apg_epoch_s": 100 * b, "ce_apg_200_epochs_h": 200 * 100 * b / 3600}
+    if compile:
+        c = results["batched_population_compiled"]["median_s"]
+        ratios.update(compiled_vs_eager=b / c, compiled_vs_member_loop=l / c, apg_compiled_over_es_iteration=c / e)
+        projection.update(ce_apg_epoch_s_compiled=100 * c, ce_apg_200_epochs_h_compiled=200 * 100 * c / 3600)
+    return {
+        "benchmark": "apg",
+        "timestamp": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "command": [sys.executable, *sys.argv],
+        "quick": quick,
+        "machine": machine_info(),
+        "setting": {"system": system.name, "population": POPULATION, "batch": BATCH, "horizon": horizon,
+                    "period_s": period, "substeps_per_policy_step": substeps, "integrator": system.integrator, "dt": system.dt,
+                    "dtype": dtype, "policy": pop.describe(), "reward": "angle_squared",
+                    "state_steps_per_iteration": steps_per_iteration,
+                    "unit": "state-steps = policy steps (K x N x T); physics steps = x substeps"},
+        "results": results,
+        "ratios": ratios,
+        "projection": {**projection, "note": "100 APG iterations of the 24 x 4 population per CE epoch (thesis "
+                                             "Sec. 7.3.7), scaled from the measured iteration at this horizon"},
+        "check": {"max_relative_difference_batched_vs_loop": agree, **checks},
+    }
+
+
+def main(argv=None) -> int:
+    """Parse flags, run, print the JSON."""
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--quick", action="store_true", help="horizon 20, 2 repeats (for tests)")
+    parser.add_argument("--horizon", type=int, default=None, help=f"policy steps per rollout (default {HORIZON})")
+    parser.add_argument("--system", default="acrobot")
+    parser.add_argument("--period", type=float, default=PERIOD,
+                        help=f"seconds per policy step (default {PERIOD}: the author's acrobot)")
+    parser.add_argument("--compile", action="store_true",
+                        help="also time the iteration with the per-step work through torch.compile")
+    parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    parser.add_argument("--repeats", type=int, default=None, help="timed calls per measurement (default 3)")
+    parser.add_argument("--out", type=Path, help="also write the JSON to this file")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    args = parser.parse_args(argv)
+    horizon = args.horizon if args.horizon is not None else (20 if args.quick else HORIZON)
+    repeats = args.repeats if args.repeats is not None else (2 if args.quick else 3)
+    if horizon < 1 or repeats < 1 or args.threads < 1 or not args.period > 0:
+        parser.error("--horizon, --repeats and --threads must be >= 1, --period > 0")
+    emit(run(args.system, horizon, args.dtype, repeats, args.threads, args.quick, args.period,
+             args.compile), args.out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

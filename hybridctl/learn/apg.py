@@ -1,0 +1,760 @@
+"""Analytic policy gradients through the differentiable dynamics (thesis Ch. 7): APG, short-horizon
+APG, PAPG, CEM and CE-APG, all as ONE batched torch computation over a population of policies.
+
+The torch dynamics (:meth:`hybridctl.systems.System.step_unchecked`) are differentiable, so the
+return R(theta) = sum_t r(s_t) of a deterministic policy has an exact gradient (eq. 7.10):
+
+    theta <- theta + alpha grad_theta (1/N) sum_i sum_t r(s_t^i)          (APG, Adam)
+
+Methods (``APGConfig.method``):
+
+* ``"apg"`` -- one policy, full backpropagation through time over the T-step episode
+  (optional truncation: the graph is cut every ``truncation`` steps);
+* ``"shapg"`` -- the short-horizon peer (today's Brax APG, SHAC's actor without critic):
+  ``short_horizon``-step unrolls from the carried state, one update each, clip 1.0, Adam
+  betas (0.7, 0.95);
+* ``"papg"`` -- K APG runs side by side; the BEST member (by its last training returns) is
+  the result (the author's script returns the initial parameters by mistake);
+* ``"cem"`` -- the cross-entropy method on the parameters (diagonal Gaussian, eqs. 7.11, 7.13);
+* ``"ce-apg"`` -- Alg. 9: each epoch draws K_a candidates from N(mean, std^2), improves each
+  by ``apg_iterations`` APG steps, and the K_e best (mean of the last ``rank_window``
+  training returns, as the author's code) give the new mean (eq. 7.11) and the new
+  per-parameter std sqrt(mean_e (old mean - theta_e)^2) (eq. 7.13), measured about the OLD
+  mean as the author's code does (about the new mean would be the textbook CEM variance;
+  about the old mean it also grows when the elites move together, which keeps exploring).
+
+The population is one computation: parameters stacked [K, ...] (:mod:`.policies`), the
+K x N states one (K N, n) batch through ``System.step_unchecked``, the loss the sum of the
+members' losses, one backward; member k's gradient is the slice k (members share nothing).
+Every member has its own Adam moments and step count (:class:`BatchedAdam`), so a member
+whose gradient is skipped is not moved.
+
+Faults: a member's gradient that is NaN/inf or whose norm exceeds ``grad_bound`` is counted
+(``nan_grads``, ``large_grads``), skipped and logged, never applied; a member whose rollout
+diverges (non-finite return) gets the worst score (-inf) and no update; NaN parameters stop
+training with FloatingPointError before they are applied, so the last good checkpoint
+stays intact (the training skeleton writes none after an error).
+
+Interactions are counted honestly: K x N x T policy steps per APG iteration (x the
+integrator sub-steps per policy step for the physics steps, logged separately).
+
+Speed: ``APGConfig.compile`` runs the per-step work (observe, act, sub-steps, reward) through
+``torch.compile``; measured here (benchmarks/apg.py, 24 x 4 x 500 acrobot, float32, 1 thread)
+1.22 s per eager iteration, 0.23 s compiled, 30 s for the loop over members.
+
+Status (what a later session should know): on this machine's cart-pole the reduced preset and a
+12-epoch 24 x 4 x 200 CE-APG run raise the return well above hanging still but do not yet
+stabilise the pole (upright_rate 0); the thesis' settings take ~1.3 h compiled and have not been run.
+
+>>> agent = APG("cartpole", APGConfig.preset("reduced", method="ce-apg"))
+>>> agent.learn(log_dir="runs/ce-apg-cartpole")                   # progress, CSV, checkpoints
+>>> agent.evaluate(episodes=16)                                   # held-out starts, stabilisation rate
+>>> APG.load("runs/ce-apg-cartpole/final").policy()               # a policies.Policy
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .. import systems as systems_mod
+from ..systems import System, known_systems
+from ..systems.success import is_balanced
+from . import checkpoint as ckpt
+from .config_check import check_types
+from .policies import KINDS as POLICY_KINDS
+from .policies import Policy, PolicyPopulation
+from .run import PROGRESS_FILE, EvalResult, Learner, Saved, check_fields, check_finite, seeded
+
+__all__ = ["APG", "APGConfig", "BatchedAdam", "ClosedLoopPolicy", "policy_step", "compiled_policy_step", "METHODS", "PRESETS", "observe", "population_returns",
+           "member_gradients", "lr_schedule", "cem_update",
+           "gradient_norms_by_horizon", "returns_along_direction"]
+
+METHODS = ("apg", "shapg", "papg", "cem", "ce-apg")
+PRESETS = ("thesis", "reduced")
+OBSERVATIONS = ("trig", "state")
+
+
+# ============================================================================ the settings
+
+
+@dataclass
+class APGConfig:
+    """Every setting of the Ch. 7 learners, with the thesis' value and its source.
+
+    Sources: thesis Sec. 7.3.7 (table "CE-APG Hyperparameter") and the implementation
+    notes, Ch. 7 (the author's sgillen/apg code). Our systems keep their own parameters
+    (the thesis' Brax models differ), so no return here is comparable number for number.
+    """
+
+    method: str = "ce-apg"             # one of METHODS
+    # --- task
+    reward_kind: str = "angle_squared"  # a Ch. 7 reward kind of the spec (systems.spec.CH7_REWARD_KINDS); thesis
+    #                                    Sec. 7.2.3-7.2.4 (acrobot, cart-pole); "tip_distance" eqs. 7.5-7.8
+    alive_bonus: float = 0.0           # reward.alive_bonus; author's acrobot / double cart-pole: 10
+    velocity_penalty: float = 0.0      # reward.velocity_penalty; author's acrobot / double cart-pole: 0.01
+    position_weight: float = 0.0       # reward.position_weight (cart x^2); author's double cart-pole: 1
+    horizon: int = 500                 # T policy steps per episode, thesis Sec. 7.3.4 ("at least 500 steps")
+    control_period: float | None = None  # s per policy step; None: the spec's control.swingup_period
+    start_noise: float | None = 0.01   # starts hanging down +- U(-0.01, 0.01) per state, author's envs
+    #                                    (implementation notes Ch. 7); None: the spec's initial_state spread
+    observation: str = "trig"          # "trig": [cart x, sin, cos of each angle error, velocities]; "state":
+    #                                    the wrapped state error (jumps at +-pi). hybridctl choice.
+    # --- policy
+    policy: str = "gru"                # "gru" (thesis Sec. 7.3.4), "linear" or "mlp:W1,W2,..." (ReLU widths)
+    init_std: float = 0.05             # sigma_0 and the initial perturbation of zero weights, thesis Sec. 7.3.7
+    normalize: bool = True             # running obs statistics, updated once per epoch, frozen during APG
+    #                                    (implementation notes Ch. 7)
+    dtype: str = "float32"             # "float32" (as JAX's default in the thesis' Brax) or "float64"
+    compile: bool = False              # hybridctl: torch.compile the per-step work (policy, sub-steps, reward);
+    #                                    measured 3.9x faster at 24 x 4 here, after ~30 s of compiling per shape
+    # --- APG
+    batch: int = 4                     # N starts per APG iteration, thesis Sec. 7.3.7
+    apg_iterations: int = 100          # APG iterations per CE epoch, thesis Sec. 7.3.7 ("APG Epochs")
+    lr_start: float = 1e-3             # thesis Sec. 7.3.7: 1e-3 -> 1e-6,
+    lr_end: float = 1e-6               # log-linear over the CE epochs (implementation notes Ch. 7)
+    beta1: float = 0.9                 # Adam betas: optax/torch defaults (the author's optax.adam);
+    beta2: float = 0.999               # shapg: (0.7, 0.95) as Brax APG 0.14 and SHAC
+    truncation: int | None = None      # cut the graph every this many steps; None: full BPTT (thesis)
+    clip: float | None = None          # gradient clipping; None: off (the author's, effectively)
+    clip_mode: str = "norm"            # "norm" (per member's global norm) or "value" (elementwise)
+    grad_bound: float = 1e8            # a member gradient with a larger norm is skipped (hybridctl guard)
+    short_horizon: int = 32            # shapg unroll length (Brax APG 0.14, SHAC)
+    # --- population
+    population: int = 24               # K_a, thesis Sec. 7.3.7 (one per XLA CPU device in the author's code)
+    elites: int = 8                    # K_e, thesis Sec. 7.3.7
+    rank_window: int = 5               # elites ranked by the mean of the last 5 APG training returns (author)
+    epochs: int = 200                  # CE epochs, thesis Sec. 7.3.7 ("Total Epochs"); cem: thesis 2000
+    # --- bookkeeping
+    seed: int = 0
+    checkpoint_every: int = 1          # epochs between checkpoints
+    eval_episodes: int = 16            # held-out starts in evaluate()
+    torch_threads: int = 1             # see run.set_torch_threads
+
+    def validate(self) -> None:
+        """Raise ValueError naming the first invalid field."""
+        check_types(self)
+        check_fields(self, integers_from_1=("horizon", "batch", "apg_iterations", "short_horizon", "population",
+                                            "elites", "rank_window", "epochs", "checkpoint_every", "eval_episodes",
+                                            "torch_threads"),
+                     integers_from_0=("seed",), positive=("lr_start", "lr_end", "grad_bound"))
+        parse_policy(self.policy)
+        for name, options in (("method", METHODS), ("observation", OBSERVATIONS),
+                              ("clip_mode", ("norm", "value")), ("dtype", ("float32", "float64"))):
+            if getattr(self, name) not in options:
+                raise ValueError(f"APGConfig.{name} must be one of {options}, got {getattr(self, name)!r}")
+        if self.reward_kind not in systems_mod.spec.CH7_REWARD_KINDS:
+            raise ValueError(f"APGConfig.reward_kind must be one of {systems_mod.spec.CH7_REWARD_KINDS}, "
+                             f"got {self.reward_kind!r}")
+        if self.elites > self.population:
+            raise ValueError(f"APGConfig.elites ({self.elites}) must be <= population ({self.population})")
+        for name in ("beta1", "beta2"):
+            if not 0.0 <= getattr(self, name) < 1.0:
+                raise ValueError(f"APGConfig.{name} must be in [0, 1), got {getattr(self, name)!r}")
+        if not 0.0 <= self.init_std or not math.isfinite(self.init_std):
+            raise ValueError(f"APGConfig.init_std must be a finite number >= 0, got {self.init_std!r}")
+        for name in ("truncation", "clip", "control_period", "start_noise"):
+            value = getattr(self, name)
+            if value is not None and not (math.isfinite(value) and value > 0):
+                raise ValueError(f"APGConfig.{name} must be None or a finite number > 0, got {value!r}")
+        for name in ("alive_bonus", "velocity_penalty", "position_weight"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"APGConfig.{name} must be a finite number >= 0, got {value!r}")
+
+    @classmethod
+    def preset(cls, name: str = "thesis", method: str = "ce-apg", **overrides) -> "APGConfig":
+        """Settings for ``method`` from a preset, then ``overrides``.
+
+        ``"thesis"``: the values above (Sec. 7.3.7). Per method: ``apg`` one member;
+        ``shapg`` clip 1.0 by norm and Adam betas (0.7, 0.95) (Brax APG 0.14 / SHAC);
+        ``cem`` 2000 epochs (thesis Sec. 7.5).
+
+        ``"reduced"`` (trains in minutes on a shared 2-core CPU): population 8 (thesis 24),
+        elites 3 (8), apg_iterations 20 (100), horizon 100 policy steps (500; with the
+        cart-pole's 0.05 s period 5 s of swing-up), epochs 10 (200), lr 1e-2 -> 1e-4
+        (1e-3 -> 1e-6: fewer, larger steps), eval on 8 starts; the architecture, N = 4,
+        sigma_0 and the update rules are the thesis'.
+        """
+        if name not in PRESETS:
+            raise ValueError(f"unknown preset {name!r}; known: {', '.join(PRESETS)}")
+        if method not in METHODS:
+            raise ValueError(f"unknown method {method!r}; known: {', '.join(METHODS)}")
+        values: dict = {"method": method}
+        if method == "apg":
+            values["population"], values["elites"] = 1, 1
+        if method == "shapg":
+            values.update(clip=1.0, clip_mode="norm", beta1=0.7, beta2=0.95)
+        if method == "cem":
+            values["epochs"] = 2000
+        if name == "reduced":
+            values.update(apg_iterations=20, horizon=100, epochs=10, lr_start=1e-2, lr_end=1e-4, eval_episodes=8)
+            if method != "apg":
+                values.update(population=8, elites=3)
+            if method == "cem":
+                values["epochs"] = 200
+        values.update(overrides)
+        config = cls(**values)
+        config.validate()
+        return config
+
+
+# ============================================================================ the pieces
+
+
+def parse_policy(text: str) -> tuple[str, tuple[int, ...]]:
+    """"gru" -> ("gru", ()); "linear" -> ("linear", ()); "mlp:32,32" -> ("mlp", (32, 32))."""
+    if text in ("gru", "linear"):
+        return text, ()
+    if isinstance(text, str) and text.startswith("mlp:"):
+        try:
+            widths = tuple(int(w) for w in text[4:].split(",") if w)
+        except ValueError:
+            widths = ()
+        if widths and all(w > 0 for w in widths):
+            return "mlp", widths
+    raise ValueError(f"APGConfig.policy must be one of {POLICY_KINDS[0]!r}, 'linear' or 'mlp:W1,W2,...' "
+                     f"(positive widths), got {text!r}")
+
+
+def lr_schedule(config: APGConfig, epoch: int) -> float:
+    """Learning rate of ``epoch``: 10^(log10 lr_start -> log10 lr_end) linearly over the epochs (author)."""
+    if config.epochs <= 1:
+        return config.lr_start
+    f = min(epoch, config.epochs - 1) / (config.epochs - 1)
+    return float(10 ** ((1 - f) * math.log10(config.lr_start) + f * math.log10(config.lr_end)))
+
+
+def observe(system: System, x: torch.Tensor, kind: str = "trig") -> torch.Tensor:
+    """The policy's observation of states x (..., n): see ``APGConfig.observation``."""
+    err = system.state_error(x)
+    if kind == "state":
+        return err
+    n_q = system.n_states // 2
+    angles = system.angle_indices
+    linear = [i for i in range(n_q) if i not in angles]
+    phi = err[..., angles]
+    return torch.cat([err[..., linear], torch.sin(phi), torch.cos(phi), err[..., n_q:]], dim=-1)
+
+
+def observation_size(system: System, kind: str = "trig") -> int:
+    """Length of :func:`observe`'s output."""
+    return system.n_states + (len(system.angle_indices) if kind == "trig" else 0)
+
+
+def policy_step(system: System, pop: PolicyPopulation, x: torch.Tensor, h: torch.Tensor, substeps: int,
+                observation: str = "trig"):
+    """One policy step of K x N states x [K, N, n]: observe, act, hold the action over ``substeps``
+    integrator steps of ``System.step_unchecked``; returns (next x, next h, reward [K, N], obs)."""
+    K, N, n = x.shape
+    obs = observe(system, x, observation)
+    action, h = pop(obs, h)
+    u = action.reshape(K * N, system.n_actions)
+    xs = x.reshape(K * N, n)
+    for _ in range(substeps):
+        xs = system.step_unchecked(xs, u)
+    x = xs.reshape(K, N, n)
+    return x, h, system.reward(x), obs
+
+
+_COMPILED_STEP = None
+
+
+def compiled_policy_step():
+    """:func:`policy_step` through ``torch.compile`` (compiled on first use per shape; one shared cache)."""
+    global _COMPILED_STEP
+    if _COMPILED_STEP is None:
+        _COMPILED_STEP = torch.compile(policy_step, dynamic=False)
+    return _COMPILED_STEP
+
+
+def population_returns(system: System, pop: PolicyPopulation, x0: torch.Tensor, horizon: int, substeps: int,
+                       observation: str = "trig", truncation: int | None = None, state=None,
+                       keep_states: bool = False, step=None):
+    """Roll K members x N starts out as one batch; the differentiable returns [K, N].
+
+    ``x0``: [N, n] (the same starts for every member) or [K, N, n]. ``state``: the policies'
+    recurrent state [K, N, h] (None: zero). Each policy step holds the action over
+    ``substeps`` integrator steps of ``System.step_unchecked`` and then collects
+    ``System.reward`` of the new state. ``truncation``: detach the states every that many
+    steps (truncated BPTT). Returns (returns [K, N], final x [K, N, n], final state, obs
+    sums (sum, sum of squares, count) for the normalisation, and the states [K, N, T+1, n]
+    when ``keep_states``, else None). ``step``: the per-step function (default
+    :func:`policy_step`; :func:`compiled_policy_step` for the fused one).
+    """
+    step = step or policy_step
+    K = pop.members
+    if x0.dim() == 2:
+        x0 = x0.unsqueeze(0).expand(K, -1, -1)
+    N = x0.shape[1]
+    x = x0.to(pop.dtype)
+    h = pop.initial_state(N) if state is None else state
+    total = torch.zeros((K, N), dtype=pop.dtype)
+    o_sum = torch.zeros(pop.obs_dim, dtype=torch.float64)
+    o_sq = torch.zeros(pop.obs_dim, dtype=torch.float64)
+    kept = [x.detach()] if keep_states else None
+    for t in range(horizon):
+        if truncation is not None and t > 0 and t % truncation == 0:
+            x, h = x.detach(), h.detach()
+        x, h, reward, obs = step(system, pop, x, h, substeps, observation)
+        with torch.no_grad():
+            od = obs.detach().reshape(-1, pop.obs_dim).double()
+            finite = torch.isfinite(od).all(-1)
+            od = od[finite]
+            o_sum += od.sum(0)
+            o_sq += (od * od).sum(0)
+        total = total + reward
+        if keep_states:
+            kept.append(x.detach())
+    count = K * N * horizon
+    states = torch.stack(kept, dim=2) if keep_states else None
+    return total, x, h, (o_sum, o_sq, count), states
+
+
+def member_gradients(pop: PolicyPopulation, loss_per_member: torch.Tensor) -> torch.Tensor:
+    """One backward of sum_k loss_k; the gradients as a [K, P] matrix (member k's in row k).
+
+    A member whose loss is not finite contributes nothing to the backward (its row comes
+    back NaN, for the caller to skip) and cannot spoil the others.
+    """
+    finite = torch.isfinite(loss_per_member.detach())
+    params = pop.stacked()
+    total = torch.where(finite, loss_per_member, torch.zeros_like(loss_per_member)).sum()
+    grads = torch.autograd.grad(total, params, allow_unused=True)
+    flat = torch.cat([(torch.zeros_like(p) if g is None else g).reshape(pop.members, -1)
+                      for p, g in zip(params, grads)], dim=1)
+    flat[~finite] = float("nan")
+    return flat
+
+
+class BatchedAdam:
+    """Adam on K stacked parameter vectors [K, P], each member with its own moments and step
+    count; a masked-out member is not touched (moments, counts and parameters unchanged)."""
+
+    def __init__(self, members: int, n_params: int, betas=(0.9, 0.999), eps: float = 1e-8,
+                 dtype: torch.dtype = torch.float64):
+        self.betas, self.eps = (float(betas[0]), float(betas[1])), float(eps)
+        self.m = torch.zeros((members, n_params), dtype=dtype)
+        self.v = torch.zeros((members, n_params), dtype=dtype)
+        self.t = torch.zeros(members, dtype=torch.int64)
+
+    def step(self, theta: torch.Tensor, grad: torch.Tensor, mask: torch.Tensor, lr: float) -> torch.Tensor:
+        """The new parameters [K, P] after a gradient DESCENT step on ``grad`` for members in ``mask``."""
+        b1, b2 = self.betas
+        g = torch.where(mask[:, None], grad, torch.zeros_like(grad))
+        m = torch.where(mask[:, None], b1 * self.m + (1 - b1) * g, self.m)
+        v = torch.where(mask[:, None], b2 * self.v + (1 - b2) * g * g, self.v)
+        t = self.t + mask.long()
+        tt = t.clamp_min(1).to(theta.dtype)[:, None]
+        update = lr * (m / (1 - b1 ** tt)) / ((v / (1 - b2 ** tt)).sqrt() + self.eps)
+        self.m, self.v, self.t = m, v, t
+        return torch.where(mask[:, None], theta - update, theta)
+
+
+def clip_gradients(grad: torch.Tensor, clip: float | None, mode: str) -> torch.Tensor:
+    """Per member: scale to global norm <= ``clip`` ("norm") or clamp each entry to [-clip, clip]."""
+    if clip is None:
+        return grad
+    if mode == "value":
+        return grad.clamp(-clip, clip)
+    norm = grad.norm(dim=1, keepdim=True)
+    return grad * torch.clamp(clip / (norm + 1e-12), max=1.0)
+
+
+def cem_update(mean: torch.Tensor, candidates: torch.Tensor, scores: torch.Tensor, elites: int):
+    """Eqs. 7.11 and 7.13: the mean of the ``elites`` best candidates [K, P] (by ``scores`` [K],
+    highest first) and the per-parameter std sqrt(mean_e (old mean - theta_e)^2) about the old mean.
+
+    Returns (new mean [P], new std [P], elite indices)."""
+    order = torch.argsort(torch.nan_to_num(scores, nan=-math.inf), descending=True, stable=True)[:elites]
+    chosen = candidates[order]
+    new_mean = chosen.mean(0)
+    new_std = ((mean[None] - chosen) ** 2).mean(0).sqrt()
+    return new_mean, new_std, order
+
+
+class ClosedLoopPolicy(torch.nn.Module):
+    """A trained policy on raw states: ``forward(x [B, n], h [B, hidden]) -> (action [B, m], h)``,
+    the observation (:func:`observe`) included; ``initial_state(batch)`` the zero state. What the
+    Drake block ``hybridctl.drake.RecurrentTorchPolicy`` runs."""
+
+    def __init__(self, system: System, policy: Policy, observation: str = "trig"):
+        super().__init__()
+        self.system, self.policy, self.observation = system, policy, observation
+
+    def initial_state(self, batch: int = 1) -> torch.Tensor:
+        """Zero recurrent state [batch, hidden]."""
+        return self.policy.initial_state(batch)
+
+    def forward(self, x: torch.Tensor, state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Action and next recurrent state for raw states x."""
+        return self.policy(observe(self.system, x.to(self.policy.population.dtype), self.observation), state)
+
+
+# ============================================================================ diagnostics (thesis Fig. 7.1)
+
+
+def gradient_norms_by_horizon(system: System, pop: PolicyPopulation, x0: torch.Tensor, horizons, substeps: int,
+                              observation: str = "trig") -> list[dict]:
+    """The APG gradient's norm (per member, [K]) and the mean return for each horizon in ``horizons``:
+    why full BPTT through chaotic dynamics explodes (Metz et al. 2021; thesis Sec. 7.1.4)."""
+    out = []
+    for horizon in horizons:
+        returns, *_ = population_returns(system, pop, x0, int(horizon), substeps, observation)
+        grad = member_gradients(pop, -returns.mean(1))
+        out.append({"horizon": int(horizon), "grad_norm": grad.norm(dim=1).tolist(),
+                    "mean_return": returns.detach().mean(1).tolist()})
+    return out
+
+
+def returns_along_direction(system: System, pop: PolicyPopulation, x0: torch.Tensor, horizon: int, substeps: int,
+                            direction: torch.Tensor, scales, observation: str = "trig") -> list[float]:
+    """R(theta + s d) of member 0 for each s in ``scales`` (thesis Fig. 7.1: the return landscape along
+    a random direction d), evaluated as one batch (one member per scale); theta is left unchanged."""
+    scales = [float(v) for v in scales]
+    theta = pop.to_flat()[0]
+    probe = pop.resized(len(scales), torch.stack([theta + v * direction.to(theta.dtype) for v in scales]))
+    with torch.no_grad():
+        returns, *_ = population_returns(system, probe, x0, horizon, substeps, observation)
+    return returns.mean(1).double().tolist()
+
+
+# ============================================================================ the learner
+
+
+class APG(Learner):
+    """APG, short-horizon APG, PAPG, CEM and CE-APG on a :class:`~hybridctl.systems.System`:
+    ``learn`` / ``evaluate`` / ``policy`` / ``save`` / ``load`` (see the module docstring)."""
+
+    algorithm_name = "APG"
+    config_class = APGConfig
+    log_key = "epoch"
+    log_columns = ("epoch", "iterations", "env_steps", "physics_steps", "lr", "mean_return", "best_return",
+                   "elite_score", "grad_norm", "nan_grads", "large_grads", "diverged", "sigma", "wall_time",
+                   "steps_per_s")
+    log_int_columns = ("epoch", "iterations", "env_steps", "physics_steps", "nan_grads", "large_grads", "diverged")
+    saved = (Saved("mean", "mean", "tensor"), Saved("std", "std", "tensor"), Saved("members", "members", "tensor"),
+             Saved("best", "best", "tensor"), Saved("adam_m", "adam.m", "tensor"), Saved("adam_v", "adam.v", "tensor"),
+             Saved("adam_t", "adam.t", "tensor"), Saved("stats", "stats", "tensor"),
+             Saved("obs_mean", "pop.obs_mean", "param"), Saved("obs_std", "pop.obs_std", "param"),
+             Saved("best_score", "best_score", load=float),
+             Saved("epoch", "epoch", file=PROGRESS_FILE, load=int),
+             Saved("iterations", "iterations", file=PROGRESS_FILE, load=int),
+             Saved("env_steps", "env_steps", file=PROGRESS_FILE, load=int),
+             Saved("nan_grads", "nan_grads", file=PROGRESS_FILE, load=int),
+             Saved("large_grads", "large_grads", file=PROGRESS_FILE, load=int),
+             Saved("wall_time", "wall_time", file=PROGRESS_FILE, load=float),
+             Saved("history", "history", file=PROGRESS_FILE, optional=True, load=list))
+
+    def __init__(self, system: str | System, config: APGConfig | None = None, **overrides):
+        self.config = dataclasses.replace(config or APGConfig(), **overrides)
+        self.config.validate()
+        cfg = self.config
+        self.system = self._system(system, cfg)
+        self.dtype = torch.float64 if cfg.dtype == "float64" else torch.float32
+        period = cfg.control_period if cfg.control_period is not None else self.system.swingup_period
+        ratio = period / self.system.dt
+        if abs(ratio - round(ratio)) > 1e-9 or round(ratio) < 1:
+            raise ValueError(f"APGConfig.control_period ({period}) must be a whole multiple of {self.system.name}'s "
+                             f"integrator.dt ({self.system.dt})")
+        self.period, self.substeps = float(period), int(round(ratio))
+        self.K = 1 if cfg.method == "apg" else cfg.population
+        obs_dim = observation_size(self.system, cfg.observation)
+        kind, widths = parse_policy(cfg.policy)
+        with seeded(cfg.seed):
+            self.pop = PolicyPopulation.build(kind, obs_dim, self.system.n_actions, self.system.action_limit,
+                                              members=self.K, hidden=widths, init_std=cfg.init_std,
+                                              dtype=self.dtype)
+        P = self.pop.n_params
+        # CEM / CE-APG: theta = 0 with std sigma_0 (the author's zero-initialised weights); PAPG/APG: members
+        # start as the population's own perturbed-zero initialisation
+        self.mean = torch.zeros(P, dtype=torch.float64)
+        self.std = torch.full((P,), float(cfg.init_std), dtype=torch.float64)
+        self.members = self.pop.to_flat().double()
+        self.best = self.members[0].clone()
+        self.best_score = -math.inf
+        self.adam = BatchedAdam(self.K, P, (cfg.beta1, cfg.beta2))
+        self.stats = torch.zeros(2 * obs_dim + 1, dtype=torch.float64)   # sum, sum of squares, count
+        self.epoch = self.iterations = self.env_steps = self.nan_grads = self.large_grads = 0
+        self.wall_time = 0.0
+        self.history: list[dict] = []
+        self.log_rows: list[dict] = []
+        self._step = compiled_policy_step() if cfg.compile else policy_step
+        self.last_scores = torch.full((self.K,), -math.inf, dtype=torch.float64)
+        self._obs_sums = None   # observation sums of the current epoch (for the normalisation)
+
+    @staticmethod
+    def _system(system: str | System, cfg: APGConfig) -> System:
+        """The system with the config's Ch. 7 reward (as spec overrides, recorded in the spec)."""
+        reward = {"reward__kind": cfg.reward_kind, "reward__alive_bonus": float(cfg.alive_bonus),
+                  "reward__velocity_penalty": float(cfg.velocity_penalty),
+                  "reward__position_weight": float(cfg.position_weight)}
+        if isinstance(system, System):
+            base = system.name if system.name in known_systems() else str(system.spec.path)
+            return systems_mod.load(base, **{**system.spec.overrides, **reward})
+        if not isinstance(system, str):
+            raise ValueError(f"system must be a name ({', '.join(known_systems())}) or a System, got {system!r}")
+        return systems_mod.load(system, **reward)
+
+    @property
+    def progress_count(self) -> int:
+        """CE / PAPG epochs so far (the progress.csv key)."""
+        return self.epoch
+
+    # ------------------------------------------------------------------ randomness
+    def _generator(self, epoch: int) -> torch.Generator:
+        """The torch generator of ``epoch`` (from the seed alone: a resumed run continues exactly)."""
+        return torch.Generator().manual_seed(int(np.random.SeedSequence([self.config.seed, epoch]).generate_state(1)[0]))
+
+    def starts(self, n: int, seed_words) -> torch.Tensor:
+        """n start states [n, n_states]: hanging down +- U(-start_noise, start_noise), or the spec's spread."""
+        rng = np.random.default_rng(np.random.SeedSequence(list(seed_words)))
+        cfg = self.config
+        if cfg.start_noise is None:
+            x0 = self.system.sample_initial_states(n, rng)
+        else:
+            x0 = self.system.initial_state.nominal + rng.uniform(-cfg.start_noise, cfg.start_noise,
+                                                                 size=(n, self.system.n_states))
+        return torch.as_tensor(x0, dtype=self.dtype)
+
+    # ------------------------------------------------------------------ one APG iteration
+    def apg_step(self, theta: torch.Tensor, x0: torch.Tensor, lr: float, adam: BatchedAdam | None = None,
+                 state=None, horizon: int | None = None):
+        """One batched APG update of the members ``theta`` [K, P] from starts x0 [N, n].
+
+        Returns (new theta, per-member mean returns [K] (-inf where diverged), gradient
+        norms [K], applied mask [K], final x, final recurrent state).
+        """
+        cfg = self.config
+        pop = self.pop
+        pop.from_flat(theta.to(self.dtype))
+        returns, x, h, sums, _ = population_returns(self.system, pop, x0, horizon or cfg.horizon, self.substeps,
+                                                    cfg.observation, cfg.truncation, state, step=self._step)
+        self._obs_sums = [a + b for a, b in zip(self._obs_sums, sums)] if self._obs_sums else list(sums)
+        member_return = returns.mean(1)
+        grad = member_gradients(pop, -member_return).double()
+        norms = grad.norm(dim=1)
+        finite = torch.isfinite(norms) & torch.isfinite(member_return.detach())
+        large = finite & (norms > cfg.grad_bound)
+        ok = finite & ~large
+        self.nan_grads += int((~finite).sum())
+        self.large_grads += int(large.sum())
+        grad = torch.where(ok[:, None], clip_gradients(torch.nan_to_num(grad), cfg.clip, cfg.clip_mode),
+                           torch.zeros_like(grad))
+        new = (adam or self.adam).step(theta, grad, ok, lr)
+        check_finite("APG parameters", new, f"at epoch {self.epoch}, iteration {self.iterations}")
+        scores = torch.where(torch.isfinite(member_return.detach()), member_return.detach().double(),
+                             torch.full_like(member_return.detach().double(), -math.inf))
+        return new, scores, norms, ok, x.detach(), h.detach()
+
+    def _apg_phase(self, theta: torch.Tensor, lr: float, adam: BatchedAdam):
+        """``apg_iterations`` APG (or short-horizon APG) iterations; (theta, returns [iters, K], grad norms)."""
+        cfg = self.config
+        all_returns, all_norms = [], []
+        for it in range(cfg.apg_iterations):
+            x0 = self.starts(cfg.batch, [cfg.seed, self.epoch, it, 1])
+            if cfg.method == "shapg":
+                theta, ret, norms = self._short_horizon_episode(theta, x0, lr, adam)
+            else:
+                theta, ret, norms, _, _, _ = self.apg_step(theta, x0, lr, adam)
+            all_returns.append(ret)
+            all_norms.append(norms)
+            self.iterations += 1
+            self.env_steps += self.K * cfg.batch * cfg.horizon
+        return theta, torch.stack(all_returns), torch.stack(all_norms)
+
+    def _short_horizon_episode(self, theta, x0, lr, adam):
+        """One episode of ``horizon`` steps as short-horizon unrolls with the state carried over."""
+        cfg = self.config
+        done, state, x, total, norms = 0, None, x0, torch.zeros(self.K, dtype=torch.float64), []
+        while done < cfg.horizon:
+            steps = min(cfg.short_horizon, cfg.horizon - done)
+            theta, ret, nrm, _, x, state = self.apg_step(theta, x, lr, adam, state=state, horizon=steps)
+            total = total + ret
+            norms.append(nrm)
+            done += steps
+        return theta, total, torch.stack(norms).nanmean(0)
+
+    # ------------------------------------------------------------------ one epoch
+    def train_epoch(self) -> dict:
+        """One CE-APG / CEM epoch, or ``apg_iterations`` iterations of APG / PAPG / short-horizon APG."""
+        cfg = self.config
+        lr = lr_schedule(cfg, self.epoch)
+        self._obs_sums = None
+        nan_before, large_before = self.nan_grads, self.large_grads
+        gen = self._generator(self.epoch)
+        grad_norm = float("nan")
+        if cfg.method in ("ce-apg", "cem"):
+            noise = torch.randn((self.K, self.pop.n_params), dtype=torch.float64, generator=gen)
+            candidates = self.mean[None] + self.std[None] * noise
+            if cfg.method == "cem":
+                self.pop.from_flat(candidates.to(self.dtype))
+                x0 = self.starts(cfg.batch, [cfg.seed, self.epoch, 0, 1])
+                with torch.no_grad():
+                    returns, _, _, sums, _ = population_returns(self.system, self.pop, x0, cfg.horizon,
+                                                                self.substeps, cfg.observation, step=self._step)
+                self._obs_sums = list(sums)
+                r = returns.mean(1).double()
+                scores = torch.where(torch.isfinite(r), r, torch.full_like(r, -math.inf))
+                finals, history = candidates, scores[None]
+                self.iterations += 1
+                self.env_steps += self.K * cfg.batch * cfg.horizon
+            else:
+                finals, history, norms = self._apg_phase(candidates, lr, BatchedAdam(self.K, self.pop.n_params,
+                                                                                       (cfg.beta1, cfg.beta2)))
+                scores = history[-cfg.rank_window:].mean(0)
+                grad_norm = float(norms[torch.isfinite(norms)].median()) if torch.isfinite(norms).any() else grad_norm
+            new_mean, new_std, elite = cem_update(self.mean, finals, scores, cfg.elites)
+            self.mean, self.std = new_mean, new_std
+            self.members = finals
+        else:
+            finals, history, norms = self._apg_phase(self.members, lr, self.adam)
+            scores = history[-cfg.rank_window:].mean(0)
+            elite = torch.argsort(scores, descending=True, stable=True)[:cfg.elites]
+            self.members = finals
+            grad_norm = float(norms[torch.isfinite(norms)].median()) if torch.isfinite(norms).any() else grad_norm
+        self.last_scores = scores          # this epoch's ranking scores [K] (-inf: diverged)
+        top = int(torch.argmax(torch.nan_to_num(scores, nan=-math.inf)))
+        if cfg.method in ("apg", "shapg", "papg"):   # the best member NOW is the result (not the initial one)
+            self.best, self.best_score = finals[top].clone(), float(scores[top])
+        elif float(scores[top]) > self.best_score:   # CE-APG / CEM: the best member seen (the author's metric)
+            self.best, self.best_score = finals[top].clone(), float(scores[top])
+        if cfg.normalize and self._obs_sums is not None:
+            o_sum, o_sq, count = self._obs_sums
+            self.stats += torch.cat([o_sum, o_sq, torch.tensor([float(count)], dtype=torch.float64)])
+            self._apply_stats()
+        self.epoch += 1
+        finite = history[torch.isfinite(history)]
+        return {"epoch": self.epoch, "iterations": self.iterations, "env_steps": self.env_steps,
+                "physics_steps": self.env_steps * self.substeps, "lr": lr,
+                "mean_return": float(finite.mean()) if finite.numel() else float("nan"),
+                "best_return": float(scores[top]), "elite_score": float(scores[elite].mean()),
+                "grad_norm": grad_norm, "nan_grads": self.nan_grads - nan_before,
+                "large_grads": self.large_grads - large_before,
+                "diverged": int((~torch.isfinite(scores)).sum()), "sigma": float(self.std.mean())}
+
+    def _apply_stats(self) -> None:
+        """Freeze the running observation mean/std into the policies (std 1 where below 1e-4)."""
+        d = self.pop.obs_dim
+        count = float(self.stats[-1])
+        if count < 2:
+            return
+        mean = self.stats[:d] / count
+        var = (self.stats[d:2 * d] / count - mean ** 2).clamp_min(0.0)
+        std = torch.where(var < 1e-8, torch.ones_like(var), var.sqrt())
+        self.pop.set_normalization(mean, std)
+
+    def learn(self, epochs: int | None = None, log_dir: str | Path | None = None, progress: bool = True,
+              resume: bool = False, callback=None) -> "APG":
+        """Train until ``epochs`` epochs in total (default ``config.epochs``); checkpoints every
+        ``checkpoint_every`` epochs in ``log_dir/checkpoint`` and finally ``log_dir/final``.
+        ``resume``: restore the newest checkpoint in ``log_dir`` first."""
+        target = self.config.epochs if epochs is None else int(epochs)
+        if target < 1:
+            raise ValueError(f"epochs must be >= 1, got {target}")
+        with self.run(log_dir, resume, progress, callback, total=target, unit="epoch",
+                      desc=f"{self.config.method} {self.system.name}") as run:
+            while self.epoch < target and not run.stopped:
+                start = time.perf_counter()
+                steps_before = self.env_steps
+                row = self.train_epoch()
+                elapsed = time.perf_counter() - start
+                self.wall_time += elapsed
+                row.update(wall_time=self.wall_time, steps_per_s=(self.env_steps - steps_before) / max(elapsed, 1e-9))
+                self.history.append(row)
+                run.log(row)
+                run.advance(1, ret=f"{row['best_return']:.1f}", gnorm=f"{row['grad_norm']:.2g}",
+                            nan=self.nan_grads, sps=f"{row['steps_per_s']:.0f}")
+                run.after_update()
+                if self.epoch % self.config.checkpoint_every == 0:
+                    run.checkpoint()
+        return self
+
+    # ------------------------------------------------------------------ use
+    def policy(self, which: str | None = None) -> Policy:
+        """The trained policy: ``"best"`` (the best member; default for apg/shapg/papg) or ``"mean"``
+        (the CEM mean; default for cem/ce-apg), with the frozen normalisation."""
+        which = which or ("mean" if self.config.method in ("cem", "ce-apg") else "best")
+        if which not in ("best", "mean"):
+            raise ValueError(f"which must be 'best' or 'mean', got {which!r}")
+        theta = self.mean if which == "mean" else self.best
+        return Policy(self.pop.resized(1, theta.to(self.dtype)[None]))
+
+    def closed_loop_policy(self, which: str | None = None) -> ClosedLoopPolicy:
+        """:meth:`policy` with the observation, on raw states (for Drake's RecurrentTorchPolicy)."""
+        return ClosedLoopPolicy(self.system, self.policy(which), self.config.observation)
+
+    def evaluate(self, episodes: int | None = None, seed: int = 12345, which: str | None = None,
+                 horizon: int | None = None, keep_states: bool = False) -> EvalResult:
+        """Returns of the trained policy on held-out starts, and the stabilisation rate: the share of
+        episodes whose last second (of policy-step states) stays within the spec's success eps of
+        the goal (thesis eq. 3.2 with lookback = one second; the L2 norm over every coordinate, a
+        cart's position and the velocities included). ``upright_rate``: the share whose angle
+        errors alone all stay below eps over the last second (the pole held up, the cart anywhere).
+        ``best_training_return``: the best member's training score (the author's metric)."""
+        n = episodes or self.config.eval_episodes
+        policy = self.policy(which)
+        x0 = self.starts(n, [seed, 2])
+        with torch.no_grad():
+            returns, _, _, _, states = population_returns(self.system, policy.population, x0,
+                                                          horizon or self.config.horizon, self.substeps,
+                                                          self.config.observation, keep_states=True)
+        r = returns[0].double().numpy()
+        lookback = max(1, int(round(1.0 / self.period)))
+        s = states[0].double().numpy()
+        balanced = np.zeros(n, dtype=bool)
+        ok = np.isfinite(s).all(axis=(1, 2))
+        if ok.any():
+            balanced[ok] = is_balanced(s[ok], self.system, lookback=lookback)
+        upright = np.zeros(n, dtype=bool)
+        if ok.any():   # the angles alone (a cart may sit anywhere): every angle error below eps for the last second
+            err = self.system.state_error(s[ok][:, -lookback:, :].copy())[..., self.system.angle_indices]
+            upright[ok] = (np.abs(err) < self.system.success.eps).all(axis=(1, 2))
+        out = EvalResult.from_returns(r[np.isfinite(r)], success_rate=float(balanced.mean()),
+                                      upright_rate=float(upright.mean()),
+                                      first={"episodes": n, "seed": seed},
+                                      which=which or ("mean" if self.config.method in ("cem", "ce-apg") else "best"),
+                                      diverged=int((~np.isfinite(r)).sum()), best_training_return=self.best_score)
+        if keep_states:
+            out["states"] = s
+        return out
+
+    # ------------------------------------------------------------------ checkpoints
+    def checkpoint_meta(self) -> dict:
+        """config.json: the system (name and spec overrides; its plant record: the resolved spec values and
+        their hash), the policy's architecture and the config."""
+        return {"algorithm": self.algorithm_name, "method": self.config.method, "system": self.system.name,
+                "system_overrides": {k: v for k, v in self.system.spec.overrides.items() if not k.startswith("reward__")},
+                "plant": ckpt.system_record(self.system),
+                "policy": self.pop.describe(), "substeps": self.substeps, "period": self.period,
+                "config": dataclasses.asdict(self.config)}
+
+    def normalization(self) -> dict:
+        """normalization.json: the frozen observation mean and std."""
+        return {"type": "frozen_mean_std", "mean": self.pop.obs_mean.tolist(), "std": self.pop.obs_std.tolist()}
+
+    @classmethod
+    def load(cls, path: str | Path, force: bool = False, **overrides) -> "APG":
+        """Restore a checkpoint directory (``overrides`` replace config fields, e.g. epochs).
+
+        The system is rebuilt from the checkpoint's record; when today's spec of that system
+        differs from the recorded plant, loading is refused naming the values (``force``: a
+        warning), as for another algorithm's checkpoint.
+        """
+        folder = ckpt.resolve_checkpoint_dir(path)
+        meta = ckpt.read_json(folder / ckpt.CONFIG_FILE)
+        ckpt.check_algorithm(folder, meta.get("algorithm") or "(no algorithm)", (cls.algorithm_name,),
+                             cls.algorithm_name, force)
+        config = APGConfig(**{**meta["config"], **overrides})
+        system = systems_mod.load(meta["system"], **meta.get("system_overrides", {}))
+        agent = cls(system, config)  # applies the config's reward settings to the system
+        if "plant" in meta:
+            ckpt.check_plant(folder, meta["plant"], agent.system, force)
+        agent.checkpointer.restore(folder, force=force)
+        return agent
