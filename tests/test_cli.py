@@ -21,6 +21,17 @@ def run(*args, check=True):
     return proc
 
 
+def run_in_process(capsys, *args) -> tuple[int, str, str]:
+    """(exit code, stdout, stderr) of ``hybridctl ARGS`` called in this process (no interpreter start:
+    the bad-input cases run in milliseconds; the subprocess tests above cover the console script)."""
+    try:
+        code = main(list(args))
+    except SystemExit as stop:
+        code = stop.code
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
 def test_simulate_writes_all_outputs(tmp_path):
     out = tmp_path / "sim"
     run("simulate", "pendulum", "--x0", "0.05,0", "--duration", "6", "--out", str(out))
@@ -61,10 +72,10 @@ def test_demo_balances_the_acrobot(tmp_path):
     (["simulate", "acrobot", "--duration", "-1"], "must be a finite number > 0"),
     (["balance-map", "acrobot", "--grid", "1", "--workers", "1"], "grid must be >= 2"),
 ])
-def test_bad_arguments_exit_nonzero_with_clear_message(args, message, tmp_path):
-    proc = run(*args, "--out", str(tmp_path), check=False)
-    assert proc.returncode != 0
-    assert message in proc.stderr + proc.stdout
+def test_bad_arguments_exit_nonzero_with_clear_message(args, message, tmp_path, capsys):
+    code, out, err = run_in_process(capsys, *args, "--out", str(tmp_path))
+    assert code == 2
+    assert message in err + out and "Traceback" not in err
 
 
 def test_train_ars_resume_and_init(tmp_path):
@@ -92,9 +103,9 @@ def test_train_ars_resume_and_init(tmp_path):
     (["train", "sac", "acrobot", "--postprocess", "madogram"], "ars only"),
     (["train", "ars", "Pendulum-v1", "--init", "/nonexistent/ck"], "no checkpoint"),
 ])
-def test_train_ars_bad_arguments(args, message, tmp_path):
-    proc = run(*args, "--out", str(tmp_path / "x"), "--quiet", check=False)
-    assert proc.returncode != 0 and message in proc.stderr, proc.stderr
+def test_train_ars_bad_arguments(args, message, tmp_path, capsys):
+    code, out, err = run_in_process(capsys, *args, "--out", str(tmp_path / "x"), "--quiet")
+    assert code == 2 and message in err and "Traceback" not in err, err
 
 
 def test_mesh_writes_matrix_report_and_figures(tmp_path):
@@ -119,9 +130,9 @@ def test_mesh_writes_matrix_report_and_figures(tmp_path):
     (["mesh", "rimless-wheel", "--box-size", "0"], "must be a finite number > 0"),
     (["mesh", "hopper"], "invalid choice"),
 ])
-def test_mesh_bad_arguments(args, message, tmp_path):
-    proc = run(*args, "--out", str(tmp_path / "m"), "--quiet", check=False)
-    assert proc.returncode != 0 and message in proc.stderr, proc.stderr
+def test_mesh_bad_arguments(args, message, tmp_path, capsys):
+    code, out, err = run_in_process(capsys, *args, "--out", str(tmp_path / "m"), "--quiet")
+    assert code == 2 and message in err and "Traceback" not in err, err
 
 
 def test_mesh_cap_reports_incomplete(tmp_path):
