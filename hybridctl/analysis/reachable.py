@@ -97,13 +97,11 @@ class ReachableMesh:
         """Write the mesh to one ``.npz`` file (atomically; read back with :meth:`load`, no pickle)."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".tmp.npz")
-        np.savez(tmp, states=self.states, successors=self.successors, weights=self.weights,
-                 box_size=self.box_size, mean=self.mean, std=self.std, seed_ids=self.seed_ids,
-                 complete=self.complete, wall_time=self.wall_time,
-                 state_names=np.array(self.settings.get("state_names") or [], dtype=str))
-        os.replace(tmp, path)
-        return path
+        arrays = dict(states=self.states, successors=self.successors, weights=self.weights,
+                      box_size=self.box_size, mean=self.mean, std=self.std, seed_ids=self.seed_ids,
+                      complete=self.complete, wall_time=self.wall_time,
+                      state_names=np.array(self.settings.get("state_names") or [], dtype=str))
+        return atomic_write(path, lambda f: np.savez(f, **arrays))
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "ReachableMesh":

@@ -245,15 +245,7 @@ class System:
         phi, dphi = err[..., angles], err[..., [n_q + i for i in angles]]
         penalty = self.reward_velocity_penalty * (dphi * dphi).sum(-1)
         if self.reward_kind == "tip_distance":
-            absolute, base = self.dynamics.absolute_angles(x[..., :n_q])
-            lengths = np.asarray(self.chain.link_length, dtype=float)
-            if isinstance(x, torch.Tensor):
-                lengths = torch.as_tensor(lengths, dtype=x.dtype, device=x.device)
-                sin, cos = torch.sin, torch.cos
-            else:
-                sin, cos = np.sin, np.cos
-            x_tip = (lengths * sin(absolute)).sum(-1) + (base[..., 0] if base is not None else 0.0)
-            y_tip = -(lengths * cos(absolute)).sum(-1)
+            x_tip, y_tip = self.dynamics.tip_position(x)
             distance = 0.05 * x_tip * x_tip + (y_tip - float(self.chain.link_length.sum())) ** 2
             return self.reward_alive_bonus - distance - penalty
         if self.reward_kind == "angle_cosine":

@@ -421,10 +421,16 @@ class ChainDynamics:
         potential = -self.p.gravity * (a * xp.cos(phi)).sum(-1)
         return kinetic + potential
 
-    def tip_height(self, x):
-        """Height of the distal tip above the base pivot: -sum_j l_j cos phi_j."""
-        phi, _ = self.absolute_angles(x[..., :self.p.n_q])
+    def tip_position(self, x):
+        """(horizontal, height) of the distal tip: base x + sum_j l_j sin phi_j, -sum_j l_j cos phi_j
+        (height above the base pivot)."""
+        phi, base = self.absolute_angles(x[..., :self.p.n_q])
         xp = self._xp(x)
         l = self.p.link_length
         l = torch.as_tensor(l, dtype=x.dtype, device=x.device) if xp.torch else l
-        return -(l * xp.cos(phi)).sum(-1)
+        horizontal = (l * xp.sin(phi)).sum(-1) + (base[..., 0] if base is not None else 0.0)
+        return horizontal, -(l * xp.cos(phi)).sum(-1)
+
+    def tip_height(self, x):
+        """Height of the distal tip above the base pivot: -sum_j l_j cos phi_j."""
+        return self.tip_position(x)[1]
