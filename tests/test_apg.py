@@ -385,3 +385,42 @@ def test_fig_7_1_diagnostics_gradient_norm_grows_with_horizon_and_landscape_prob
     centre = float(population_returns(system, pop, x0, 20, 4)[0][0].detach().mean())
     assert math.isclose(landscape[1], centre, rel_tol=1e-12)
     assert landscape[0] != landscape[2]
+
+
+# ----------------------------------------------------------------------------- LQR takeover (switched training)
+
+def test_lqr_takeover_applies_the_gate_hysteresis_and_the_saturated_lqr():
+    from hybridctl.learn.apg import LQRTakeover
+    from hybridctl.systems import control
+
+    system = systems.load("cartpole")
+    takeover = LQRTakeover(system)
+    K, S = system.lqr()
+    goal = torch.as_tensor(system.goal)
+    near = goal + torch.tensor([0.01, 0.005, 0.0, 0.0], dtype=torch.float64)       # V well below the on level
+    far = goal + torch.tensor([0.0, 1.0, 0.0, 0.0], dtype=torch.float64)           # V far above the off level
+    scale = system.gate.cost_scale
+    v_mid = scale * 0.5 * (math.log(1 / system.gate.on) + math.log(1 / system.gate.off))
+    between = goal + torch.tensor([0.0, math.sqrt(v_mid / S[1, 1]), 0.0, 0.0], dtype=torch.float64)
+    x = torch.stack([near, far, between, between])
+    mode = torch.tensor([False, True, False, True])
+    u_policy = torch.full((4, 1), 3.0, dtype=torch.float64)
+    command, new_mode = takeover(x, mode, u_policy)
+    assert new_mode.tolist() == [True, False, False, True]          # on, off, and the hysteresis band keeps the mode
+    lqr = control.saturate(control.lqr_command(system.state_error(x), torch.as_tensor(K)), system.action_limit)
+    assert torch.allclose(command[0], lqr[0]) and torch.allclose(command[3], lqr[3])
+    assert command[1].item() == 3.0 and command[2].item() == 3.0
+
+
+def test_takeover_rollout_balances_from_the_gate_region_and_counts_in_the_return():
+    """From inside the gate's region the LQR holds the pole whatever the policy commands; without the
+    takeover the same (random) policy lets it fall."""
+    config = small("papg", takeover="lqr", init_std=0.5, horizon=40, start_noise=None)
+    agent = APG("cartpole", config)
+    system = agent.system
+    x0 = torch.as_tensor(system.goal + np.array([0.02, 0.01, 0.0, 0.0]))[None].repeat(2, 1)
+    with torch.no_grad():
+        switched, *_ = population_returns(system, agent.pop, x0, 40, agent.substeps, takeover=agent.takeover)
+        free, *_ = population_returns(system, agent.pop, x0, 40, agent.substeps)
+    assert switched.max() > -1.0                        # held near upright: the reward is ~0 every step
+    assert free.min() < 10 * switched.min()            # the random policy alone drops the pole

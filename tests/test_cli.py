@@ -56,12 +56,15 @@ def test_balance_map_writes_png_and_json(tmp_path):
     assert "balanced_fraction" in proc.stdout
 
 
-def test_demo_balances_the_acrobot(tmp_path):
+def test_demo_balances_the_acrobot_and_the_cartpole(tmp_path):
     proc = run("demo", "--grid", "2", "--quiet", "--out", str(tmp_path))
-    summary = json.loads((tmp_path / "acrobot" / "summary.json").read_text())
-    assert summary["balanced"] and (tmp_path / "acrobot" / "replay.html").exists()
-    assert (tmp_path / "balance_map" / "balance_map.json").exists()
-    assert "balanced=True" in proc.stdout
+    for name in ("acrobot", "cartpole"):
+        summary = json.loads((tmp_path / name / "summary.json").read_text())
+        assert summary["balanced"] and (tmp_path / name / "replay.html").exists()
+    assert "papg:" in json.loads((tmp_path / "cartpole" / "summary.json").read_text())["controller"]
+    for name in ("balance_map", "cartpole_balance_map"):
+        assert (tmp_path / name / "balance_map.json").exists()
+    assert proc.stdout.count("balanced=True") == 2
 
 
 @pytest.mark.parametrize("args, message", [

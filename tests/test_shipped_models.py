@@ -56,3 +56,33 @@ def _walk(tree):
     elif isinstance(tree, list):
         for value in tree:
             yield from _walk(value)
+
+
+def test_shipped_papg_cartpole_switched_controller_in_drake_equals_its_torch_training_rollout():
+    """The swing-up was trained inside the switched controller (APGConfig.takeover = "lqr"): the torch
+    rollout it was trained on and the Drake diagram (RecurrentTorchPolicy + cost-to-go Gate + held LQR)
+    give the same states, the switch to the LQR included, and it balances from hanging down."""
+    pytest.importorskip("pydrake")
+    from hybridctl.drake import build_hybrid_diagram, simulate
+    from hybridctl.learn.apg import APG, population_returns
+
+    torch.set_num_threads(1)
+    path = POLICIES / "papg-cartpole"
+    agent = APG.load(path, dtype="float64")          # float64 torch, as Drake computes
+    system = agent.system
+    x0 = system.nudged_nominal_state()
+    steps = int(round(4.0 / agent.period))           # 4 s: the LQR takes over at about 1 s
+    with torch.no_grad():
+        _, _, (_, mode), _, states = population_returns(system, agent.policy().population,
+                                                        torch.as_tensor(x0[None]), steps, agent.substeps,
+                                                        agent.config.observation, keep_states=True,
+                                                        takeover=agent.takeover)
+    torch_states = states[0, 0].numpy()
+    assert bool(mode.all())                           # the LQR holds it at the end
+    # the diagram of `--controller papg:PATH` (default gate: the spec's cost-to-go gate), policy in float64
+    diagram = build_hybrid_diagram(system, swingup=agent.closed_loop_policy(), swingup_period=agent.period)
+    trajectory = simulate(diagram, x0, duration=4.0)
+    drake_states = trajectory.x[::agent.substeps][: steps + 1]
+    assert trajectory.gate[-1] == 1 and trajectory.gate[0] == 0
+    # the same float64 numbers on both sides; the hard switch happens at the same step in both
+    assert np.abs(drake_states - torch_states).max() < 1e-9

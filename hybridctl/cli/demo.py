@@ -23,7 +23,9 @@ def add_parser(sub) -> None:
 
 @cli_errors
 def run_demo_command(args: argparse.Namespace) -> int:
-    """Run the demo, printing its account as it goes; exit 1 when the acrobot did not balance."""
+    """Run the demo, printing its account as it goes; exit 1 when the acrobot or the cart-pole did not balance."""
     live = start_live_view() if args.meshcat else None
     result = run_demo(args.out, grid=args.grid, meshcat=live, progress=not args.quiet, command=args.command_line)
-    return 0 if result["simulation"]["balanced"] else 1
+    cartpole = result["cartpole"]
+    ok = result["simulation"]["balanced"] and (cartpole is None or cartpole["simulation"]["balanced"])
+    return 0 if ok else 1

@@ -1,5 +1,7 @@
 """The demo (``make demo``, ``hybridctl demo``): the pretrained SSAC acrobot in Drake, one run from
-hanging down with a browser replay, and a balance map of rest states.
+hanging down with a browser replay, and a balance map of rest states; then the cart-pole with its
+pretrained analytic-policy-gradient swing-up (thesis Ch. 7), the cost-to-go gate and Drake's LQR,
+one run with a replay and a balance map of its starts.
 
 >>> from hybridctl.experiments import run_demo
 >>> result = run_demo("runs/demo", grid=11)
@@ -20,6 +22,10 @@ from .simulation import simulate_and_write
 PRETRAINED_ACROBOT = MODELS_DIR / "policies" / "ssac-acrobot"
 """The SSAC acrobot checkpoint shipped with hybridctl (how it was trained: README.md there)."""
 
+PRETRAINED_CARTPOLE = MODELS_DIR / "policies" / "papg-cartpole"
+"""The cart-pole swing-up trained by PAPG through the switched controller (thesis Ch. 7 with the
+Ch. 3 switch), shipped with hybridctl (how it was trained: README.md there)."""
+
 DEMO_SYSTEM = "acrobot"
 DEMO_GRID = 11
 """Balance-map grid points per axis in the demo (the thesis' figure uses 41)."""
@@ -31,16 +37,21 @@ def _silent(line: str) -> None:
 
 def run_demo(out: str | Path = "runs/demo", grid: int = DEMO_GRID, checkpoint: str | Path = PRETRAINED_ACROBOT,
              meshcat=None, progress: bool = True, command: str | None = None,
-             report: Callable[[str], None] | None = print) -> dict:
-    """The pretrained SSAC acrobot: simulate one episode from hanging down, then a balance map.
+             report: Callable[[str], None] | None = print,
+             cartpole_checkpoint: str | Path | None = PRETRAINED_CARTPOLE) -> dict:
+    """The pretrained SSAC acrobot: simulate one episode from hanging down, then a balance map; then
+    the same for the cart-pole with its pretrained APG swing-up.
 
     Writes ``out/acrobot`` (as :func:`simulate_and_write`: trajectory, summary, plot, replay) and
-    ``out/balance_map`` (``balance_map.json``, ``balance_map.png``). The start is the spec's nominal
-    state nudged by 1e-3 rad and the run lasts the spec's episode duration (acrobot: 10 s).
+    ``out/balance_map`` (``balance_map.json``, ``balance_map.png``); then ``out/cartpole`` and
+    ``out/cartpole_balance_map``. Each start is the spec's nominal state nudged by 1e-3 rad and
+    each run lasts the spec's episode duration (10 s).
 
     Args:
         grid: balance-map grid points per axis.
         checkpoint: the SSAC checkpoint directory (default: the shipped one).
+        cartpole_checkpoint: the APG-family cart-pole checkpoint (default: the shipped one);
+            None skips the cart-pole part.
         meshcat: a running Meshcat to show the run live.
         progress: show the balance map's progress bar.
         command: the command line, recorded in the outputs.
@@ -48,8 +59,9 @@ def run_demo(out: str | Path = "runs/demo", grid: int = DEMO_GRID, checkpoint: s
             None: silent).
 
     Returns:
-        ``{"simulation": summary, "balance_map": summary, "out": Path, "wall_time_s": float}``;
-        ``result["simulation"]["balanced"]`` says whether the demo succeeded.
+        ``{"simulation": summary, "balance_map": summary, "cartpole": {"simulation": ...,
+        "balance_map": ...} (or None), "out": Path, "wall_time_s": float}``;
+        ``result["simulation"]["balanced"]`` (and the cart-pole's) say whether the demo succeeded.
     """
     report = report or _silent
     out = Path(out)
@@ -72,6 +84,37 @@ def run_demo(out: str | Path = "runs/demo", grid: int = DEMO_GRID, checkpoint: s
     map_summary = result.save(out / "balance_map")
     report(f"  balance map {grid}x{grid} of rest states, {result.duration:g} s each: "
            f"{map_summary['balanced_fraction']:.1%} balanced (thesis: every start of a 41 x 41 grid)")
+    cartpole = None
+    if cartpole_checkpoint is not None:
+        cartpole = _cartpole_part(out, grid, cartpole_checkpoint, meshcat, progress, command, report)
     wall = time.perf_counter() - start
     report(f"demo done in {wall:.0f} s; outputs under {out}/")
-    return {"simulation": summary, "balance_map": map_summary, "out": out, "wall_time_s": wall}
+    return {"simulation": summary, "balance_map": map_summary, "cartpole": cartpole, "out": out,
+            "wall_time_s": wall}
+
+
+def _cartpole_part(out: Path, grid: int, checkpoint: str | Path, meshcat, progress: bool, command: str | None,
+                   report: Callable[[str], None]) -> dict:
+    """The cart-pole: the learned APG swing-up + cost-to-go gate + Drake LQR, one run and a balance map."""
+    from ..io import read_json
+    from ..learn.checkpoint import resolve_checkpoint_dir
+
+    system = load("cartpole")
+    method = read_json(resolve_checkpoint_dir(checkpoint) / "config.json")["method"]
+    controller = f"{method}:{checkpoint}"
+    duration = system.episode_duration
+    report(f"cart-pole (thesis Ch. 7 + Ch. 3) in Drake: {method.upper()} swing-up (RecurrentTorchPolicy) + "
+           "cost-to-go gate (Gate, hysteresis) + Drake LQR")
+    report(f"  checkpoint: {checkpoint} (how it was trained: README.md there)")
+    summary = simulate_and_write(system, controller, out / "cartpole", x0=system.nudged_nominal_state(),
+                                 duration=duration, meshcat=meshcat, command=command)
+    report(f"  simulate {duration:g} s from hanging down: balanced={summary['balanced']} "
+           f"LQR from t={summary['first_balance_time']} s, {summary['realtime_factor']:.0f}x real time")
+    report(f"  open {out / 'cartpole' / 'replay.html'} in a browser to watch it")
+    result = balance_map(system, controller, grid=grid, progress=progress)
+    if command is not None:
+        result.meta["command"] = command
+    map_summary = result.save(out / "cartpole_balance_map")
+    report(f"  balance map {grid}x{grid} of starts (cart x, pole angle about hanging down), {result.duration:g} s "
+           f"each: {map_summary['balanced_fraction']:.1%} balanced")
+    return {"simulation": summary, "balance_map": map_summary}

@@ -65,6 +65,7 @@ import torch
 
 from .. import systems as systems_mod
 from ..systems import System, known_systems
+from ..systems import control
 from ..systems.success import is_balanced
 from . import checkpoint as ckpt
 from .config_check import check_types
@@ -79,6 +80,7 @@ __all__ = ["APG", "APGConfig", "BatchedAdam", "ClosedLoopPolicy", "policy_step",
 METHODS = ("apg", "shapg", "papg", "cem", "ce-apg")
 PRESETS = ("thesis", "reduced")
 OBSERVATIONS = ("trig", "state")
+TAKEOVERS = ("none", "lqr")
 
 
 # ============================================================================ the settings
@@ -106,6 +108,10 @@ class APGConfig:
     #                                    (implementation notes Ch. 7); None: the spec's initial_state spread
     observation: str = "trig"          # "trig": [cart x, sin, cos of each angle error, velocities]; "state":
     #                                    the wrapped state error (jumps at +-pi). hybridctl choice.
+    takeover: str = "none"             # "none": the policy acts all episode (thesis Ch. 7); "lqr": hybridctl, the
+    #                                    switched controller as in Drake (Ch. 3): the spec's cost-to-go gate with
+    #                                    hysteresis hands over to the saturated LQR every integrator step, and the
+    #                                    gradient flows through the LQR phase (see LQRTakeover)
     # --- policy
     policy: str = "gru"                # "gru" (thesis Sec. 7.3.4), "linear" or "mlp:W1,W2,..." (ReLU widths)
     init_std: float = 0.05             # sigma_0 and the initial perturbation of zero weights, thesis Sec. 7.3.7
@@ -145,7 +151,7 @@ class APGConfig:
                                             "torch_threads"),
                      integers_from_0=("seed",), positive=("lr_start", "lr_end", "grad_bound"))
         parse_policy(self.policy)
-        for name, options in (("method", METHODS), ("observation", OBSERVATIONS),
+        for name, options in (("method", METHODS), ("observation", OBSERVATIONS), ("takeover", TAKEOVERS),
                               ("clip_mode", ("norm", "value")), ("dtype", ("float32", "float64"))):
             if getattr(self, name) not in options:
                 raise ValueError(f"APGConfig.{name} must be one of {options}, got {getattr(self, name)!r}")
@@ -249,18 +255,62 @@ def observation_size(system: System, kind: str = "trig") -> int:
 
 
 def policy_step(system: System, pop: PolicyPopulation, x: torch.Tensor, h: torch.Tensor, substeps: int,
-                observation: str = "trig"):
+                observation: str = "trig", takeover: "LQRTakeover | None" = None, mode: torch.Tensor | None = None):
     """One policy step of K x N states x [K, N, n]: observe, act, hold the action over ``substeps``
-    integrator steps of ``System.step_unchecked``; returns (next x, next h, reward [K, N], obs)."""
+    integrator steps of ``System.step_unchecked``; returns (next x, next h, reward [K, N], obs, mode).
+
+    ``takeover``: the switched controller's LQR half (:class:`LQRTakeover`): at every integrator
+    step the gate's ``mode`` [K, N] (bool, True = LQR) is updated with hysteresis and the LQR's
+    command replaces the held policy action where the mode is on (as the Drake diagram does).
+    """
     K, N, n = x.shape
     obs = observe(system, x, observation)
     action, h = pop(obs, h)
     u = action.reshape(K * N, system.n_actions)
     xs = x.reshape(K * N, n)
+    ms = None if mode is None else mode.reshape(K * N)
     for _ in range(substeps):
-        xs = system.step_unchecked(xs, u)
+        if takeover is not None:
+            command, ms = takeover(xs, ms, u)
+            xs = system.step_unchecked(xs, command)
+        else:
+            xs = system.step_unchecked(xs, u)
     x = xs.reshape(K, N, n)
-    return x, h, system.reward(x), obs
+    return x, h, system.reward(x), obs, (None if ms is None else ms.reshape(K, N))
+
+
+class LQRTakeover:
+    """The balance half of the switched controller inside a torch rollout (thesis Ch. 3 around Ch. 7).
+
+    ``takeover(x [B, n], mode [B] bool, u_policy [B, m]) -> (command [B, m], next mode)``: the
+    spec's cost-to-go gate p = exp(-V(x) / gate.cost_scale) (:class:`~hybridctl.systems.control.
+    CostToGoGate`) with the spec's hysteresis (gate.on / gate.off) chooses, per state, the
+    saturated LQR command -K (x - goal) (Drake's LQR, :meth:`System.lqr`) or the policy's.
+    Every law comes from :mod:`hybridctl.systems.control`, as the Drake blocks'.
+
+    Training a swing-up with it (``APGConfig.takeover = "lqr"``) optimises the switched
+    controller that runs in Drake: the swing-up need only deliver the state into the gate's
+    region, and the LQR phase, being stable, passes bounded gradients back to the state where
+    the gate switched on. The switch itself is a hard choice: no gradient flows through the
+    switching time.
+    """
+
+    def __init__(self, system: System, dtype: torch.dtype = torch.float64):
+        K, S = system.lqr()
+        gate = control.CostToGoGate(system)
+        self.system = system
+        self.K = torch.as_tensor(K, dtype=dtype)
+        self.S = torch.as_tensor(S, dtype=dtype)
+        self.scale, self.on, self.off = float(gate.scale), float(system.gate.on), float(system.gate.off)
+        self.limit = float(system.action_limit)
+
+    def __call__(self, x: torch.Tensor, mode: torch.Tensor | None, u_policy: torch.Tensor):
+        err = self.system.state_error(x)
+        probability = torch.exp(-control.cost_to_go(err, self.S) / self.scale)
+        mode = torch.zeros_like(probability, dtype=torch.bool) if mode is None else mode
+        mode = control.hysteresis(probability, mode, self.on, self.off)
+        balance = control.saturate(control.lqr_command(err, self.K), self.limit)
+        return torch.where(mode[:, None], balance, u_policy), mode
 
 
 _COMPILED_STEP = None
@@ -276,7 +326,7 @@ def compiled_policy_step():
 
 def population_returns(system: System, pop: PolicyPopulation, x0: torch.Tensor, horizon: int, substeps: int,
                        observation: str = "trig", truncation: int | None = None, state=None,
-                       keep_states: bool = False, step=None):
+                       keep_states: bool = False, step=None, takeover: LQRTakeover | None = None):
     """Roll K members x N starts out as one batch; the differentiable returns [K, N].
 
     ``x0``: [N, n] (the same starts for every member) or [K, N, n]. ``state``: the policies'
@@ -286,7 +336,9 @@ def population_returns(system: System, pop: PolicyPopulation, x0: torch.Tensor, 
     steps (truncated BPTT). Returns (returns [K, N], final x [K, N, n], final state, obs
     sums (sum, sum of squares, count) for the normalisation, and the states [K, N, T+1, n]
     when ``keep_states``, else None). ``step``: the per-step function (default
-    :func:`policy_step`; :func:`compiled_policy_step` for the fused one).
+    :func:`policy_step`; :func:`compiled_policy_step` for the fused one). ``takeover``: the
+    switched controller's LQR half (:class:`LQRTakeover`); then ``state`` and the returned state
+    are the pair (recurrent state, gate mode [K, N]), the mode starting off (the swing-up acts).
     """
     step = step or policy_step
     K = pop.members
@@ -294,7 +346,10 @@ def population_returns(system: System, pop: PolicyPopulation, x0: torch.Tensor, 
         x0 = x0.unsqueeze(0).expand(K, -1, -1)
     N = x0.shape[1]
     x = x0.to(pop.dtype)
-    h = pop.initial_state(N) if state is None else state
+    if takeover is None:
+        h, mode = (pop.initial_state(N) if state is None else state), None
+    else:
+        h, mode = (pop.initial_state(N), torch.zeros((K, N), dtype=torch.bool)) if state is None else state
     total = torch.zeros((K, N), dtype=pop.dtype)
     o_sum = torch.zeros(pop.obs_dim, dtype=torch.float64)
     o_sq = torch.zeros(pop.obs_dim, dtype=torch.float64)
@@ -302,7 +357,7 @@ def population_returns(system: System, pop: PolicyPopulation, x0: torch.Tensor, 
     for t in range(horizon):
         if truncation is not None and t > 0 and t % truncation == 0:
             x, h = x.detach(), h.detach()
-        x, h, reward, obs = step(system, pop, x, h, substeps, observation)
+        x, h, reward, obs, mode = step(system, pop, x, h, substeps, observation, takeover, mode)
         with torch.no_grad():
             od = obs.detach().reshape(-1, pop.obs_dim).double()
             finite = torch.isfinite(od).all(-1)
@@ -314,7 +369,7 @@ def population_returns(system: System, pop: PolicyPopulation, x0: torch.Tensor, 
             kept.append(x.detach())
     count = K * N * horizon
     states = torch.stack(kept, dim=2) if keep_states else None
-    return total, x, h, (o_sum, o_sq, count), states
+    return total, x, (h if takeover is None else (h, mode)), (o_sum, o_sq, count), states
 
 
 def member_gradients(pop: PolicyPopulation, loss_per_member: torch.Tensor) -> torch.Tensor:
@@ -486,6 +541,7 @@ class APG(Learner):
         self.history: list[dict] = []
         self.log_rows: list[dict] = []
         self._step = compiled_policy_step() if cfg.compile else policy_step
+        self.takeover = LQRTakeover(self.system, self.dtype) if cfg.takeover == "lqr" else None
         self.last_scores = torch.full((self.K,), -math.inf, dtype=torch.float64)
         self._obs_sums = None   # observation sums of the current epoch (for the normalisation)
 
@@ -535,7 +591,8 @@ class APG(Learner):
         pop = self.pop
         pop.from_flat(theta.to(self.dtype))
         returns, x, h, sums, _ = population_returns(self.system, pop, x0, horizon or cfg.horizon, self.substeps,
-                                                    cfg.observation, cfg.truncation, state, step=self._step)
+                                                    cfg.observation, cfg.truncation, state, step=self._step,
+                                                    takeover=self.takeover)
         self._obs_sums = [a + b for a, b in zip(self._obs_sums, sums)] if self._obs_sums else list(sums)
         member_return = returns.mean(1)
         grad = member_gradients(pop, -member_return).double()
@@ -551,7 +608,8 @@ class APG(Learner):
         check_finite("APG parameters", new, f"at epoch {self.epoch}, iteration {self.iterations}")
         scores = torch.where(torch.isfinite(member_return.detach()), member_return.detach().double(),
                              torch.full_like(member_return.detach().double(), -math.inf))
-        return new, scores, norms, ok, x.detach(), h.detach()
+        h = (h[0].detach(), h[1]) if isinstance(h, tuple) else h.detach()
+        return new, scores, norms, ok, x.detach(), h
 
     def _apg_phase(self, theta: torch.Tensor, lr: float, adam: BatchedAdam):
         """``apg_iterations`` APG (or short-horizon APG) iterations; (theta, returns [iters, K], grad norms)."""
@@ -598,7 +656,8 @@ class APG(Learner):
                 x0 = self.starts(cfg.batch, [cfg.seed, self.epoch, 0, 1])
                 with torch.no_grad():
                     returns, _, _, sums, _ = population_returns(self.system, self.pop, x0, cfg.horizon,
-                                                                self.substeps, cfg.observation, step=self._step)
+                                                                self.substeps, cfg.observation, step=self._step,
+                                                                takeover=self.takeover)
                 self._obs_sums = list(sums)
                 r = returns.mean(1).double()
                 scores = torch.where(torch.isfinite(r), r, torch.full_like(r, -math.inf))
@@ -704,7 +763,8 @@ class APG(Learner):
         with torch.no_grad():
             returns, _, _, _, states = population_returns(self.system, policy.population, x0,
                                                           horizon or self.config.horizon, self.substeps,
-                                                          self.config.observation, keep_states=True)
+                                                          self.config.observation, keep_states=True,
+                                                          takeover=self.takeover)
         r = returns[0].double().numpy()
         lookback = max(1, int(round(1.0 / self.period)))
         s = states[0].double().numpy()
