@@ -35,6 +35,16 @@ diverges (non-finite return) gets the worst score (-inf) and no update; NaN para
 training with FloatingPointError before they are applied, so the last good checkpoint
 stays intact (the training skeleton writes none after an error).
 
+The parallel backends (``APGConfig.backend`` "processes" or "ray", :mod:`hybridctl.parallel`):
+members share nothing during an epoch's APG phase (own Adam moments; the same start states,
+seeded by (seed, epoch, iteration)), so for ce-apg, papg and shapg the phase runs as
+``workers`` contiguous chunks of members, one task each (:func:`apg_chunk`: plain arrays in
+and out; each worker builds its own learner once). The parent joins the chunks in member
+order and goes on as in one process (CEM update, best member, normalisation, counters), so
+a split run equals the serial one up to float rounding. apg (one member) and cem (no APG
+phase) always run here. The backend opens on the first split epoch and closes when
+``learn`` returns or fails (:meth:`APG.close_backend` after calling ``train_epoch`` directly).
+
 Interactions are counted honestly: K x N x T policy steps per APG iteration (x the
 integrator sub-steps per policy step for the physics steps, logged separately).
 
@@ -64,6 +74,7 @@ import numpy as np
 import torch
 
 from .. import systems as systems_mod
+from ..parallel import BACKENDS, cached_env, make_backend
 from ..systems import System, known_systems
 from ..systems import control
 from ..systems.success import is_balanced
@@ -71,9 +82,9 @@ from . import checkpoint as ckpt
 from .config_check import check_types
 from .policies import KINDS as POLICY_KINDS
 from .policies import Policy, PolicyPopulation
-from .run import PROGRESS_FILE, EvalResult, Learner, Saved, check_fields, check_finite, seeded
+from .run import PROGRESS_FILE, EvalResult, Learner, Saved, check_fields, check_finite, seeded, set_torch_threads
 
-__all__ = ["APG", "APGConfig", "BatchedAdam", "ClosedLoopPolicy", "policy_step", "compiled_policy_step", "METHODS", "PRESETS", "observe", "population_returns",
+__all__ = ["APG", "APGConfig", "BatchedAdam", "apg_chunk", "ClosedLoopPolicy", "policy_step", "compiled_policy_step", "METHODS", "PRESETS", "observe", "population_returns",
            "member_gradients", "lr_schedule", "cem_update",
            "gradient_norms_by_horizon", "returns_along_direction"]
 
@@ -141,7 +152,15 @@ class APGConfig:
     seed: int = 0
     checkpoint_every: int = 1          # epochs between checkpoints
     eval_episodes: int = 16            # held-out starts in evaluate()
-    torch_threads: int = 1             # see run.set_torch_threads
+    torch_threads: int = 1             # see run.set_torch_threads (also in each worker)
+    # --- parallel (hybridctl; the thesis' author ran one member per XLA CPU device)
+    backend: str = "serial"            # hybridctl: "serial" (one process), "processes" (spawned local processes)
+    #                                    or "ray" (a population that does not fit one process): each epoch's
+    #                                    APG phase runs as contiguous chunks of members, one per worker
+    workers: int | None = None         # hybridctl: number of chunks; None: the backend's workers (every core,
+    #                                    or the Ray cluster's CPUs)
+    ray_address: str | None = None     # hybridctl: the Ray cluster ("ray://host:10001", "auto"); None starts a
+    #                                    local Ray instance (backend "ray" only)
 
     def validate(self) -> None:
         """Raise ValueError naming the first invalid field."""
@@ -152,12 +171,19 @@ class APGConfig:
                      integers_from_0=("seed",), positive=("lr_start", "lr_end", "grad_bound"))
         parse_policy(self.policy)
         for name, options in (("method", METHODS), ("observation", OBSERVATIONS), ("takeover", TAKEOVERS),
+                              ("backend", BACKENDS),
                               ("clip_mode", ("norm", "value")), ("dtype", ("float32", "float64"))):
             if getattr(self, name) not in options:
                 raise ValueError(f"APGConfig.{name} must be one of {options}, got {getattr(self, name)!r}")
         if self.reward_kind not in systems_mod.spec.CH7_REWARD_KINDS:
             raise ValueError(f"APGConfig.reward_kind must be one of {systems_mod.spec.CH7_REWARD_KINDS}, "
                              f"got {self.reward_kind!r}")
+        if self.workers is not None and self.workers < 1:
+            raise ValueError(f"APGConfig.workers must be None (the backend's workers) or an integer >= 1, "
+                             f"got {self.workers!r}")
+        if self.ray_address is not None and (self.backend != "ray" or not self.ray_address.strip()):
+            raise ValueError(f"APGConfig.ray_address must be None or a non-empty address with backend 'ray', "
+                             f"got {self.ray_address!r} with backend {self.backend!r}")
         if self.elites > self.population:
             raise ValueError(f"APGConfig.elites ({self.elites}) must be <= population ({self.population})")
         for name in ("beta1", "beta2"):
@@ -480,6 +506,38 @@ def returns_along_direction(system: System, pop: PolicyPopulation, x0: torch.Ten
     return returns.mean(1).double().tolist()
 
 
+# ============================================================================ the split APG phase (workers)
+
+
+def _array(t: torch.Tensor) -> np.ndarray:
+    """A tensor as a numpy copy (what tasks and results carry)."""
+    return t.detach().cpu().numpy().copy()
+
+
+def apg_chunk(task: dict) -> dict:
+    """The APG phase of one chunk of members, in a worker (see :meth:`APG._split_apg_phase`).
+
+    ``task``: plain data (system name and spec overrides, the chunk's config as a dict, epoch,
+    iteration count, lr, parameters [k, P], Adam moments and steps, the frozen normalisation).
+    The worker's learner of the chunk's size is built once (:func:`~hybridctl.parallel.cached_env`)
+    and runs :meth:`APG._apg_phase`; returns the chunk's parameters, Adam state, returns and
+    gradient norms [iters, k], counters and observation sums.
+    """
+    set_torch_threads(task["config"]["torch_threads"])
+    agent = cached_env(("apg", task["system"], repr(task["overrides"]), repr(task["config"])),
+                       lambda: APG(systems_mod.load(task["system"], **task["overrides"]), APGConfig(**task["config"])))
+    agent.epoch, agent.iterations, agent._obs_sums = task["epoch"], task["iterations"], None
+    agent.env_steps = agent.nan_grads = agent.large_grads = 0
+    agent.pop.set_normalization(*task["normalization"])
+    adam = agent.adam
+    adam.m, adam.v, adam.t = (torch.tensor(a) for a in task["adam"])
+    theta, returns, norms = agent._apg_phase(torch.tensor(task["theta"]), task["lr"], adam)
+    o_sum, o_sq, count = agent._obs_sums
+    return {"theta": _array(theta), "returns": _array(returns), "norms": _array(norms),
+            "adam": [_array(a) for a in (adam.m, adam.v, adam.t)], "obs_sums": (_array(o_sum), _array(o_sq), count),
+            "env_steps": agent.env_steps, "nan_grads": agent.nan_grads, "large_grads": agent.large_grads}
+
+
 # ============================================================================ the learner
 
 
@@ -544,6 +602,7 @@ class APG(Learner):
         self.takeover = LQRTakeover(self.system, self.dtype) if cfg.takeover == "lqr" else None
         self.last_scores = torch.full((self.K,), -math.inf, dtype=torch.float64)
         self._obs_sums = None   # observation sums of the current epoch (for the normalisation)
+        self._backend = None    # the worker pool of a split APG phase (opened on first use)
 
     @staticmethod
     def _system(system: str | System, cfg: APGConfig) -> System:
@@ -627,6 +686,43 @@ class APG(Learner):
             self.env_steps += self.K * cfg.batch * cfg.horizon
         return theta, torch.stack(all_returns), torch.stack(all_norms)
 
+    def _split_apg_phase(self, theta: torch.Tensor, lr: float, adam: BatchedAdam):
+        """:meth:`_apg_phase` as contiguous chunks of members on the config's backend (see the module
+        docstring); the same results, counters and ``adam`` state as in one process. With the
+        "serial" backend or one member, :meth:`_apg_phase` itself."""
+        cfg = self.config
+        if cfg.backend == "serial" or self.K == 1:
+            return self._apg_phase(theta, lr, adam)
+        if self._backend is None:
+            self._backend = make_backend(cfg.backend, workers=cfg.workers, address=cfg.ray_address)
+        system = self.system.name if self.system.name in known_systems() else str(self.system.spec.path)
+        tasks = []
+        for chunk in np.array_split(np.arange(self.K), min(self._backend.workers, self.K)):
+            lo, hi = int(chunk[0]), int(chunk[-1]) + 1
+            sub = dataclasses.replace(cfg, population=hi - lo, elites=min(cfg.elites, hi - lo), backend="serial",
+                                      workers=None, ray_address=None)
+            tasks.append({"system": system, "overrides": dict(self.system.spec.overrides),
+                          "config": dataclasses.asdict(sub), "epoch": self.epoch, "iterations": self.iterations,
+                          "lr": lr, "theta": _array(theta[lo:hi]),
+                          "adam": [_array(a[lo:hi]) for a in (adam.m, adam.v, adam.t)],
+                          "normalization": (_array(self.pop.obs_mean), _array(self.pop.obs_std))})
+        results = self._backend.map(apg_chunk, tasks)
+        joined = {key: torch.cat([torch.tensor(r[key]) for r in results], dim=0 if key == "theta" else 1)
+                  for key in ("theta", "returns", "norms")}
+        adam.m, adam.v, adam.t = (torch.cat([torch.tensor(r["adam"][i]) for r in results]) for i in range(3))
+        self._obs_sums = [torch.tensor(sum(r["obs_sums"][i] for r in results)) for i in (0, 1)] + \
+                         [sum(r["obs_sums"][2] for r in results)]
+        self.iterations += cfg.apg_iterations        # every chunk ran the same iterations
+        for counter in ("env_steps", "nan_grads", "large_grads"):
+            setattr(self, counter, getattr(self, counter) + sum(r[counter] for r in results))
+        return joined["theta"], joined["returns"], joined["norms"]
+
+    def close_backend(self) -> None:
+        """Close the worker pool of the split APG phase, if one is open (``learn`` does it when it ends)."""
+        backend, self._backend = self._backend, None
+        if backend is not None:
+            backend.close()
+
     def _short_horizon_episode(self, theta, x0, lr, adam):
         """One episode of ``horizon`` steps as short-horizon unrolls with the state carried over."""
         cfg = self.config
@@ -665,7 +761,7 @@ class APG(Learner):
                 self.iterations += 1
                 self.env_steps += self.K * cfg.batch * cfg.horizon
             else:
-                finals, history, norms = self._apg_phase(candidates, lr, BatchedAdam(self.K, self.pop.n_params,
+                finals, history, norms = self._split_apg_phase(candidates, lr, BatchedAdam(self.K, self.pop.n_params,
                                                                                        (cfg.beta1, cfg.beta2)))
                 scores = history[-cfg.rank_window:].mean(0)
                 grad_norm = float(norms[torch.isfinite(norms)].median()) if torch.isfinite(norms).any() else grad_norm
@@ -673,7 +769,7 @@ class APG(Learner):
             self.mean, self.std = new_mean, new_std
             self.members = finals
         else:
-            finals, history, norms = self._apg_phase(self.members, lr, self.adam)
+            finals, history, norms = self._split_apg_phase(self.members, lr, self.adam)
             scores = history[-cfg.rank_window:].mean(0)
             elite = torch.argsort(scores, descending=True, stable=True)[:cfg.elites]
             self.members = finals
@@ -719,20 +815,24 @@ class APG(Learner):
             raise ValueError(f"epochs must be >= 1, got {target}")
         with self.run(log_dir, resume, progress, callback, total=target, unit="epoch",
                       desc=f"{self.config.method} {self.system.name}") as run:
-            while self.epoch < target and not run.stopped:
-                start = time.perf_counter()
-                steps_before = self.env_steps
-                row = self.train_epoch()
-                elapsed = time.perf_counter() - start
-                self.wall_time += elapsed
-                row.update(wall_time=self.wall_time, steps_per_s=(self.env_steps - steps_before) / max(elapsed, 1e-9))
-                self.history.append(row)
-                run.log(row)
-                run.advance(1, ret=f"{row['best_return']:.1f}", gnorm=f"{row['grad_norm']:.2g}",
-                            nan=self.nan_grads, sps=f"{row['steps_per_s']:.0f}")
-                run.after_update()
-                if self.epoch % self.config.checkpoint_every == 0:
-                    run.checkpoint()
+            try:
+                while self.epoch < target and not run.stopped:
+                    start = time.perf_counter()
+                    steps_before = self.env_steps
+                    row = self.train_epoch()
+                    elapsed = time.perf_counter() - start
+                    self.wall_time += elapsed
+                    row.update(wall_time=self.wall_time,
+                               steps_per_s=(self.env_steps - steps_before) / max(elapsed, 1e-9))
+                    self.history.append(row)
+                    run.log(row)
+                    run.advance(1, ret=f"{row['best_return']:.1f}", gnorm=f"{row['grad_norm']:.2g}",
+                                nan=self.nan_grads, sps=f"{row['steps_per_s']:.0f}")
+                    run.after_update()
+                    if self.epoch % self.config.checkpoint_every == 0:
+                        run.checkpoint()
+            finally:
+                self.close_backend()
         return self
 
     # ------------------------------------------------------------------ use

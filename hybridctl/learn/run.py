@@ -147,7 +147,7 @@ def check_fields(config, integers_from_1: Iterable[str] = (), integers_from_0: I
 # ============================================================================ resuming with changed settings
 
 RESUME_APPLIED = ("total_steps", "epochs", "checkpoint_every", "checkpoint_minutes", "log_every", "tensorboard",
-                  "save_replay", "torch_threads", "backend", "workers", "address", "eval_episodes")
+                  "save_replay", "torch_threads", "backend", "workers", "address", "ray_address", "eval_episodes")
 """Config fields a resumed run takes from the command line: how long to train and how to record,
 checkpoint, evaluate and parallelise it. They do not change the algorithm's math. Every other
 field (learning rates, gamma, network sizes, batch sizes, seed, num_envs, ...) does: a resume
