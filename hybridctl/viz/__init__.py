@@ -1,4 +1,5 @@
-"""Viewing: meshcat (live and HTML replays), matplotlib plots, views of reachable meshes, training curves.
+"""Viewing: meshcat (live and HTML replays), matplotlib plots, views of reachable meshes, training curves,
+the Ch. 7 figures.
 
 >>> from hybridctl import viz
 >>> html = viz.replay_html(system, times, states, path="replay.html")
@@ -16,5 +17,6 @@ _HOMES = {
     "markov": ("plot_cumulative_mass", "plot_mesh_sizes", "plot_mesh_states", "plot_transition_sparsity"),
     "plots": ("plot_balance_map", "plot_trajectory", "wrap_about_goal"),
     "training": ("plot_training_curves",),
+    "apg": ("plot_gradient_norms", "plot_method_comparison", "plot_return_landscape"),
 }
 __getattr__, __dir__, __all__ = lazy_exports(__name__, _HOMES)

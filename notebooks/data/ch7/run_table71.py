@@ -1,0 +1,46 @@
+"""Thesis Tables 7.1 / 7.2 in direction (hybridctl.experiments.apg_study): run, resume, collect.
+
+    python notebooks/data/ch7/run_table71.py run cartpole --seeds 0 1 2 3      # one process per call
+    python notebooks/data/ch7/run_table71.py collect                           # -> table71.json
+
+Runs go to runs/ch7/table71/SYSTEM/METHOD-sSEED/record.json; a finished run is skipped, so an
+interrupted study continues. ``collect`` gathers every record into notebooks/data/ch7/table71.json
+with the per-(system, method) summary.
+"""
+
+import argparse
+import shlex
+import sys
+from pathlib import Path
+
+from hybridctl import io
+from hybridctl.experiments.apg_study import STUDY_METHODS, StudySettings, run_study, summarize, zero_policy_baseline
+
+OUT = Path("runs/ch7/table71")
+RECORD = Path(__file__).with_name("table71.json")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    sub = parser.add_subparsers(dest="cmd", required=True)
+    run = sub.add_parser("run")
+    run.add_argument("systems", nargs="+")
+    run.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3])
+    run.add_argument("--methods", nargs="+", default=list(STUDY_METHODS))
+    sub.add_parser("collect")
+    args = parser.parse_args()
+    if args.cmd == "run":
+        command = "python " + " ".join(shlex.quote(a) for a in sys.argv)
+        run_study(OUT, systems=args.systems, methods=args.methods, seeds=args.seeds, settings=StudySettings(),
+                  command=command)
+    else:
+        records = [io.read_json(p) for p in sorted(OUT.glob("*/*/record.json"))]
+        systems = sorted({r["system"] for r in records})
+        io.write_json(RECORD, {"settings": StudySettings().__dict__, "summary": summarize(records),
+                               "zero_policy": {name: zero_policy_baseline(name) for name in systems},
+                               "runs": records})
+        print(f"wrote {RECORD}: {len(records)} runs")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,76 @@
+"""The Ch. 7 study (Tables 7.1 / 7.2 direction) and its figures: one scorer for every learner,
+resumable records, and the Fig. 7.1 plots."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from hybridctl.experiments.apg_study import (StudySettings, held_out_starts, rollout_metrics, run_one, summarize,
+                                             task_system, zero_policy_baseline)
+
+TINY = StudySettings(apg_iterations=2, epochs=2, sac_steps=200, eval_episodes=3, compile=False)
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
+def test_rollout_metrics_score_a_held_pole_as_stabilised_and_a_hanging_one_as_not():
+    system = task_system("cartpole")
+    K, _ = system.lqr()
+    goal = torch.as_tensor(system.goal)
+    lqr = lambda x, h: (-(system.state_error(x) @ torch.as_tensor(K).T), None)   # noqa: E731
+    near = np.tile(system.goal, (2, 1)) + np.array([[0.05, 0.02, 0, 0], [-0.05, -0.02, 0, 0]])
+    held = rollout_metrics(system, lqr, near, 100, 0.05)
+    assert held["stabilised"] == 1.0 and held["upright"] == 1.0 and held["mean_return"] > -5
+    hanging = zero_policy_baseline("cartpole", TINY)
+    assert hanging["stabilised"] == 0.0 and hanging["mean_return"] < -390     # 100 steps of 2 (1 - cos pi) = 4
+    assert goal.shape == (4,)
+
+
+def test_held_out_starts_are_the_spec_distribution_and_reproduce():
+    system = task_system("cartpole")
+    a, b = held_out_starts(system, 5, 1), held_out_starts(system, 5, 1)
+    assert np.array_equal(a, b) and not np.array_equal(a, held_out_starts(system, 5, 2))
+    assert np.all(np.abs(a[:, 0]) <= 0.5) and np.all(np.abs(a[:, 1]) <= 0.3)
+
+
+@pytest.mark.parametrize("method", ["papg", "sac"])
+def test_run_one_writes_a_record_and_resumes_by_skipping(tmp_path, method):
+    record = run_one(method, "cartpole", 0, tmp_path / method, TINY, command="test")
+    assert (tmp_path / method / "record.json").is_file()
+    assert record["eval"]["episodes"] == 3 and record["interactions"] > 0
+    if method == "papg":
+        assert record["interactions"] == 8 * 4 * 100 * 4 and record["best_training_return"] is not None
+    again = run_one(method, "cartpole", 0, tmp_path / method, TINY)
+    assert again["wall_time_s"] == record["wall_time_s"]                         # read back, not retrained
+    rows = summarize([record, again])
+    assert rows[0]["seeds"] == 2 and rows[0]["method"] == method
+
+
+def test_unknown_names_are_listed():
+    with pytest.raises(ValueError, match="known: ce-apg, papg"):
+        run_one("ppo", "cartpole", 0, "unused", TINY)
+    with pytest.raises(ValueError, match="known: cartpole, acrobot"):
+        task_system("hopper")
+
+
+def test_fig_7_1_and_comparison_plots_write_pngs_and_reject_empty_input(tmp_path):
+    from hybridctl.viz import plot_gradient_norms, plot_method_comparison, plot_return_landscape
+
+    assert plot_return_landscape([-1, 0, 1], {"T = 10": [1, 2, 1]}, tmp_path / "a.png").stat().st_size > 0
+    rows = [{"horizon": 5, "grad_norm": [1.0, 2.0]}, {"horizon": 50, "grad_norm": [100.0, 300.0]}]
+    assert plot_gradient_norms(rows, tmp_path / "b.png").stat().st_size > 0
+    summary = [{"system": "cartpole", "method": "papg", "return_mean": -250, "return_std": 3, "stabilised": 0.0,
+                "seeds": 4}]
+    assert plot_method_comparison(summary, tmp_path / "c.png").stat().st_size > 0
+    with pytest.raises(ValueError, match="curve 'x' has 2 values for 3 scales"):
+        plot_return_landscape([-1, 0, 1], {"x": [1, 2]}, tmp_path / "d.png")
+    with pytest.raises(ValueError, match="at least one"):
+        plot_gradient_norms([], tmp_path / "e.png")
