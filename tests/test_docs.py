@@ -41,10 +41,11 @@ PRINTED = {
     "02_switched_sac": "save/load round trip: True",
     "03_trajectory_dimension": "same curve: True",
     "04_reachable_mesh_mfpt": "hopper record: notebooks/data/ch5/hopper.json",
+    "05_analytic_policy_gradients": "Ch. 7 record: notebooks/data/ch7/table71.json",
 }
 # Figures (matplotlib PNGs) each notebook shows at least.
 MIN_FIGURES = {"01_hybrid_control": 3, "02_switched_sac": 2, "03_trajectory_dimension": 3,
-               "04_reachable_mesh_mfpt": 2}
+               "04_reachable_mesh_mfpt": 2, "05_analytic_policy_gradients": 3}
 
 
 def _config() -> dict:

@@ -38,6 +38,11 @@ EXPECTED_LINES = {
         "finest mesh inside the Monte Carlo 95 % interval: True",   # mesh MFPT vs the true map
         "hopper record: notebooks/data/ch5/hopper.json",            # the shipped Ch. 5 hopper record is read
     ],
+    "05_analytic_policy_gradients.ipynb": [
+        "balanced: True",                 # the shipped PAPG cart-pole swing-up + gate + LQR in Drake
+        "torch = Drake to 1e-9: True",    # the switched torch rollout it was trained on
+        "Ch. 7 record: notebooks/data/ch7/table71.json",
+    ],
     "03_trajectory_dimension.ipynb": [
         "same curve: True",            # vectorised box count equals the thesis' dict of tuples
         "MuJoCo record: notebooks/data/ch4/results.json",   # the shipped Table 4.1 / 4.4 record is read
