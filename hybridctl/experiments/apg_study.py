@@ -76,7 +76,7 @@ class StudySettings:
     lr_start: float = 1e-3            # thesis 1e-3 -> 1e-6 over all epochs;
     lr_end: float = 1e-5              # fewer epochs here, so the end is higher
     compile: bool = True
-    sac_steps: int = 500_000          # a quarter of the APG family's interactions (8 x 4 x 100 x 600 = 1.92e6): ~3 min here
+    sac_steps: int = 200_000          # a tenth of the APG family's interactions (8 x 4 x 100 x 600 = 1.92e6): ~2-4 min here
     eval_episodes: int = 16
     eval_seed: int = 12345
     extra: dict = field(default_factory=dict)   # more APGConfig fields for every APG run
