@@ -14,3 +14,12 @@ torch.set_num_threads(1)
 def rng():
     """A seeded numpy generator."""
     return np.random.default_rng(12345)
+
+
+@pytest.fixture
+def one_torch_thread():
+    """One torch thread for the test (as the learners' records were made), restored afterwards."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)

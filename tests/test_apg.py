@@ -14,12 +14,7 @@ from hybridctl.learn.apg import (APG, APGConfig, BatchedAdam, cem_update, lr_sch
 from hybridctl.learn.policies import Policy, PolicyPopulation, gru_width
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")   # tests/conftest.py
 
 
 def small(method="ce-apg", **overrides) -> APGConfig:
@@ -151,11 +146,16 @@ def test_apg_gradient_matches_finite_differences():
     assert abs(fd - analytic) <= 1e-6 * max(1.0, abs(analytic)), (fd, analytic)
 
 
-def test_truncation_cuts_the_graph():
+def gru_case(members: int, seed: int):
+    """(system, float64 GRU population, one start) on the cart-pole with the -theta^2 reward."""
     system = systems.load("cartpole", reward__kind="angle_squared")
-    pop = PolicyPopulation.gru(5, 1, system.action_limit, members=1, dtype=torch.float64, init_std=0.2,
-                               generator=torch.Generator().manual_seed(4))
-    x0 = torch.as_tensor(system.initial_state.nominal[None] + 0.1)
+    pop = PolicyPopulation.gru(5, 1, system.action_limit, members=members, dtype=torch.float64, init_std=0.2,
+                               generator=torch.Generator().manual_seed(seed))
+    return system, pop, torch.as_tensor(system.initial_state.nominal[None] + 0.1)
+
+
+def test_truncation_cuts_the_graph():
+    system, pop, x0 = gru_case(members=1, seed=4)
     full = member_gradients(pop, -population_returns(system, pop, x0, 10, 5)[0].mean(1))
     cut = member_gradients(pop, -population_returns(system, pop, x0, 10, 5, truncation=3)[0].mean(1))
     same = member_gradients(pop, -population_returns(system, pop, x0, 10, 5, truncation=10)[0].mean(1))
@@ -359,10 +359,7 @@ def test_compiled_step_gives_the_eager_gradients():
     """torch.compile of the per-step work (about 30 s to compile here): the same gradients."""
     from hybridctl.learn.apg import compiled_policy_step
 
-    system = systems.load("cartpole", reward__kind="angle_squared")
-    pop = PolicyPopulation.gru(5, 1, system.action_limit, members=3, dtype=torch.float64, init_std=0.2,
-                               generator=torch.Generator().manual_seed(5))
-    x0 = torch.as_tensor(system.initial_state.nominal[None] + 0.1)
+    system, pop, x0 = gru_case(members=3, seed=5)
     eager = member_gradients(pop, -population_returns(system, pop, x0, 6, 5)[0].mean(1))
     fused = member_gradients(pop, -population_returns(system, pop, x0, 6, 5, step=compiled_policy_step())[0].mean(1))
     assert torch.allclose(eager, fused, rtol=1e-9, atol=1e-9 * float(eager.abs().max()))

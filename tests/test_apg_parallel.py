@@ -18,12 +18,7 @@ TOL = dict(rtol=1e-9, atol=1e-9)
 COUNTERS = ("epoch", "iterations", "env_steps", "nan_grads", "large_grads")
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")   # tests/conftest.py
 
 
 def tiny(method: str, **overrides) -> APGConfig:

@@ -13,12 +13,7 @@ from hybridctl.experiments.apg_study import (StudySettings, held_out_starts, rol
 TINY = StudySettings(apg_iterations=2, epochs=2, sac_steps=200, eval_episodes=3, compile=False)
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")   # tests/conftest.py
 
 
 def test_rollout_metrics_score_a_held_pole_as_stabilised_and_a_hanging_one_as_not():

@@ -32,7 +32,7 @@ import torch
 from .. import io
 from ..learn.apg import APG, APGConfig
 from ..systems import System, load
-from ..systems.success import is_balanced
+from ..systems.success import stabilisation
 
 STUDY_METHODS = ("ce-apg", "papg", "cem", "apg", "shapg", "sac")
 """Learners of the study, in the thesis' Table 7.1 order, then our SAC."""
@@ -140,13 +140,8 @@ def rollout_metrics(system: System, act: Callable, x0: np.ndarray, horizon: int,
             total += system.reward(x)
             states.append(x)
     s = torch.stack(states, 1).numpy()
-    lookback = max(1, int(round(1.0 / period)))
+    balanced, upright = stabilisation(s, system, lookback=max(1, int(round(1.0 / period))))
     ok = np.isfinite(s).all(axis=(1, 2)) & np.isfinite(total.numpy())
-    balanced, upright = np.zeros(len(x0), bool), np.zeros(len(x0), bool)
-    if ok.any():
-        balanced[ok] = is_balanced(s[ok], system, lookback=lookback)
-        err = system.state_error(s[ok][:, -lookback:, :].copy())[..., system.angle_indices]
-        upright[ok] = (np.abs(err) < system.success.eps).all(axis=(1, 2))
     r = total.numpy()[ok]
     return {"mean_return": float(r.mean()) if r.size else -math.inf, "std_return": float(r.std()) if r.size else 0.0,
             "stabilised": float(balanced.mean()), "upright": float(upright.mean()), "diverged": int((~ok).sum()),

@@ -66,55 +66,48 @@ def run_demo(out: str | Path = "runs/demo", grid: int = DEMO_GRID, checkpoint: s
     report = report or _silent
     out = Path(out)
     start = time.perf_counter()
-    system = load(DEMO_SYSTEM)
-    controller = f"ssac:{checkpoint}"
-    duration = system.episode_duration
-    report("hybridctl demo: acrobot (thesis Ch. 3) in Drake: learned SSAC swing-up (TorchPolicy) + learned gate "
-           "(Gate, hysteresis) + Drake LQR")
-    report(f"  checkpoint: {checkpoint} (how it was trained: README.md there)")
-    summary = simulate_and_write(system, controller, out / "acrobot", x0=system.nudged_nominal_state(),
-                                 duration=duration, meshcat=meshcat, command=command)
-    report(f"  simulate {duration:g} s from hanging down: balanced={summary['balanced']} "
-           f"return={summary['return']:.1f} (thesis max 100), LQR from t={summary['first_balance_time']} s, "
-           f"{summary['realtime_factor']:.0f}x real time")
-    report(f"  open {out / 'acrobot' / 'replay.html'} in a browser to watch it")
-    result = balance_map(system, controller, grid=grid, progress=progress)
-    if command is not None:
-        result.meta["command"] = command
-    map_summary = result.save(out / "balance_map")
-    report(f"  balance map {grid}x{grid} of rest states, {result.duration:g} s each: "
-           f"{map_summary['balanced_fraction']:.1%} balanced (thesis: every start of a 41 x 41 grid)")
+    acrobot = _run_and_map(
+        load(DEMO_SYSTEM), f"ssac:{checkpoint}", checkpoint, out / "acrobot", out / "balance_map", grid,
+        "hybridctl demo: acrobot (thesis Ch. 3) in Drake: learned SSAC swing-up (TorchPolicy) + learned gate "
+        "(Gate, hysteresis) + Drake LQR",
+        lambda summary: f"return={summary['return']:.1f} (thesis max 100), ",
+        "of rest states", " (thesis: every start of a 41 x 41 grid)", meshcat, progress, command, report)
     cartpole = None
     if cartpole_checkpoint is not None:
-        cartpole = _cartpole_part(out, grid, cartpole_checkpoint, meshcat, progress, command, report)
+        from ..io import read_json
+        from ..learn.checkpoint import resolve_checkpoint_dir
+
+        method = read_json(resolve_checkpoint_dir(cartpole_checkpoint) / "config.json")["method"]
+        cartpole = _run_and_map(
+            load("cartpole"), f"{method}:{cartpole_checkpoint}", cartpole_checkpoint, out / "cartpole",
+            out / "cartpole_balance_map", grid,
+            f"cart-pole (thesis Ch. 7 + Ch. 3) in Drake: {method.upper()} swing-up (RecurrentTorchPolicy) + "
+            "cost-to-go gate (Gate, hysteresis) + Drake LQR",
+            lambda summary: "", "of starts (cart x, pole angle about hanging down)", "", meshcat, progress, command,
+            report)
     wall = time.perf_counter() - start
     report(f"demo done in {wall:.0f} s; outputs under {out}/")
-    return {"simulation": summary, "balance_map": map_summary, "cartpole": cartpole, "out": out,
-            "wall_time_s": wall}
+    return {**acrobot, "cartpole": cartpole, "out": out, "wall_time_s": wall}
 
 
-def _cartpole_part(out: Path, grid: int, checkpoint: str | Path, meshcat, progress: bool, command: str | None,
-                   report: Callable[[str], None]) -> dict:
-    """The cart-pole: the learned APG swing-up + cost-to-go gate + Drake LQR, one run and a balance map."""
-    from ..io import read_json
-    from ..learn.checkpoint import resolve_checkpoint_dir
-
-    system = load("cartpole")
-    method = read_json(resolve_checkpoint_dir(checkpoint) / "config.json")["method"]
-    controller = f"{method}:{checkpoint}"
+def _run_and_map(system, controller: str, checkpoint, run_dir: Path, map_dir: Path, grid: int, headline: str,
+                 return_text: Callable[[dict], str], starts: str, map_note: str, meshcat, progress: bool,
+                 command: str | None, report: Callable[[str], None]) -> dict:
+    """One part of the demo: simulate ``controller`` for the spec's episode from the nudged nominal state
+    into ``run_dir`` (trajectory, summary, plot, replay), then a ``grid`` x ``grid`` balance map into
+    ``map_dir``; reports each step. Returns ``{"simulation": summary, "balance_map": summary}``."""
     duration = system.episode_duration
-    report(f"cart-pole (thesis Ch. 7 + Ch. 3) in Drake: {method.upper()} swing-up (RecurrentTorchPolicy) + "
-           "cost-to-go gate (Gate, hysteresis) + Drake LQR")
+    report(headline)
     report(f"  checkpoint: {checkpoint} (how it was trained: README.md there)")
-    summary = simulate_and_write(system, controller, out / "cartpole", x0=system.nudged_nominal_state(),
+    summary = simulate_and_write(system, controller, run_dir, x0=system.nudged_nominal_state(),
                                  duration=duration, meshcat=meshcat, command=command)
-    report(f"  simulate {duration:g} s from hanging down: balanced={summary['balanced']} "
+    report(f"  simulate {duration:g} s from hanging down: balanced={summary['balanced']} {return_text(summary)}"
            f"LQR from t={summary['first_balance_time']} s, {summary['realtime_factor']:.0f}x real time")
-    report(f"  open {out / 'cartpole' / 'replay.html'} in a browser to watch it")
+    report(f"  open {run_dir / 'replay.html'} in a browser to watch it")
     result = balance_map(system, controller, grid=grid, progress=progress)
     if command is not None:
         result.meta["command"] = command
-    map_summary = result.save(out / "cartpole_balance_map")
-    report(f"  balance map {grid}x{grid} of starts (cart x, pole angle about hanging down), {result.duration:g} s "
-           f"each: {map_summary['balanced_fraction']:.1%} balanced")
+    map_summary = result.save(map_dir)
+    report(f"  balance map {grid}x{grid} {starts}, {result.duration:g} s each: "
+           f"{map_summary['balanced_fraction']:.1%} balanced{map_note}")
     return {"simulation": summary, "balance_map": map_summary}

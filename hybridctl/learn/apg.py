@@ -78,7 +78,7 @@ from .. import systems as systems_mod
 from ..parallel import BACKENDS, cached_env, make_backend
 from ..systems import System, known_systems
 from ..systems import control
-from ..systems.success import is_balanced
+from ..systems.success import stabilisation
 from . import checkpoint as ckpt
 from .config_check import check_types
 from .policies import KINDS as POLICY_KINDS
@@ -867,16 +867,8 @@ class APG(Learner):
                                                           self.config.observation, keep_states=True,
                                                           takeover=self.takeover)
         r = returns[0].double().numpy()
-        lookback = max(1, int(round(1.0 / self.period)))
         s = states[0].double().numpy()
-        balanced = np.zeros(n, dtype=bool)
-        ok = np.isfinite(s).all(axis=(1, 2))
-        if ok.any():
-            balanced[ok] = is_balanced(s[ok], self.system, lookback=lookback)
-        upright = np.zeros(n, dtype=bool)
-        if ok.any():   # the angles alone (a cart may sit anywhere): every angle error below eps for the last second
-            err = self.system.state_error(s[ok][:, -lookback:, :].copy())[..., self.system.angle_indices]
-            upright[ok] = (np.abs(err) < self.system.success.eps).all(axis=(1, 2))
+        balanced, upright = stabilisation(s, self.system, lookback=max(1, int(round(1.0 / self.period))))
         out = EvalResult.from_returns(r[np.isfinite(r)], success_rate=float(balanced.mean()),
                                       upright_rate=float(upright.mean()),
                                       first={"episodes": n, "seed": seed},

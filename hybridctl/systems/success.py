@@ -10,7 +10,7 @@ import torch
 if TYPE_CHECKING:  # pragma: no cover
     from . import System
 
-__all__ = ["decision_indices", "is_balanced", "episode_return"]
+__all__ = ["decision_indices", "is_balanced", "stabilisation", "episode_return"]
 
 
 def decision_indices(n_samples: int, dt: float, decision_period: float) -> np.ndarray:
@@ -45,6 +45,24 @@ def is_balanced(states, system: "System", eps: float | None = None, lookback: in
         close = np.linalg.norm(system.state_error(tail.copy()), axis=-1) < eps
     result = close.all(axis=-1)
     return bool(result) if states.ndim == 2 else result
+
+
+def stabilisation(states, system: "System", lookback: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per episode of ``states`` (B, T, n): (stabilised, upright), bool arrays (B,).
+
+    ``stabilised``: :func:`is_balanced` over the last ``lookback`` states (every coordinate, a
+    cart's position and the velocities included). ``upright``: every angle error alone below the
+    spec's success eps over those states (the pole held up, the cart anywhere). An episode with a
+    non-finite state is neither.
+    """
+    states = np.asarray(states, dtype=float)
+    ok = np.isfinite(states).all(axis=(1, 2))
+    stabilised, upright = np.zeros(len(states), dtype=bool), np.zeros(len(states), dtype=bool)
+    if ok.any():
+        stabilised[ok] = is_balanced(states[ok], system, lookback=lookback)
+        err = system.state_error(states[ok][:, -lookback:, :].copy())[..., system.angle_indices]
+        upright[ok] = (np.abs(err) < system.success.eps).all(axis=(1, 2))
+    return stabilised, upright
 
 
 def episode_return(states, system: "System") -> float:
