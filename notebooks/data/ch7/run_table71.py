@@ -4,8 +4,9 @@
     python notebooks/data/ch7/run_table71.py collect                           # -> table71.json
 
 Runs go to runs/ch7/table71/SYSTEM/METHOD-sSEED/record.json; a finished run is skipped, so an
-interrupted study continues. ``collect`` gathers every record into notebooks/data/ch7/table71.json
-with the per-(system, method) summary.
+interrupted study continues. ``collect`` merges every record into notebooks/data/ch7/table71.json
+(keeping the runs already recorded there) with the per-(system, method) summary. Not yet run: the
+double cart-pole except CE-APG seed 0 (``run double_cartpole``; ~25 min a run on this machine).
 """
 
 import argparse
@@ -34,7 +35,12 @@ def main() -> None:
         run_study(OUT, systems=args.systems, methods=args.methods, seeds=args.seeds, settings=StudySettings(),
                   command=command)
     else:
-        records = [io.read_json(p) for p in sorted(OUT.glob("*/*/record.json"))]
+        # the committed record's runs, replaced by any run folder here (runs/ is not committed: a fresh
+        # clone keeps the recorded runs and adds what it ran)
+        key = lambda r: (r["system"], r["method"], r["seed"])   # noqa: E731
+        merged = {key(r): r for r in (io.read_json(RECORD)["runs"] if RECORD.exists() else [])}
+        merged.update({key(r): r for r in (io.read_json(p) for p in sorted(OUT.glob("*/*/record.json")))})
+        records = list(merged.values())
         systems = sorted({r["system"] for r in records})
         io.write_json(RECORD, {"settings": StudySettings().__dict__, "summary": summarize(records),
                                "zero_policy": {name: zero_policy_baseline(name) for name in systems},
