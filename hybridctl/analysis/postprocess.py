@@ -33,7 +33,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from .mesh import mesh_dimension
+from .mesh import INITIAL_BOX_SIZE, SCALE_FACTOR, mesh_dimension
 from .variation import variation_dimension
 
 KINDS = ("identity", "mesh-lower", "mesh-upper", "mesh-mean", "madogram", "variogram")
@@ -50,6 +50,10 @@ class PostProcessor:
     (eq. 4.4), "multiply" (eq. 6.2) or "auto" (divide a return >= 0, multiply a negative one).
     ``mean`` / ``std``: normalisation for the mesh kinds (default: the trajectory's own; the
     thesis used the policy's running statistics). ``legacy``: the author's variation code.
+    ``scale_factor`` / ``initial_box``: the mesh's f and d0 (Ch. 4: 1.5 and 0.01; the Ch. 6
+    author's code: 1.2 and 1). ``clip_low``: the lower clip of a mesh dimension (Ch. 4: 1;
+    the Ch. 6 code: 0). A dimension of 0 cannot divide a return: the divide form then uses
+    the worst value, so that standing still is never rewarded without bound.
     """
 
     kind: str = "identity"
@@ -59,6 +63,9 @@ class PostProcessor:
     mean: tuple | None = None
     std: tuple | None = None
     legacy: bool = False
+    scale_factor: float = SCALE_FACTOR
+    initial_box: float = INITIAL_BOX_SIZE
+    clip_low: float = 1.0
 
     def __post_init__(self):
         if self.kind not in KINDS:
@@ -69,6 +76,13 @@ class PostProcessor:
             raise ValueError(f"transient_steps must be an integer >= 0, got {self.transient_steps!r}")
         if not (isinstance(self.min_points, (int, np.integer)) and self.min_points >= 3):
             raise ValueError(f"min_points must be an integer >= 3, got {self.min_points!r}")
+        if not (isinstance(self.scale_factor, (int, float)) and np.isfinite(self.scale_factor)
+                and self.scale_factor > 1):
+            raise ValueError(f"scale_factor must be a finite number > 1, got {self.scale_factor!r}")
+        if not (isinstance(self.initial_box, (int, float)) and np.isfinite(self.initial_box) and self.initial_box > 0):
+            raise ValueError(f"initial_box must be a finite number > 0, got {self.initial_box!r}")
+        if not (isinstance(self.clip_low, (int, float)) and 0 <= self.clip_low <= 1):
+            raise ValueError(f"clip_low must be in [0, 1], got {self.clip_low!r}")
 
     def dimension(self, states) -> tuple[float, dict]:
         """(D, info) for one episode's states, shape (n_steps, n_states). D is finite and >= 1."""
@@ -87,9 +101,9 @@ class PostProcessor:
                       f"{self.transient_steps} (need {self.min_points}); worst value {worst:g} used")
             return worst, {"dimension": worst, "raw_dimension": None, "reason": reason}
         if mesh:
-            md = mesh_dimension(tail, mean=self.mean, std=self.std)
+            md = mesh_dimension(tail, f=self.scale_factor, d0=self.initial_box, mean=self.mean, std=self.std)
             raw = {"mesh-lower": md.lower, "mesh-upper": md.upper, "mesh-mean": (md.lower + md.upper) / 2}[self.kind]
-            value = float(np.clip(raw, 1.0, worst))
+            value = float(np.clip(raw, self.clip_low, worst))
             reason = md.note
         else:
             raw = variation_dimension(tail, 1.0 if self.kind == "madogram" else 2.0, legacy=self.legacy)
@@ -103,6 +117,11 @@ class PostProcessor:
             raise ValueError(f"episode_return must be a finite number, got {episode_return!r}")
         dim, info = self.dimension(states)
         form = self.form if self.form != "auto" else ("divide" if episode_return >= 0 else "multiply")
+        if form == "divide" and dim <= 0:  # clip_low 0 and a constant trajectory: no division by zero
+            worst = np.asarray(states).shape[1] / 2 if self.kind.startswith("mesh") else 2.0
+            dim = worst
+            info.update(dimension=worst, reason=(info["reason"] + "; " if info["reason"] else "")
+                        + f"dimension 0 cannot divide a return: worst value {worst:g} used")
         info["form"] = form
         info["raw_return"] = float(episode_return)
         return (episode_return / dim if form == "divide" else episode_return * dim), info

@@ -1,0 +1,198 @@
+"""Fine-tuning by direct policy search (thesis Ch. 6, Alg. 8): the update, seeds, backends, resume,
+the dimension reward, our own checkpoints as sources, the CLI and bad input."""
+
+import copy
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from hybridctl.analysis.postprocess import PostProcessor
+from hybridctl.cli import main
+from hybridctl.envs.toy import PointReach, point_reach
+from hybridctl.learn.checkpoint import CheckpointError
+from hybridctl.learn.finetune import FineTune, FineTuneConfig, TunablePolicy, parse_source, wilson_interval
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+SSAC = "ssac:models/policies/ssac-acrobot"
+
+
+def pd_module(seed=0):
+    """A small tanh MLP for the 4-D point (actions in [-1, 1])."""
+    torch.manual_seed(seed)
+    return torch.nn.Sequential(torch.nn.Linear(4, 8), torch.nn.Tanh(), torch.nn.Linear(8, 2), torch.nn.Tanh())
+
+
+def tuner(**overrides):
+    cfg = dict(updates=3, n_directions=4, backend="serial", eval_episodes=4, chunk_size=3)
+    cfg.update(overrides)
+    return FineTune(point_reach, pd_module(), FineTuneConfig(**cfg))
+
+
+def episode_return(module, seed):
+    """An independent rollout: one PointReach episode, deterministic actions, summed rewards."""
+    env = PointReach()
+    obs, _ = env.reset(seed=seed)
+    total, done, steps = 0.0, False, 0
+    while not done:
+        steps += 1
+        with torch.no_grad():
+            a = module(torch.as_tensor(obs, dtype=torch.float32)).numpy()
+        obs, r, term, trunc, _ = env.step(a)
+        total += r
+        done = term or trunc
+    return total, steps
+
+
+def test_one_update_is_algorithm_8_with_the_authors_step():
+    t = tuner(updates=1)
+    theta0 = t.theta.copy()
+    directions, seeds = t._update_draws(0)
+    alpha, sigma = t.config.schedule(0)
+    returns, lengths = [], 0
+    for d, s in zip(directions, seeds):
+        pair = []
+        for sign in (1.0, -1.0):
+            m = copy.deepcopy(t.tunable.module)
+            torch.nn.utils.vector_to_parameters(torch.as_tensor(theta0 + sign * sigma * d, dtype=torch.float32),
+                                                m.parameters())
+            total, steps = episode_return(m, s)
+            pair.append(total)
+            lengths += steps
+        returns.append(pair)
+    r = np.array(returns)
+    expected = theta0 + alpha / (4 * r.std() + 1e-6) * ((r[:, 0] - r[:, 1]) @ directions)
+    t.learn(progress=False)
+    np.testing.assert_allclose(t.theta, expected, rtol=1e-5, atol=1e-6)
+    assert t.env_steps == lengths and t.update == 1
+
+
+def test_schedules_are_linear_from_the_thesis_values():
+    cfg = FineTuneConfig()
+    assert cfg.schedule(0) == pytest.approx((0.02, 0.025))
+    assert cfg.schedule(199) == pytest.approx((0.002, 0.0025))
+    assert cfg.schedule(99) == pytest.approx((0.02 - 0.018 * 99 / 199, 0.025 - 0.0225 * 99 / 199))
+    assert (cfg.updates, cfg.n_directions, cfg.select, cfg.eval_episodes) == (200, 64, "action", 100)
+
+
+def test_same_seed_same_result_on_serial_and_processes_and_another_seed_differs():
+    a = tuner().learn(progress=False)
+    b = tuner(backend="processes", workers=2).learn(progress=False)
+    c = tuner(seed=1).learn(progress=False)
+    np.testing.assert_array_equal(a.theta, b.theta)
+    assert not np.array_equal(a.theta, c.theta)
+
+
+def test_resume_continues_exactly(tmp_path):
+    whole = tuner(updates=4).learn(progress=False)
+    part = tuner(updates=4, checkpoint_every=1)
+    part.learn(updates=2, log_dir=tmp_path, progress=False)
+    resumed = tuner(updates=4).learn(log_dir=tmp_path, resume=True, progress=False)
+    np.testing.assert_array_equal(resumed.theta, whole.theta)
+    loaded = FineTune.load(tmp_path / "final", env=point_reach, policy=pd_module())
+    np.testing.assert_array_equal(loaded.theta, whole.theta)
+    np.testing.assert_allclose(loaded.predict(np.ones(4)), whole.predict(np.ones(4)))
+
+
+def test_fine_tuning_improves_a_poor_policy_and_evaluate_reports_failures():
+    t = tuner(updates=15, n_directions=8)
+    before = t.evaluate(20, theta=t.theta0)
+    t.learn(progress=False)
+    after = t.evaluate(20)
+    assert after["mean_return"] > before["mean_return"]
+    assert 0.0 <= after["failure_rate"] <= 1.0
+    lo, hi = after["failure_interval"]
+    assert lo <= after["failure_rate"] <= hi
+
+
+def test_selection_last_perturbs_only_the_last_layer():
+    t = tuner(select="last", updates=2)
+    assert t.names == ["2.weight", "2.bias"] and t.n_params == 18
+    first = t.tunable.module[0].weight.detach().clone()
+    t.learn(progress=False)
+    t._write_theta()
+    assert torch.equal(t.tunable.module[0].weight, first)
+
+
+def test_dimension_reward_settings_and_too_short_episodes():
+    author = FineTuneConfig(reward="mesh-mean").postprocessor(4, normalised=True)
+    assert (author.scale_factor, author.initial_box, author.transient_steps, author.clip_low) == (1.2, 1.0, 0, 0.0)
+    assert author.mean == (0.0,) * 4 and author.std == (1.0,) * 4
+    ch4 = FineTuneConfig(reward="mesh-mean", dimension_settings="ch4").postprocessor(4, normalised=True)
+    assert (ch4.scale_factor, ch4.initial_box, ch4.transient_steps, ch4.clip_low) == (1.5, 0.01, 200, 1.0)
+    short = np.random.default_rng(0).normal(size=(5, 4))
+    value, info = author(short, 10.0)
+    assert value == pytest.approx(10.0 / 2.0) and "too short" in info["reason"]
+    value, info = author(short, -10.0)
+    assert value == pytest.approx(-20.0) and np.isfinite(value)
+    constant = np.zeros((50, 4))   # dimension 0: never a division by zero
+    value, info = PostProcessor("mesh-mean", transient_steps=0, clip_low=0.0)(constant, 5.0)
+    assert np.isfinite(value) and value == pytest.approx(2.5)
+
+
+def test_dimension_reward_changes_training_returns():
+    t = tuner(reward="mesh-mean", updates=1)
+    t.learn(progress=False)
+    row = t.history[-1]
+    assert row["mean_return"] != row["mean_raw_return"] and 0 <= row["mean_dimension"] <= 2
+
+
+def test_ssac_source_fine_tunes_the_swing_up_inside_the_switched_controller():
+    t = FineTune("acrobot", SSAC, updates=1, n_directions=2, backend="serial")
+    before = t.evaluate(8, theta=t.theta0)
+    assert before["success_rate"] == 1.0 and before["mean_return"] > 85
+    plain = FineTune("acrobot", SSAC.replace("ssac:", "sac:"), updates=1, n_directions=2, backend="serial")
+    assert plain.evaluate(8)["success_rate"] < 1.0   # the swing-up alone does not balance
+    t.learn(progress=False)
+    assert t.update == 1 and t.env_steps == 4 * 50
+
+
+def test_wilson_interval():
+    lo, hi = wilson_interval(0, 300)
+    assert lo == pytest.approx(0.0, abs=1e-12) and hi == pytest.approx(0.01264, abs=1e-4)
+    lo, hi = wilson_interval(30, 100)
+    assert lo == pytest.approx(0.2189, abs=1e-3) and hi == pytest.approx(0.3958, abs=1e-3)
+
+
+@pytest.mark.parametrize("source, message", [
+    ("foo", "KIND:PATH"), ("pkl:x", "KIND:PATH"), ("sb3:", "KIND:PATH")])
+def test_bad_sources_are_named(source, message):
+    with pytest.raises(ValueError, match=message):
+        parse_source(source)
+
+
+def test_bad_config_values_name_the_field():
+    with pytest.raises(ValueError, match="select"):
+        FineTuneConfig(select="value").validate()
+    with pytest.raises(ValueError, match="n_directions"):
+        FineTuneConfig(n_directions=0).validate()
+    with pytest.raises(ValueError, match="env must be one of"):
+        FineTune("Pendulum-v1", SSAC)
+
+
+def test_cli_finetune_reports_before_and_after_and_resumes(tmp_path, capsys):
+    out = tmp_path / "ft"
+    args = ["finetune", "acrobot", "--policy", SSAC, "--updates", "2", "--directions", "2", "--eval-episodes", "4",
+            "--backend", "serial", "--out", str(out), "--quiet"]
+    assert main(args) == 0
+    text = capsys.readouterr().out
+    assert "before return" in text and "after  return" in text and "success 100.0 %" in text
+    report = json.loads((out / "report.json").read_text())
+    assert report["updates"] == 2 and report["env_steps"] == 2 * 2 * 2 * 50
+    assert (out / "finetune.png").stat().st_size > 0 and (out / "final" / "model.pt").exists()
+    assert main([*args[:5], "3", *args[6:], "--resume"]) == 0
+    assert json.loads((out / "report.json").read_text())["updates"] == 3
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["finetune", "acrobot", "--policy", "nope"], "KIND:PATH"),
+    (["finetune", "Pendulum-v1", "--policy", SSAC], "env must be one of"),
+    (["finetune", "acrobot", "--policy", "ssac:/no/such/dir"], "/no/such/dir"),
+])
+def test_cli_bad_input_exits_2_without_traceback(argv, message, capsys, tmp_path):
+    with pytest.raises(SystemExit) as exc:
+        main([*argv, "--out", str(tmp_path / "x"), "--quiet"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
