@@ -115,7 +115,7 @@ def test_module_imports_and_reads_zips_without_sb3(zoo):
     path = zoo("sac")[0]
     code = ("import sys\n"
             "for m in ('stable_baselines3', 'sb3_contrib', 'cloudpickle'): sys.modules[m] = None\n"
-            "from hybridctl.learn.sb3 import load_sb3\n"
+            "from hybridctl.learn import load_sb3\n"
             f"a = load_sb3({str(path)!r})\n"
             "print(a.algo, a.predict([[1.0, 0.0, 0.0]])[0].shape)\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=60,

@@ -410,9 +410,16 @@ def _box_from_json(data: dict, field: str, source: str) -> gym.spaces.Box:
     return gym.spaces.Box(low=low, high=high, shape=shape, dtype=dtype)
 
 
+def _policy_module(data: dict) -> str | None:
+    """The plain ``__module__`` text beside the pickled ``policy_class`` (e.g. 'stable_baselines3.sac.policies')."""
+    entry = data.get("policy_class")
+    module = entry.get("__module__") if isinstance(entry, dict) else None
+    return module if isinstance(module, str) else None
+
+
 def _detect_algo(data: dict, state: dict[str, torch.Tensor]) -> tuple[str | None, str]:
     """The algorithm from ``policy_class.__module__`` and algorithm fields, else from state-dict keys."""
-    module = _plain(data.get("policy_class", {})).get("__module__") if isinstance(data.get("policy_class"), dict) else None
+    module = _policy_module(data)
     ddpg_like = data.get("policy_delay") == 1 and data.get("target_noise_clip") == 0.0
     if isinstance(module, str):
         if module.startswith("sb3_contrib.tqc"):
@@ -597,7 +604,7 @@ def load_sb3(path: str | Path, normalizer: str | Path | Normalizer | None = None
         raise CheckpointError(f"the normalisation statistics have shape {norm.shape} but {path} observes "
                               f"{observation_space.shape}")
     meta = {"algo": algo, "algo_from": how, "sb3_version": version,
-            "policy_module": _plain(data.get("policy_class", {})).get("__module__") if isinstance(data.get("policy_class"), dict) else None,
+            "policy_module": _policy_module(data),
             "policy_kwargs": policy_kwargs, "activation": activation, "use_sde": data.get("use_sde"),
             "squash_output": squash, "num_timesteps": data.get("num_timesteps"),
             "net_arch": policy.net_arch,
