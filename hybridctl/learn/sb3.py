@@ -264,8 +264,10 @@ class SB3Policy(nn.Module):
         if self.family == "actor_critic":
             self.squash_output = bool(squash_output)
             self.mlp_extractor = nn.Module()
-            self.mlp_extractor.policy_net, pi_dim = _mlp(state, "mlp_extractor.policy_net", obs_dim, act, ACTIVATIONS[act], source)
-            self.mlp_extractor.value_net, vf_dim = _mlp(state, "mlp_extractor.value_net", obs_dim, act, ACTIVATIONS[act], source)
+            self.mlp_extractor.policy_net, pi_dim = _mlp(state, "mlp_extractor.policy_net", obs_dim, act,
+                                                         ACTIVATIONS[act], source)
+            self.mlp_extractor.value_net, vf_dim = _mlp(state, "mlp_extractor.value_net", obs_dim, act,
+                                                         ACTIVATIONS[act], source)
             self.action_net = _linear(state, "action_net", pi_dim, source)
             self.value_net = _linear(state, "value_net", vf_dim, source)
             log_std = state.get("log_std")
