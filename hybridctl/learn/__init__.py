@@ -1,6 +1,7 @@
 """Learning: SAC and Switched SAC on batched torch envs (thesis Ch. 3), gate learning, checkpoints;
 ARS with dimension post-processing and parallel rollouts, failure rates under disturbances (Ch. 4);
-analytic policy gradients through the torch dynamics: APG, PAPG, CEM, CE-APG with GRU policies (Ch. 7).
+analytic policy gradients through the torch dynamics: APG, PAPG, CEM, CE-APG with GRU policies (Ch. 7);
+Stable-Baselines3 checkpoints read without unpickling, for fine-tuning their weights (Ch. 6, :mod:`.sb3`).
 Every learner stands on the training skeleton of :mod:`.run` (run log, checkpoints, resume,
 callbacks, NaN guard, evaluation results).
 
@@ -20,6 +21,7 @@ from .replay import EpisodeStaging, ReplayBuffer, sample_mixed
 from .run import Callback, CallbackList, Checkpointer, EvalResult, Learner, RunLog, Saved, check_finite
 from .sac import SAC, SACConfig
 from .robustness import failure_rates
+from .sb3 import Normalizer, SB3Agent, SB3Policy, load_sb3
 from ..parallel import ProcessBackend, RayBackend, SerialBackend, make_backend
 from .ssac import SSAC, GateDataset, SSACConfig
 
@@ -28,7 +30,8 @@ __all__ = ["APG", "APGConfig", "Policy", "PolicyPopulation", "SAC", "SACConfig",
            "CheckpointError", "resolve_checkpoint_dir", "write_checkpoint_dir", "GateConfig", "GateNet",
            "fit_gate", "gate_metrics", "warm_start_gate", "load_controller", "ARS", "ARSConfig", "failure_rates",
            "make_backend", "SerialBackend", "ProcessBackend", "RayBackend",
-           "Learner", "Saved", "Checkpointer", "RunLog", "Callback", "CallbackList", "EvalResult", "check_finite"]
+           "Learner", "Saved", "Checkpointer", "RunLog", "Callback", "CallbackList", "EvalResult", "check_finite",
+           "load_sb3", "SB3Agent", "SB3Policy", "Normalizer"]
 
 
 def __getattr__(name):

@@ -1,0 +1,614 @@
+"""Stable-Baselines3 checkpoints read WITHOUT unpickling (thesis Ch. 6: random search over SB3 weights).
+
+An SB3 2.x ``model.save("agent.zip")`` writes a zip holding::
+
+    data                       JSON; entries that JSON cannot hold carry ":serialized:" (base64
+                               cloudpickle, NEVER decoded here) next to plain-text fields
+                               (``observation_space``: ``_shape``, ``dtype``, ``low``, ``high``;
+                               ``policy_class``: ``__module__``; ``policy_kwargs``: the repr of
+                               each entry, e.g. ``activation_fn``)
+    policy.pth                 the policy state dict (read with ``torch.load(weights_only=True)``)
+    *.optimizer.pth, pytorch_variables.pth, _stable_baselines3_version, system_info.txt
+
+:func:`load_sb3` reads only the plain JSON/text fields and the state dict and rebuilds the
+deterministic (maximum-likelihood) action path of an ``MlpPolicy`` with Box spaces as
+:class:`SB3Policy`, a plain ``torch.nn.Module`` whose parameter names are the SB3 keys.
+Neither ``pickle`` nor ``cloudpickle`` is ever called on the zip, and this module imports
+without stable-baselines3 installed. :meth:`SB3Agent.save_zip` writes the zip back with the
+(perturbed) weights, so that SB3's own ``PPO.load`` etc. predicts the fine-tuned actions.
+
+``VecNormalize.save`` writes a pickle; observation statistics are read here from an ``.npz``
+(:class:`Normalizer`). A ``.pkl`` is unpickled only with ``trust=True``.
+
+>>> agent = load_sb3("runs/ppo-pendulum/model.zip")      # finds vecnormalize.npz beside it
+>>> action, _ = agent.predict(obs)                        # == model.predict(norm(obs), deterministic=True)
+>>> names = agent.policy.parameter_names("action")        # what the random search perturbs
+>>> agent.save_zip("runs/ppo-pendulum/finetuned.zip")     # PPO.load reads it
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import re
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+from torch import nn
+
+from .. import io as _io
+from .checkpoint import CheckpointError
+
+SB3_ALGORITHMS = ("ppo", "a2c", "sac", "td3", "ddpg", "tqc")
+"""The algorithms whose ``MlpPolicy`` :func:`load_sb3` rebuilds (``tqc`` is sb3-contrib's)."""
+
+SELECTIONS = ("action", "all", "last")
+"""The parameter selections of :meth:`SB3Policy.parameter_names`."""
+
+FAMILY = {"ppo": "actor_critic", "a2c": "actor_critic", "sac": "squashed", "tqc": "squashed",
+          "td3": "deterministic", "ddpg": "deterministic"}
+"""How each algorithm's policy acts: ActorCriticPolicy (PPO, A2C), squashed Gaussian actor
+(SAC, TQC), deterministic tanh actor (TD3, DDPG)."""
+
+DEFAULT_ACTIVATION = {"ppo": "Tanh", "a2c": "Tanh", "sac": "ReLU", "tqc": "ReLU", "td3": "ReLU", "ddpg": "ReLU"}
+"""SB3's default ``activation_fn`` per algorithm, used when ``policy_kwargs`` does not name one."""
+
+ACTIVATIONS = {"Tanh": nn.Tanh, "ReLU": nn.ReLU, "ELU": nn.ELU, "LeakyReLU": nn.LeakyReLU, "GELU": nn.GELU,
+               "SiLU": nn.SiLU, "Sigmoid": nn.Sigmoid, "Softplus": nn.Softplus, "Mish": nn.Mish}
+"""Activation classes accepted by name (the text SB3 writes: ``<class 'torch.nn...ReLU'>``), default arguments."""
+
+DATA_ENTRY = "data"
+POLICY_ENTRY = "policy.pth"
+VERSION_ENTRY = "_stable_baselines3_version"
+NORMALIZER_NPZ = "vecnormalize.npz"
+NORMALIZER_PKL = "vecnormalize.pkl"
+NPZ_KEYS = ("mean", "var", "count", "clip_obs", "epsilon")
+
+_TRUST_HINT = ("it is a pickle, which can run any code when loaded: pass trust=True (CLI --trust) if you made it, "
+               "or convert it once to .npz with Normalizer.from_pkl(path, trust=True).save_npz('vecnormalize.npz')")
+
+
+# --- observation normalisation ----------------------------------------------------------------------
+
+class Normalizer:
+    """Frozen ``VecNormalize`` observation statistics: ``clip((obs - mean) / sqrt(var + eps), -clip, clip)``.
+
+    Calling it equals SB3's ``VecNormalize.normalize_obs`` (computed in float64, returned as
+    float32; with ``norm_obs=False`` the observation is returned unchanged).
+    """
+
+    def __init__(self, mean, var, count: float, clip_obs: float, epsilon: float, norm_obs: bool = True,
+                 source: str = "statistics"):
+        mean = np.asarray(mean, dtype=np.float64)
+        var = np.asarray(var, dtype=np.float64)
+        if mean.shape != var.shape:
+            raise CheckpointError(f"{source}: 'mean' has shape {mean.shape} but 'var' has shape {var.shape}")
+        if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(var)) and np.all(var >= 0)):
+            raise CheckpointError(f"{source}: 'mean' and 'var' must be finite and 'var' >= 0")
+        scalars = {"count": count, "clip_obs": clip_obs, "epsilon": epsilon}
+        for key, value in scalars.items():
+            value = np.asarray(value)
+            if value.size != 1 or not np.isfinite(value).all():
+                raise CheckpointError(f"{source}: {key!r} must be one finite number, got {value!r}")
+            scalars[key] = float(value.reshape(()))
+        self.mean, self.var = mean, var
+        self.count, self.clip_obs, self.epsilon = scalars["count"], scalars["clip_obs"], scalars["epsilon"]
+        self.norm_obs = bool(np.asarray(norm_obs).reshape(()))
+        self.mean.flags.writeable = False
+        self.var.flags.writeable = False
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        """The observation shape the statistics are for."""
+        return self.mean.shape
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        """``obs`` (one observation or a batch) normalised exactly as ``VecNormalize.normalize_obs``."""
+        if not self.norm_obs:
+            return np.array(obs, copy=True)
+        obs = np.asarray(obs)
+        return np.clip((obs - self.mean) / np.sqrt(self.var + self.epsilon), -self.clip_obs, self.clip_obs
+                       ).astype(np.float32)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The statistics as plain JSON values (lists and numbers)."""
+        return {"mean": self.mean.tolist(), "var": self.var.tolist(), "count": self.count,
+                "clip_obs": self.clip_obs, "epsilon": self.epsilon, "norm_obs": self.norm_obs}
+
+    def save_npz(self, path: str | Path) -> Path:
+        """Write the statistics to ``path`` (.npz, no pickles) atomically: a temporary file, then a rename."""
+        arrays = {"mean": self.mean, "var": self.var, "count": np.float64(self.count),
+                  "clip_obs": np.float64(self.clip_obs), "epsilon": np.float64(self.epsilon),
+                  "norm_obs": np.bool_(self.norm_obs)}
+        return _io.atomic_write(path, lambda f: np.savez(f, **arrays))
+
+    @classmethod
+    def from_npz(cls, path: str | Path) -> "Normalizer":
+        """Read statistics from an ``.npz`` with keys mean, var, count, clip_obs, epsilon (optional norm_obs).
+
+        Raises :class:`CheckpointError` naming the file and the missing or damaged key.
+        """
+        path = Path(path)
+        if not path.is_file():
+            raise CheckpointError(f"{path}: no such normalisation file (an .npz with keys {', '.join(NPZ_KEYS)})")
+        try:
+            with np.load(path, allow_pickle=False) as npz:
+                arrays = {key: npz[key] for key in npz.files}
+        except Exception as exc:  # BadZipFile, ValueError (object arrays), OSError, EOFError
+            raise CheckpointError(f"{path} is not a readable .npz of normalisation statistics: {exc}") from exc
+        missing = [key for key in NPZ_KEYS if key not in arrays]
+        if missing:
+            raise CheckpointError(f"{path} has no key {missing[0]!r} (has {sorted(arrays)}; needs "
+                                  f"{', '.join(NPZ_KEYS)}, optional norm_obs)")
+        return cls(arrays["mean"], arrays["var"], arrays["count"], arrays["clip_obs"], arrays["epsilon"],
+                   arrays.get("norm_obs", True), source=str(path))
+
+    @classmethod
+    def from_vecnormalize(cls, vec_normalize) -> "Normalizer":
+        """The current observation statistics of a live SB3 ``VecNormalize`` (Box observations only)."""
+        rms = vec_normalize.obs_rms
+        if isinstance(rms, dict):
+            raise CheckpointError("VecNormalize with Dict observations is not supported (Box observations only)")
+        return cls(rms.mean, rms.var, rms.count, vec_normalize.clip_obs, vec_normalize.epsilon,
+                   vec_normalize.norm_obs, source=type(vec_normalize).__name__)
+
+    @classmethod
+    def from_pkl(cls, path: str | Path, trust: bool = False) -> "Normalizer":
+        """Statistics from a ``VecNormalize.save`` pickle: refused unless ``trust=True`` (it unpickles)."""
+        path = Path(path)
+        if not trust:
+            raise CheckpointError(f"{path} refused: {_TRUST_HINT}")
+        if not path.is_file():
+            raise CheckpointError(f"{path}: no such VecNormalize file")
+        import pickle  # trusted by the caller; needs stable-baselines3 installed (the pickle names its class)
+
+        with open(path, "rb") as f:
+            return cls.from_vecnormalize(pickle.load(f))
+
+
+# --- the policy --------------------------------------------------------------------------------------
+
+def _activation_name(text: str | None, algo: str, source: str) -> str:
+    """The activation class name in SB3's text ``<class 'torch.nn.modules.activation.ReLU'>`` (None: default)."""
+    if text is None:
+        return DEFAULT_ACTIVATION[algo]
+    match = re.search(r"([A-Za-z_][A-Za-z0-9_]*)'?>?\s*$", str(text))
+    name = match.group(1) if match else str(text)
+    if name not in ACTIVATIONS:
+        raise CheckpointError(f"{source}: policy_kwargs activation_fn {text!r} is not one of {sorted(ACTIVATIONS)}")
+    return name
+
+
+def _linear_indices(state: dict[str, torch.Tensor], prefix: str) -> list[int]:
+    """The Sequential indices ``i`` with a ``{prefix}.{i}.weight`` entry, sorted."""
+    pattern = re.compile(rf"^{re.escape(prefix)}\.(\d+)\.weight$")
+    return sorted(int(m.group(1)) for key in state if (m := pattern.match(key)))
+
+
+def _linear(state: dict[str, torch.Tensor], key: str, in_dim: int, source: str) -> nn.Linear:
+    """An ``nn.Linear`` shaped after ``{key}.weight`` / ``{key}.bias`` (its input must be ``in_dim``)."""
+    weight = state.get(f"{key}.weight")
+    if weight is None or weight.ndim != 2:
+        raise CheckpointError(f"{source}: no 2-d tensor {key}.weight")
+    if weight.shape[1] != in_dim:
+        raise CheckpointError(f"{source}: {key}.weight has shape {tuple(weight.shape)}; its input must be {in_dim}")
+    bias = state.get(f"{key}.bias")
+    if bias is not None and tuple(bias.shape) != (weight.shape[0],):
+        raise CheckpointError(f"{source}: {key}.bias has shape {tuple(bias.shape)}, not ({weight.shape[0]},)")
+    return nn.Linear(weight.shape[1], weight.shape[0], bias=bias is not None, dtype=weight.dtype)
+
+
+def _mlp(state, prefix: str, in_dim: int, activation: str, last, source: str) -> tuple[nn.Sequential, int]:
+    """SB3's ``create_mlp`` layout: Linear at 0, 2, 4, ... with the activation between; ``last`` after the final one."""
+    indices = _linear_indices(state, prefix)
+    if indices != list(range(0, 2 * len(indices), 2)):
+        raise CheckpointError(f"{source}: the Linear layers of {prefix} sit at {indices}, not 0, 2, 4, ...")
+    layers: list[nn.Module] = []
+    for k, i in enumerate(indices):
+        layer = _linear(state, f"{prefix}.{i}", in_dim, source)
+        in_dim = layer.out_features
+        layers.append(layer)
+        if k < len(indices) - 1:
+            layers.append(ACTIVATIONS[activation]())
+        elif last is not None:
+            layers.append(last())
+    return nn.Sequential(*layers), in_dim
+
+
+class SB3Policy(nn.Module):
+    """The deterministic action path of an SB3 ``MlpPolicy`` (Box spaces), rebuilt from its state dict.
+
+    ``forward(obs_normalized[..., obs_dim]) -> action[..., act_dim]`` in env units, as
+    ``model.predict(obs, deterministic=True)`` (the mode of the action distribution):
+
+    - PPO/A2C: ``action_net(mlp_extractor.policy_net(obs))`` (also with gSDE, whose ``log_std``
+      is a matrix), then clipped to [low, high]; with ``squash_output`` tanh and unscaled instead.
+    - SAC/TQC: ``tanh(actor.mu(actor.latent_pi(obs)))`` unscaled to [low, high] (gSDE: ``actor.mu``
+      ends in ``Hardtanh(-clip_mean, clip_mean)``, ``clip_mean`` from policy_kwargs, default 2).
+    - TD3/DDPG: ``actor.mu(obs)`` (ends in tanh) unscaled to [low, high].
+
+    The layer sizes (net_arch) come from the state-dict shapes. The activation is the one named
+    in ``policy_kwargs`` or else SB3's default: Tanh for PPO/A2C, ReLU for SAC/TQC/TD3/DDPG.
+
+    Parameters are named with their SB3 keys (``action_net.weight``, ``actor.mu.4.bias``) and keep the
+    checkpoint's dtype. The module holds the whole ActorCriticPolicy (PPO/A2C: value net and log_std
+    too), the whole SAC/TQC ``actor`` and the TD3/DDPG ``actor.mu``; the other tensors (critics,
+    targets) are kept aside unchanged for :meth:`sb3_state_dict`. It is plain Linear layers and
+    activations, so ``torch.func.functional_call`` and ``vmap`` work on it.
+    """
+
+    def __init__(self, state_dict: dict[str, torch.Tensor], algo: str, obs_dim: int, action_low, action_high,
+                 activation: str | None = None, squash_output: bool = False, clip_mean: float = 2.0,
+                 source: str = POLICY_ENTRY):
+        super().__init__()
+        if algo not in SB3_ALGORITHMS:
+            raise ValueError(f"algo {algo!r} is not one of {SB3_ALGORITHMS}")
+        self.algo, self.family = algo, FAMILY[algo]
+        self.activation = activation or DEFAULT_ACTIVATION[algo]
+        if self.activation not in ACTIVATIONS:
+            raise ValueError(f"activation {self.activation!r} is not one of {sorted(ACTIVATIONS)}")
+        self.obs_dim = int(obs_dim)
+        low = torch.as_tensor(np.asarray(action_low, dtype=np.float32).reshape(-1))
+        high = torch.as_tensor(np.asarray(action_high, dtype=np.float32).reshape(-1))
+        self.act_dim = low.numel()
+        self.register_buffer("action_low", low, persistent=False)
+        self.register_buffer("action_high", high, persistent=False)
+        self._original = {key: value.detach().clone() for key, value in state_dict.items()}
+        state = self._original
+        act = self.activation
+        if self.family == "actor_critic":
+            self.squash_output = bool(squash_output)
+            self.mlp_extractor = nn.Module()
+            self.mlp_extractor.policy_net, pi_dim = _mlp(state, "mlp_extractor.policy_net", obs_dim, act,
+                                                         ACTIVATIONS[act], source)
+            self.mlp_extractor.value_net, vf_dim = _mlp(state, "mlp_extractor.value_net", obs_dim, act,
+                                                         ACTIVATIONS[act], source)
+            self.action_net = _linear(state, "action_net", pi_dim, source)
+            self.value_net = _linear(state, "value_net", vf_dim, source)
+            log_std = state.get("log_std")
+            if log_std is None:
+                raise CheckpointError(f"{source}: no 'log_std' tensor")
+            self.log_std = nn.Parameter(torch.zeros_like(log_std))
+            self._last = "action_net."
+            own = ("mlp_extractor.", "action_net.", "value_net.", "log_std")
+        elif self.family == "squashed":
+            self.squash_output = True
+            self.actor = nn.Module()
+            self.actor.latent_pi, pi_dim = _mlp(state, "actor.latent_pi", obs_dim, act, ACTIVATIONS[act], source)
+            if "actor.mu.0.weight" in state:  # gSDE: mu = Sequential(Linear, Hardtanh(-clip_mean, clip_mean))
+                self.actor.mu = nn.Sequential(_linear(state, "actor.mu.0", pi_dim, source),
+                                              nn.Hardtanh(-clip_mean, clip_mean))
+                self._last = "actor.mu.0."
+            else:
+                self.actor.mu = _linear(state, "actor.mu", pi_dim, source)
+                self._last = "actor.mu."
+            if "actor.log_std.weight" in state:
+                self.actor.log_std = _linear(state, "actor.log_std", pi_dim, source)
+            elif "actor.log_std" in state:  # gSDE: a parameter matrix
+                self.actor.log_std = nn.Parameter(torch.zeros_like(state["actor.log_std"]))
+            else:
+                raise CheckpointError(f"{source}: no actor.log_std tensor")
+            own = ("actor.",)
+        else:
+            self.squash_output = True
+            self.actor = nn.Module()
+            self.actor.mu, _ = _mlp(state, "actor.mu", obs_dim, act, nn.Tanh, source)
+            last = _linear_indices(state, "actor.mu")
+            if not last:
+                raise CheckpointError(f"{source}: no actor.mu.<i>.weight tensors (a TD3/DDPG actor)")
+            self._last = f"actor.mu.{last[-1]}."
+            own = ("actor.",)
+        path_net = self.mlp_extractor.policy_net if self.family == "actor_critic" else (
+            self.actor.latent_pi if self.family == "squashed" else self.actor.mu[:-2])
+        self.net_arch = [m.out_features for m in path_net if isinstance(m, nn.Linear)]
+        mine = self.state_dict()
+        stray = [key for key in state if key.startswith(own) and key not in mine]
+        if stray:
+            raise CheckpointError(f"{source}: tensors {stray[:4]} do not fit an {algo} MlpPolicy")
+        try:
+            self.load_state_dict({key: state[key] for key in mine}, strict=True)
+        except (KeyError, RuntimeError) as exc:
+            raise CheckpointError(f"{source}: the state dict does not fit an {algo} MlpPolicy: {exc}") from exc
+        out = self.action_net.out_features if self.family == "actor_critic" else self._mean_layer().out_features
+        if out != self.act_dim:
+            raise CheckpointError(f"{source}: the policy outputs {out} actions but the action space has {self.act_dim}")
+
+    def _mean_layer(self) -> nn.Linear:
+        for name, module in self.named_modules():
+            if f"{name}." == self._last:
+                return module
+        raise AssertionError(self._last)
+
+    def _unscale(self, scaled: torch.Tensor) -> torch.Tensor:
+        # as SB3's BasePolicy.unscale_action: low + 0.5 * (a + 1) * (high - low)
+        return self.action_low + 0.5 * (scaled + 1.0) * (self.action_high - self.action_low)
+
+    def forward(self, obs_normalized: torch.Tensor) -> torch.Tensor:
+        """The deterministic action in env units for (normalised) observations ``[..., obs_dim]``."""
+        if self.family == "actor_critic":
+            mean = self.action_net(self.mlp_extractor.policy_net(obs_normalized))
+            if self.squash_output:
+                return self._unscale(torch.tanh(mean))
+            return torch.clamp(mean, self.action_low, self.action_high)
+        if self.family == "squashed":
+            return self._unscale(torch.tanh(self.actor.mu(self.actor.latent_pi(obs_normalized))))
+        return self._unscale(self.actor.mu(obs_normalized))
+
+    def parameter_names(self, select: str = "action") -> list[str]:
+        """The names (of ``named_parameters()``) a fine-tuner perturbs, for ``select`` in :data:`SELECTIONS`.
+
+        - ``"action"``: the deterministic action path: PPO/A2C ``mlp_extractor.policy_net.*`` and
+          ``action_net.*`` (not the value net nor log_std); SAC/TQC ``actor.latent_pi.*`` and
+          ``actor.mu.*`` (not ``actor.log_std``); TD3/DDPG ``actor.mu.*``.
+        - ``"all"`` (the thesis author's code): PPO/A2C every policy parameter (value net and
+          log_std too); SAC/TQC every ``actor.*`` parameter; TD3/DDPG ``actor.mu.*``.
+        - ``"last"``: only the last Linear layer of the action path (ablation).
+        """
+        names = [name for name, _ in self.named_parameters()]
+        if select == "all":
+            return names
+        if select == "last":
+            return [name for name in names if name.startswith(self._last)]
+        if select == "action":
+            keep = {"actor_critic": ("mlp_extractor.policy_net.", "action_net."),
+                    "squashed": ("actor.latent_pi.", "actor.mu."), "deterministic": ("actor.mu.",)}[self.family]
+            return [name for name in names if name.startswith(keep)]
+        raise ValueError(f"select {select!r} is not one of {SELECTIONS}")
+
+    def sb3_state_dict(self) -> dict[str, torch.Tensor]:
+        """The full original ``policy.pth`` dict (same keys, same order) with this module's current values."""
+        mine = self.state_dict()
+        return {key: (mine[key] if key in mine else value).detach().clone().contiguous()
+                for key, value in self._original.items()}
+
+
+# --- reading the zip ----------------------------------------------------------------------------------
+
+def _plain(entry: Any) -> Any:
+    """A ``data`` entry without its ":serialized:" / ":type:" fields (a plain value is returned as is)."""
+    if isinstance(entry, dict):
+        return {key: value for key, value in entry.items() if not key.startswith(":")}
+    return entry
+
+
+def _parse_array(text: Any, shape: tuple[int, ...], dtype: np.dtype, where: str) -> np.ndarray:
+    """A numpy ``str()`` of an array (``'[-1. -1. -8.]'``, nested for 2-d, ``inf``) parsed back."""
+    if isinstance(text, (int, float)):
+        return np.full(shape, text, dtype=dtype)
+    if not isinstance(text, str) or "..." in text:
+        raise CheckpointError(f"{where} is {text!r}: not a full array repr (summarised reprs cannot be read back)")
+    try:
+        values = np.array([float(token) for token in text.replace("[", " ").replace("]", " ").split()])
+    except ValueError as exc:
+        raise CheckpointError(f"{where} is not an array repr: {text!r}") from exc
+    if values.size == 1:
+        return np.full(shape, values[0], dtype=dtype)
+    if values.size != math.prod(shape):
+        raise CheckpointError(f"{where} has {values.size} values, the shape {shape} needs {math.prod(shape)}")
+    return values.reshape(shape).astype(dtype)
+
+
+def _box_from_json(data: dict, field: str, source: str) -> gym.spaces.Box:
+    """The gymnasium Box of ``data[field]`` rebuilt from its plain fields (_shape, dtype, low, high)."""
+    entry = data.get(field)
+    where = f"{source}: data[{field!r}]"
+    if not isinstance(entry, dict):
+        raise CheckpointError(f"{where} is missing or not an object")
+    kind = str(entry.get(":type:", ""))
+    if "spaces.box.Box" not in kind:
+        raise CheckpointError(f"{where} is a {kind or 'non-space'}; only Box spaces are supported")
+    try:
+        shape = tuple(int(n) for n in entry["_shape"])
+        dtype = np.dtype(entry.get("dtype", "float32"))
+        low = _parse_array(entry["low"], shape, dtype, f"{where}['low']")
+        high = _parse_array(entry["high"], shape, dtype, f"{where}['high']")
+    except (KeyError, TypeError) as exc:
+        raise CheckpointError(f"{where} lacks the plain field {exc} (needs _shape, dtype, low, high)") from exc
+    return gym.spaces.Box(low=low, high=high, shape=shape, dtype=dtype)
+
+
+def _policy_module(data: dict) -> str | None:
+    """The plain ``__module__`` text beside the pickled ``policy_class`` (e.g. 'stable_baselines3.sac.policies')."""
+    entry = data.get("policy_class")
+    module = entry.get("__module__") if isinstance(entry, dict) else None
+    return module if isinstance(module, str) else None
+
+
+def _detect_algo(data: dict, state: dict[str, torch.Tensor]) -> tuple[str | None, str]:
+    """The algorithm from ``policy_class.__module__`` and algorithm fields, else from state-dict keys."""
+    module = _policy_module(data)
+    ddpg_like = data.get("policy_delay") == 1 and data.get("target_noise_clip") == 0.0
+    if isinstance(module, str):
+        if module.startswith("sb3_contrib.tqc"):
+            return "tqc", f"policy_class.__module__ = {module!r}"
+        if ".sac." in module:
+            return "sac", f"policy_class.__module__ = {module!r}"
+        if ".td3." in module or ".ddpg." in module:
+            return ("ddpg" if ddpg_like else "td3"), f"policy_class.__module__ = {module!r}, policy_delay, target_noise_clip"
+        if module == "stable_baselines3.common.policies":
+            ppo = "clip_range" in data or "n_epochs" in data
+            return ("ppo" if ppo else "a2c"), f"policy_class.__module__ = {module!r}, clip_range/n_epochs"
+    if "action_net.weight" in state:
+        ppo = "clip_range" in data or "n_epochs" in data
+        return ("ppo" if ppo else "a2c"), "state-dict keys (action_net), clip_range/n_epochs"
+    if "actor.latent_pi.0.weight" in state or "actor.mu.weight" in state:
+        quantiles = state.get("critic.qf0.4.weight")
+        tqc = quantiles is not None and quantiles.shape[0] > 1
+        return ("tqc" if tqc else "sac"), "state-dict keys (actor.latent_pi, critic outputs)"
+    if "actor_target.mu.0.weight" in state:
+        return ("ddpg" if ddpg_like or "critic.qf1.0.weight" not in state else "td3"), "state-dict keys (actor_target)"
+    return None, "nothing recognised"
+
+
+class SB3Agent:
+    """An SB3 checkpoint read without unpickling: the policy module, the normaliser, the spaces.
+
+    Attributes: ``algo`` (one of :data:`SB3_ALGORITHMS`), ``policy`` (:class:`SB3Policy`),
+    ``normalizer`` (:class:`Normalizer` or None), ``observation_space`` / ``action_space``
+    (gymnasium Boxes rebuilt from the JSON's plain fields), ``meta`` (the plain JSON fields used),
+    ``path`` (the zip).
+
+    Box bounds are parsed from numpy's text of the arrays (numpy's print precision); :meth:`check_env`
+    compares bounds with a relative tolerance of 1e-5 for that reason.
+    """
+
+    def __init__(self, path: Path, algo: str, policy: SB3Policy, normalizer: Normalizer | None,
+                 observation_space: gym.spaces.Box, action_space: gym.spaces.Box, meta: dict, zip_bytes: bytes):
+        self.path, self.algo, self.policy, self.normalizer = path, algo, policy, normalizer
+        self.observation_space, self.action_space, self.meta = observation_space, action_space, meta
+        self._zip_bytes = zip_bytes
+
+    def predict(self, obs: np.ndarray, deterministic: bool = True) -> tuple[np.ndarray, None]:
+        """``(action, None)`` for raw env observations (one or a batch), like SB3's ``model.predict``.
+
+        The normaliser (if any) is applied first, so this equals
+        ``model.predict(vec_normalize.normalize_obs(obs), deterministic=True)``.
+        """
+        if not deterministic:
+            raise ValueError("SB3Agent.predict gives the deterministic (maximum-likelihood) action only: "
+                             "fine-tuning uses maximum-likelihood actions (pass deterministic=True)")
+        obs = np.asarray(obs)
+        shape = self.observation_space.shape
+        if obs.shape == shape:
+            single = True
+        elif obs.shape[1:] == shape:
+            single = False
+        else:
+            raise ValueError(f"observation shape {obs.shape} is neither {shape} nor (n, *{shape}) ({self.path})")
+        if self.normalizer is not None:
+            obs = self.normalizer(obs)
+        x = torch.as_tensor(np.asarray(obs, dtype=np.float32)).reshape(-1, self.policy.obs_dim)
+        with torch.no_grad():
+            action = self.policy(x).cpu().numpy().reshape((-1, *self.action_space.shape))
+        return (action[0] if single else action), None
+
+    def check_env(self, env) -> None:
+        """Raise ``ValueError`` naming both spaces when ``env``'s observation or action space is not the checkpoint's."""
+        for name, mine in (("observation", self.observation_space), ("action", self.action_space)):
+            theirs = getattr(env, f"{name}_space", None)
+            fits = (isinstance(theirs, gym.spaces.Box) and theirs.shape == mine.shape
+                    and np.allclose(theirs.low, mine.low, rtol=1e-5, atol=1e-7, equal_nan=True)
+                    and np.allclose(theirs.high, mine.high, rtol=1e-5, atol=1e-7, equal_nan=True))
+            if not fits:
+                raise ValueError(f"the env's {name} space {theirs!r} (low {getattr(theirs, 'low', None)}, high "
+                                 f"{getattr(theirs, 'high', None)}) differs from the checkpoint's {mine!r} (low "
+                                 f"{mine.low}, high {mine.high}) of {self.path}")
+
+    def save_zip(self, out_path: str | Path) -> Path:
+        """Write the original zip with ``policy.pth`` replaced by ``policy.sb3_state_dict()`` (atomically).
+
+        Every other entry is copied byte for byte; SB3's own ``PPO.load(out_path)`` etc. reads it.
+        """
+        buffer = io.BytesIO()
+        torch.save(self.policy.sb3_state_dict(), buffer)
+        new_policy = buffer.getvalue()
+
+        def write(f):
+            with zipfile.ZipFile(io.BytesIO(self._zip_bytes)) as zin, zipfile.ZipFile(f, "w") as zout:
+                for info in zin.infolist():
+                    zout.writestr(info, new_policy if info.filename == POLICY_ENTRY else zin.read(info))
+
+        return _io.atomic_write(out_path, write)
+
+
+def _read_normalizer(path: Path, normalizer: str | Path | Normalizer | None, trust: bool) -> Normalizer | None:
+    if isinstance(normalizer, Normalizer):
+        return normalizer
+    if normalizer is not None:
+        normalizer = Path(normalizer)
+        if normalizer.suffix == ".pkl":
+            return Normalizer.from_pkl(normalizer, trust=trust)
+        return Normalizer.from_npz(normalizer)
+    npz, pkl = path.parent / NORMALIZER_NPZ, path.parent / NORMALIZER_PKL
+    if npz.exists():
+        return Normalizer.from_npz(npz)
+    if pkl.exists():
+        if not trust:
+            raise CheckpointError(f"{pkl} (beside {path.name}) holds the observation normalisation but {_TRUST_HINT}")
+        return Normalizer.from_pkl(pkl, trust=True)
+    return None
+
+
+def load_sb3(path: str | Path, normalizer: str | Path | Normalizer | None = None, trust: bool = False,
+             algo: str | None = None) -> SB3Agent:
+    """Read an SB3 ``.zip`` (PPO, A2C, SAC, TD3, DDPG; TQC of sb3-contrib) without unpickling anything.
+
+    Args:
+        path: the ``model.save`` zip.
+        normalizer: an ``.npz`` of :class:`Normalizer` statistics (or a Normalizer); None looks for
+            ``vecnormalize.npz`` beside the zip (a ``vecnormalize.pkl`` there without an npz is
+            refused unless ``trust``).
+        trust: allow unpickling a VecNormalize ``.pkl`` (never the zip).
+        algo: override the algorithm found from the JSON (``policy_class.__module__`` and the
+            algorithm's fields) or the state-dict keys; one of :data:`SB3_ALGORITHMS`.
+
+    Raises :class:`CheckpointError` naming the file and the entry: a missing file, not a zip,
+    no ``data`` or ``policy.pth``, damaged JSON, a state dict that does not fit.
+    """
+    path = Path(path)
+    if algo is not None and algo not in SB3_ALGORITHMS:
+        raise ValueError(f"algo {algo!r} is not one of {SB3_ALGORITHMS}")
+    if not path.is_file():
+        raise CheckpointError(f"{path}: no such file (an SB3 .zip written by model.save)")
+    zip_bytes = path.read_bytes()
+    try:
+        archive = zipfile.ZipFile(io.BytesIO(zip_bytes))
+    except zipfile.BadZipFile as exc:
+        raise CheckpointError(f"{path} is not a zip file (an SB3 checkpoint is the .zip of model.save): {exc}") from exc
+    with archive:
+        names = archive.namelist()
+        for entry in (DATA_ENTRY, POLICY_ENTRY):
+            if entry not in names:
+                raise CheckpointError(f"{path} has no {entry!r} entry (entries: {names})")
+        try:
+            data = json.loads(archive.read(DATA_ENTRY).decode("utf-8"))
+        except (ValueError, UnicodeDecodeError, zipfile.BadZipFile) as exc:
+            raise CheckpointError(f"{path}: entry {DATA_ENTRY!r} is not valid JSON: {exc}") from exc
+        if not isinstance(data, dict):
+            raise CheckpointError(f"{path}: entry {DATA_ENTRY!r} is not a JSON object")
+        try:
+            state = torch.load(io.BytesIO(archive.read(POLICY_ENTRY)), map_location="cpu", weights_only=True)
+        except Exception as exc:  # noqa: BLE001 - torch raises many kinds for a damaged file
+            raise CheckpointError(f"{path}: entry {POLICY_ENTRY!r} is not a state dict readable with "
+                                  f"torch.load(weights_only=True): {exc}") from exc
+        version = archive.read(VERSION_ENTRY).decode("utf-8", "replace").strip() if VERSION_ENTRY in names else None
+    source = f"{path}: entry {POLICY_ENTRY!r}"
+    if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
+        raise CheckpointError(f"{source} is not a dict of tensors")
+    found, how = _detect_algo(data, state)
+    if algo is None:
+        if found is None:
+            raise CheckpointError(f"{path}: cannot tell the algorithm from {DATA_ENTRY!r} or {POLICY_ENTRY!r}; "
+                                  f"pass algo= (one of {SB3_ALGORITHMS})")
+        algo = found
+    else:
+        how = "algo= argument"
+    observation_space = _box_from_json(data, "observation_space", str(path))
+    action_space = _box_from_json(data, "action_space", str(path))
+    policy_kwargs = _plain(data.get("policy_kwargs") or {})
+    if not isinstance(policy_kwargs, dict):
+        raise CheckpointError(f"{path}: data['policy_kwargs'] is not an object")
+    extractor = policy_kwargs.get("features_extractor_class")
+    if extractor is not None and "FlattenExtractor" not in str(extractor):
+        raise CheckpointError(f"{path}: features_extractor_class {extractor!r} is not supported (MlpPolicy only)")
+    activation = _activation_name(policy_kwargs.get("activation_fn"), algo, str(path))
+    squash = bool(policy_kwargs.get("squash_output", False)) if FAMILY[algo] == "actor_critic" else True
+    obs_dim = int(math.prod(observation_space.shape))
+    policy = SB3Policy(state, algo, obs_dim, action_space.low, action_space.high, activation=activation,
+                       squash_output=squash, clip_mean=float(policy_kwargs.get("clip_mean", 2.0)), source=source)
+    norm = _read_normalizer(path, normalizer, trust)
+    if norm is not None and norm.norm_obs and norm.shape != observation_space.shape:
+        raise CheckpointError(f"the normalisation statistics have shape {norm.shape} but {path} observes "
+                              f"{observation_space.shape}")
+    meta = {"algo": algo, "algo_from": how, "sb3_version": version,
+            "policy_module": _policy_module(data),
+            "policy_kwargs": policy_kwargs, "activation": activation, "use_sde": data.get("use_sde"),
+            "squash_output": squash, "num_timesteps": data.get("num_timesteps"),
+            "net_arch": policy.net_arch,
+            "observation_space": _plain(data["observation_space"]), "action_space": _plain(data["action_space"])}
+    return SB3Agent(path, algo, policy, norm, observation_space, action_space, meta, zip_bytes)
