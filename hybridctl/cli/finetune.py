@@ -38,7 +38,7 @@ def add_parser(sub) -> None:
     p.add_argument("--workers", type=positive(int), help="worker processes (default: all cores)")
     p.add_argument("--address", help="Ray cluster address (--backend ray)")
     p.add_argument("--chunk-size", type=positive(int), default=DEFAULTS.chunk_size,
-                   help="perturbed policies per batched rollout task (default 16)")
+                   help="perturbed policies per batched rollout task (default 64; 2n / this many tasks per update)")
     p.add_argument("--eval-episodes", type=positive(int), default=DEFAULTS.eval_episodes,
                    help="deterministic episodes before and after (thesis: 100)")
     p.add_argument("--normalizer", metavar="NPZ", help="observation statistics of an sb3 agent (.npz)")

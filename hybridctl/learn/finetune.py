@@ -76,8 +76,9 @@ class FineTuneConfig:
     #                                     normalised observations (policy_refinement); "ch4": the Ch. 4 defaults
     episode_steps: int | None = None   # None: the env's own limit
     seed: int = 0
-    chunk_size: int = 16               # hybridctl: perturbed policies per batched rollout task (fixed, so the
-    #                                    result does not depend on the backend or the worker count)
+    chunk_size: int = 64               # hybridctl: perturbed policies per batched rollout task (fixed, so the
+    #                                    result does not depend on the backend or the worker count; 2n / chunk_size
+    #                                    tasks per update: lower it when there are more workers than tasks)
     backend: str = "processes"         # "serial", "processes" (local, default), "ray"
     workers: int | None = None         # None: every core (processes) or the cluster's CPUs (ray)
     address: str | None = None         # Ray cluster address (backend "ray")
@@ -325,31 +326,33 @@ def run_chunk(task: ChunkTask) -> list[dict]:
                       lambda: [_make_env(task.env, task.env_kwargs, task.max_steps) for _ in range(n)])
     dtype = next(task.module.parameters()).dtype
     params = _unflatten(task.module, task.names, torch.as_tensor(task.thetas, dtype=torch.float64))
+    space = envs[0].action_space
     obs = np.stack([np.asarray(e.reset(seed=int(s))[0], dtype=np.float64).reshape(-1) for e, s in zip(envs, task.seeds)])
     z = _normalise(task.normalizer, obs)
-    states = [[row.copy()] for row in z]   # copies: obs is updated in place
-    returns, steps = np.zeros(n), np.zeros(n, dtype=int)
+    history = [z.copy()]          # normalised observations of every member at each step (one copy per step)
+    returns, rewards, steps = np.zeros(n), np.zeros(n), np.zeros(n, dtype=int)
     active, terminated, finite, success = np.ones(n, bool), np.zeros(n, bool), np.ones(n, bool), [None] * n
     limit = task.max_steps or math.inf
     while active.any():
         actions = batched_actions(task.module, params, torch.as_tensor(z, dtype=dtype)).numpy()
+        actions = actions.astype(space.dtype, copy=False).reshape((n, *space.shape))
         stepped = np.flatnonzero(active)
         for i in stepped:
-            space = envs[i].action_space
-            o, r, term, trunc, info = envs[i].step(actions[i].astype(space.dtype).reshape(space.shape))
-            returns[i] += float(r)
-            steps[i] += 1
-            obs[i] = np.asarray(o, dtype=np.float64).reshape(-1)
-            if not (np.all(np.isfinite(obs[i])) and math.isfinite(returns[i])):
-                finite[i], active[i] = False, False
-            elif term or trunc or steps[i] >= limit:
+            o, r, term, trunc, info = envs[i].step(actions[i])
+            obs[i], rewards[i] = o, r
+            if term or trunc:
                 active[i], terminated[i] = False, bool(term)
                 if "success" in info:
                     success[i] = bool(info["success"])
+        returns[stepped] += rewards[stepped]
+        steps[stepped] += 1
+        bad = stepped[~(np.isfinite(obs[stepped]).all(axis=1) & np.isfinite(returns[stepped]))]
+        finite[bad], active[bad] = False, False
+        active &= steps < limit
         z = _normalise(task.normalizer, obs)
-        for i in stepped:
-            states[i].append(z[i].copy())
-    return [_episode_result(task, np.stack(states[i]), returns[i], int(steps[i]), bool(terminated[i]),
+        history.append(z.copy())
+    states = np.stack(history)    # (T + 1, n, obs); member i's episode is states[: steps[i] + 1, i]
+    return [_episode_result(task, states[: steps[i] + 1, i], returns[i], int(steps[i]), bool(terminated[i]),
                             bool(finite[i]), success[i]) for i in range(n)]
 
 
@@ -630,6 +633,7 @@ class FineTune(Learner):
             raise ValueError(f"save_sb3 needs an sb3: source; this policy came from {self.tunable.source}")
         self._write_theta()
         path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
         written = self.tunable.sb3.save_zip(path)
         if self.tunable.normalizer is not None and hasattr(self.tunable.normalizer, "save_npz"):
             self.tunable.normalizer.save_npz(path.parent / "vecnormalize.npz")

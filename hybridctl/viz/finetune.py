@@ -45,3 +45,85 @@ def plot_finetune_report(before: dict, after: dict, history: list[dict], path: s
         fig.savefig(path, dpi=110)
         plt.close(fig)
     return fig
+
+
+def plot_return_table(rows: list[dict], path: str | Path | None = None, title: str = "returns before and after"):
+    """Table 6.1 as a picture: per agent, mean ± std of the deterministic returns before fine-tuning,
+    after, and (where recorded) after training on with its own algorithm. ``rows``: dicts with
+    ``label``, ``before`` / ``after`` / optional ``continued`` (each with mean_return, std_return).
+    Returns are scaled per agent by |before mean| so agents of different envs share one axis."""
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(max(6, 1.1 * len(rows) + 2), 3.8))
+    width = 0.27
+    for k, (key, colour) in enumerate((("before", "C0"), ("after", "C1"), ("continued", "C2"))):
+        xs, ys, es = [], [], []
+        for i, row in enumerate(rows):
+            if row.get(key) is None:
+                continue
+            scale = max(abs(row["before"]["mean_return"]), 1e-9)
+            xs.append(i + (k - 1) * width)
+            ys.append(row[key]["mean_return"] / scale)
+            es.append(row[key]["std_return"] / scale)
+        if xs:
+            ax.bar(xs, ys, width, yerr=es, capsize=3, color=colour,
+                   label={"before": "pretrained", "after": "fine-tuned", "continued": "own algorithm, more steps"}[key])
+    ax.axhline(0, color="k", lw=0.5)
+    ax.set_xticks(range(len(rows)), [r["label"] for r in rows], rotation=30, ha="right", fontsize=8)
+    ax.set(ylabel="return / |pretrained mean|", title=title)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    if path is not None:
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+    return fig
+
+
+def plot_failure_table(rows: list[dict], path: str | Path | None = None,
+                       title: str = "early terminations (95 % Wilson intervals)"):
+    """Table 6.2 as a picture: early-termination rate before / after per agent with 95 % intervals.
+    ``rows``: dicts with ``label`` and ``before`` / ``after`` evaluations (failure_rate, failure_interval)."""
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(max(5, 1.2 * len(rows) + 2), 3.6))
+    for k, (key, colour) in enumerate((("before", "C0"), ("after", "C1"))):
+        rates = np.array([100 * r[key]["failure_rate"] for r in rows])
+        lo = np.array([100 * r[key]["failure_interval"][0] for r in rows])
+        hi = np.array([100 * r[key]["failure_interval"][1] for r in rows])
+        ax.bar(np.arange(len(rows)) + (k - 0.5) * 0.38, rates, 0.38, yerr=[rates - lo, hi - rates], capsize=4,
+               color=colour, label=key)
+    ax.set_xticks(range(len(rows)), [r["label"] for r in rows], fontsize=8)
+    ax.set(ylabel="early terminations (%)", title=title)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    if path is not None:
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+    return fig
+
+
+def plot_dimension_table(rows: list[dict], path: str | Path | None = None,
+                         title: str = "mesh dimension and return, dimension reward (eq. 6.1 / 6.2)"):
+    """Table 6.3 as a picture: mean mesh dimension (left) and return (right, scaled by |before|)
+    before / after fine-tuning with the dimension reward. ``rows`` as :func:`plot_return_table`
+    with ``mean_dimension`` / ``std_dimension`` in the evaluations."""
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(max(8, 2.2 * len(rows) + 3), 3.6))
+    x = np.arange(len(rows))
+    for k, (key, colour) in enumerate((("before", "C0"), ("after", "C1"))):
+        axes[0].bar(x + (k - 0.5) * 0.38, [r[key]["mean_dimension"] for r in rows], 0.38,
+                    yerr=[r[key].get("std_dimension") or 0 for r in rows], capsize=4, color=colour, label=key)
+        scale = [max(abs(r["before"]["mean_return"]), 1e-9) for r in rows]
+        axes[1].bar(x + (k - 0.5) * 0.38, [r[key]["mean_return"] / s for r, s in zip(rows, scale)], 0.38,
+                    yerr=[r[key]["std_return"] / s for r, s in zip(rows, scale)], capsize=4, color=colour, label=key)
+    for ax, label in zip(axes, ("mesh dimension (mean of lower, upper)", "return / |before mean|")):
+        ax.set_xticks(x, [r["label"] for r in rows], fontsize=8)
+        ax.set(ylabel=label)
+        ax.legend(fontsize=8)
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    if path is not None:
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+    return fig
