@@ -137,8 +137,11 @@ class ProcessBackend(SerialBackend):
         pending = list(range(len(tasks)))
         for attempt in range(self.retries + 1):
             pool = self._executor()
-            futures = {pool.submit(fn, tasks[i]): i for i in pending}
+            futures = {}
             try:
+                # inside the try: a pool whose worker died since the last map breaks already at submit
+                for i in pending:
+                    futures[pool.submit(fn, tasks[i])] = i
                 for future in cf.as_completed(futures):
                     results[futures[future]] = future.result()
                 break

@@ -196,3 +196,23 @@ def test_cli_bad_input_exits_2_without_traceback(argv, message, capsys, tmp_path
     assert exc.value.code == 2
     err = capsys.readouterr().err
     assert message in err and "Traceback" not in err
+
+
+def test_a_killed_worker_neither_hangs_nor_changes_the_result():
+    """Tasks carry the module as plain bytes: after a worker is killed the rebuilt pool gets them
+    (torch's shared-memory hand-over hung here), and the run equals the serial one."""
+    import os
+    import signal
+    import time
+
+    from hybridctl.parallel import make_backend
+
+    reference = tuner(updates=3, n_directions=8, chunk_size=2).learn(progress=False)
+    t = tuner(updates=3, n_directions=8, chunk_size=2)
+    with make_backend("processes", 2) as backend:
+        t.learn(updates=1, progress=False, backend=backend)
+        pid = next(iter(backend._pool._processes.values())).pid
+        os.kill(pid, signal.SIGKILL)   # the next map finds the pool broken, rebuilds it and reruns
+        time.sleep(0.5)
+        t.learn(updates=3, progress=False, backend=backend)
+    np.testing.assert_array_equal(t.theta, reference.theta)

@@ -86,3 +86,28 @@ def test_shipped_papg_cartpole_switched_controller_in_drake_equals_its_torch_tra
     assert trajectory.gate[-1] == 1 and trajectory.gate[0] == 0
     # the same float64 numbers on both sides; the hard switch happens at the same step in both
     assert np.abs(drake_states - torch_states).max() < 1e-9
+
+
+def test_shipped_sb3_ppo_pendulum_reproduces_its_recorded_returns_without_sb3():
+    """The SB3 zip read by our reader (no SB3, no unpickling) gives the returns SB3's own predict
+    recorded when the agent was trained (20 deterministic episodes, seeds 1000-1019)."""
+    import gymnasium as gym
+
+    from hybridctl.learn.sb3 import load_sb3
+
+    torch.set_num_threads(1)
+    folder = POLICIES / "ppo-pendulum"
+    recorded = json.loads((folder / "record.json").read_text())["eval"]
+    agent = load_sb3(folder / "model.zip")
+    env = gym.make("Pendulum-v1")
+    returns = []
+    for seed in range(recorded["seeds"][0], recorded["seeds"][1] + 1):
+        obs, _ = env.reset(seed=seed)
+        total, done = 0.0, False
+        while not done:
+            action, _ = agent.predict(obs, deterministic=True)
+            obs, reward, term, trunc, _ = env.step(action)
+            total += float(reward)
+            done = term or trunc
+        returns.append(total)
+    np.testing.assert_allclose(returns, recorded["returns"], rtol=0, atol=1e-6)

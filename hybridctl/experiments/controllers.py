@@ -8,6 +8,7 @@ import numpy as np
 from ..drake import HybridDiagram, build_hybrid_diagram
 from ..learn import APG, load_controller
 from ..learn.apg import METHODS as APG_METHODS
+from ..learn.finetune import FineTune
 from ..systems import System
 
 
@@ -29,6 +30,7 @@ CONTROLLERS = {
     "swingup": "energy-shaping swing-up only (gate always off)",
     "zero": "no input (passive dynamics)",
     "ssac:PATH": "learned swing-up + learned gate (hysteresis) + LQR from an SSAC checkpoint directory",
+    "finetune:PATH": "a fine-tuned sac/ssac swing-up (hybridctl finetune's final/ checkpoint), with its gate and LQR",
     "sac:PATH": "learned swing-up only from a SAC checkpoint directory (gate always off)",
     "ce-apg:PATH": "learned recurrent swing-up from an APG/PAPG/CEM/CE-APG checkpoint (thesis Ch. 7; also "
                    "apg:, papg:, cem:, shapg:) + cost-to-go gate (hysteresis) + LQR",
@@ -62,6 +64,17 @@ def build_named_diagram(system: System, controller: str = "energy", **kwargs) ->
         kwargs.setdefault("gate_on", gate_meta.get("gate_on"))
         kwargs.setdefault("gate_off", gate_meta.get("gate_off"))
         return build_hybrid_diagram(system, swingup=policy, gate=gate, **kwargs)
+    if sep and kind == "finetune":   # thesis Ch. 6: a fine-tuned sac/ssac swing-up (FineTune checkpoint)
+        if not path:
+            raise ValueError(f"controller {controller!r} needs a checkpoint path after 'finetune:'")
+        tuner = FineTune.load(path)
+        if tuner.tunable.system != system.name:
+            raise ValueError(f"{path} fine-tunes {tuner.tunable.source} on {tuner.env_name}; a Drake diagram of "
+                             f"{system.name} needs a sac:/ssac: source of that system")
+        for key, value in tuner.tunable.meta.get("gate", {}).items():
+            kwargs.setdefault(key, value)
+        gate = tuner.tunable.gate if tuner.tunable.gate is not None else _never_balance
+        return build_hybrid_diagram(system, swingup=tuner.tuned_module(), gate=gate, **kwargs)
     if sep and kind in APG_METHODS:   # thesis Ch. 7: the trained GRU with its hidden state in the Context
         if not path:
             raise ValueError(f"controller {controller!r} needs a checkpoint path after '{kind}:'")

@@ -12,6 +12,7 @@ callbacks, NaN guard, evaluation results).
 
 from .apg import APG, APGConfig
 from .ars import ARS, ARSConfig
+from .finetune import FineTune, FineTuneConfig, TunablePolicy
 from .checkpoint import CheckpointError, resolve_checkpoint_dir, write_checkpoint_dir
 from .export import load_controller
 from .gate import GateConfig, GateNet, fit_gate, gate_metrics, warm_start_gate
@@ -25,7 +26,7 @@ from .sb3 import Normalizer, SB3Agent, SB3Policy, load_sb3
 from ..parallel import ProcessBackend, RayBackend, SerialBackend, make_backend
 from .ssac import SSAC, GateDataset, SSACConfig
 
-__all__ = ["APG", "APGConfig", "Policy", "PolicyPopulation", "SAC", "SACConfig", "SSAC", "SSACConfig", "GateDataset", "Actor", "QNetwork", "ObsTransform",
+__all__ = ["APG", "APGConfig", "FineTune", "FineTuneConfig", "TunablePolicy", "Policy", "PolicyPopulation", "SAC", "SACConfig", "SSAC", "SSACConfig", "GateDataset", "Actor", "QNetwork", "ObsTransform",
            "DeterministicPolicy", "ReplayBuffer", "EpisodeStaging", "sample_mixed", "plot_training_curves",
            "CheckpointError", "resolve_checkpoint_dir", "write_checkpoint_dir", "GateConfig", "GateNet",
            "fit_gate", "gate_metrics", "warm_start_gate", "load_controller", "ARS", "ARSConfig", "failure_rates",

@@ -253,7 +253,8 @@ def load_policy(source: str, env: str, trust: bool = False, normalizer: str | No
     if kind == "ssac" and gate is None:
         raise ckpt.CheckpointError(f"{path} is a {meta.get('algorithm')} checkpoint without a gate; use sac:{path}")
     return TunablePolicy(policy, None, source, system=env, gate=gate if kind == "ssac" else None,
-                         meta={"algo": kind, "trained_algorithm": meta.get("algorithm")})
+                         meta={"algo": kind, "trained_algorithm": meta.get("algorithm"),
+                               "gate": {k: v for k, v in (meta.get("gate") or {}).items() if k in ("gate_on", "gate_off")}})
 
 
 def _check_gym_spaces(tunable: TunablePolicy, env: str, obs_dim: int, act_dim: int, path) -> None:
@@ -281,13 +282,42 @@ def _make_env(env: str | Callable[[], gym.Env], env_kwargs: dict | None = None,
 
 # ============================================================================ batched rollouts (run in workers)
 
+class Shipped:
+    """A torch module sent to workers as plain pickled bytes, decoded once per worker.
+
+    A module inside a task would otherwise travel by torch's shared-memory file descriptors,
+    whose hand-over hangs after a process pool was rebuilt (a worker killed); bytes always
+    arrive. The bytes are made by this process from its own module, never read from a file.
+    """
+
+    _decoded: dict[str, torch.nn.Module] = {}
+
+    def __init__(self, module: torch.nn.Module | None):
+        import hashlib
+        import pickle
+
+        self.blob = pickle.dumps(module) if module is not None else None
+        self.key = hashlib.sha1(self.blob).hexdigest() if self.blob is not None else ""
+
+    def get(self) -> torch.nn.Module | None:
+        """The module (built from the bytes once per process)."""
+        import pickle
+
+        if self.blob is None:
+            return None
+        if self.key not in Shipped._decoded:
+            Shipped._decoded.clear()   # one module at a time per worker
+            Shipped._decoded[self.key] = pickle.loads(self.blob)
+        return Shipped._decoded[self.key]
+
+
 @dataclass
 class ChunkTask:
     """Episodes of ``len(seeds)`` policies (rows of ``thetas``), one per env seed (plain, picklable)."""
 
     env: Any
     env_kwargs: dict | None
-    module: torch.nn.Module
+    shipped: Shipped
     names: list[str]
     thetas: np.ndarray            # (B, P) float64
     seeds: list[int]
@@ -295,8 +325,13 @@ class ChunkTask:
     max_steps: int | None
     postprocessor: PostProcessor
     system: str | None = None
-    gate: torch.nn.Module | None = None
+    gate: Shipped | None = None
     keep_states: bool = False
+
+    @property
+    def module(self) -> torch.nn.Module:
+        """The policy module (non-perturbed parameters at their values; perturbed ones come from thetas)."""
+        return self.shipped.get()
 
 
 def _unflatten(module: torch.nn.Module, names: list[str], thetas: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -361,8 +396,9 @@ def _run_system_chunk(task: ChunkTask) -> list[dict]:
     from ..envs import SwitchedVectorEnv, TorchVectorEnv
     system = load_system(task.system)
     n = len(task.seeds)
-    if task.gate is not None:
-        env = SwitchedVectorEnv(system, n, gate=task.gate, dtype=torch.float64)
+    gate = task.gate.get() if task.gate is not None else None
+    if gate is not None:
+        env = SwitchedVectorEnv(system, n, gate=gate, dtype=torch.float64)
     else:
         env = TorchVectorEnv(system, n, dtype=torch.float64)
     x0 = np.concatenate([system.sample_initial_states(1, np.random.default_rng(int(s))) for s in task.seeds])
@@ -505,9 +541,10 @@ class FineTune(Learner):
                   max_steps: int | None = None, keep_states: bool = False) -> list[dict]:
         """One episode per (theta row, seed), in fixed chunks spread over ``backend``."""
         size = self.config.chunk_size
-        tasks = [ChunkTask(self.env, self.env_kwargs, self.tunable.module, self.names, thetas[i:i + size],
+        module, gate = Shipped(self.tunable.module), Shipped(self.tunable.gate)
+        tasks = [ChunkTask(self.env, self.env_kwargs, module, self.names, thetas[i:i + size],
                            seeds[i:i + size], self.tunable.normalizer, max_steps or self.config.episode_steps,
-                           postprocessor, self.tunable.system, self.tunable.gate, keep_states)
+                           postprocessor, self.tunable.system, gate, keep_states)
                  for i in range(0, len(seeds), size)]
         return [r for chunk in backend.map(run_chunk, tasks) for r in chunk]
 
@@ -589,6 +626,17 @@ class FineTune(Learner):
         dtype = next(self.tunable.module.parameters()).dtype
         with torch.no_grad():
             return self.tunable.module(torch.as_tensor(z, dtype=dtype)).double().numpy()
+
+    def tuned_module(self) -> torch.nn.Module:
+        """A copy of the policy module with the fine-tuned weights (normalised observations -> actions),
+        e.g. the swing-up block of a Drake diagram (``experiments.build_named_diagram(system, "finetune:PATH")``)."""
+        import copy
+
+        self._write_theta()
+        module = copy.deepcopy(self.tunable.module).eval()
+        for p in module.parameters():
+            p.requires_grad_(False)
+        return module
 
     def evaluate(self, episodes: int | None = None, seed: int = 12345, theta: np.ndarray | None = None,
                  backend=None, episode_steps: int | None = None, keep_states: bool = False) -> EvalResult:
