@@ -42,10 +42,12 @@ PRINTED = {
     "03_trajectory_dimension": "same curve: True",
     "04_reachable_mesh_mfpt": "hopper record: notebooks/data/ch5/hopper.json",
     "05_analytic_policy_gradients": "Ch. 7 record: notebooks/data/ch7/table71.json",
+    "06_fine_tuning": "Ch. 6 record: notebooks/data/ch6/results.json",
 }
 # Figures (matplotlib PNGs) each notebook shows at least.
 MIN_FIGURES = {"01_hybrid_control": 3, "02_switched_sac": 2, "03_trajectory_dimension": 3,
-               "04_reachable_mesh_mfpt": 2, "05_analytic_policy_gradients": 3}
+               "04_reachable_mesh_mfpt": 2, "05_analytic_policy_gradients": 3,
+               "06_fine_tuning": 3}
 
 
 def _config() -> dict:

@@ -43,6 +43,11 @@ EXPECTED_LINES = {
         "torch = Drake to 1e-9: True",    # the switched torch rollout it was trained on
         "Ch. 7 record: notebooks/data/ch7/table71.json",
     ],
+    "06_fine_tuning.ipynb": [
+        "written back as an SB3 zip: True",   # the shipped SB3 PPO, read without unpickling, fine-tuned
+        "balanced: True",                     # the fine-tuned SSAC swing-up in the Drake diagram
+        "Ch. 6 record: notebooks/data/ch6/results.json",
+    ],
     "03_trajectory_dimension.ipynb": [
         "same curve: True",            # vectorised box count equals the thesis' dict of tuples
         "MuJoCo record: notebooks/data/ch4/results.json",   # the shipped Table 4.1 / 4.4 record is read
