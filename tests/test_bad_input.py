@@ -60,6 +60,14 @@ CLI_CASES = [
     (["train", "ssac", "pendulum", "--steps", "100"], "gate learning needs 'gate.warm_near'"),
     (["train", "ars", "NoSuchEnv-v0", "--epochs", "1"], "NoSuchEnv"),
     (["train", "ars", "Pendulum-v1", "--step-size", "-0.1"], "ARSConfig.step_size must be a finite number > 0"),
+    (["finetune", "Pendulum-v1", "--policy", "pickle:model.pkl"], "--policy must be KIND:PATH"),
+    (["finetune", "Pendulum-v1", "--policy", "sb3:/no/such/model.zip"], "/no/such/model.zip"),
+    (["finetune", "Pendulum-v1", "--policy", "sb3:{file}"], "a_file"),
+    (["finetune", "Pendulum-v1", "--policy", "ssac:models/policies/ssac-acrobot"], "env must be one of"),
+    (["finetune", "acrobot", "--policy", "ssac:models/policies/ssac-acrobot", "--updates", "0"],
+     "--updates: must be a finite number > 0"),
+    (["finetune", "acrobot", "--policy", "ssac:models/policies/ssac-acrobot", "--select", "critic"],
+     "--select: invalid choice"),
 ]
 
 
@@ -228,8 +236,8 @@ def test_entry_points_reject_bad_input(name, call, message):
 
 # --------------------------------------------------------------------------- learner configs
 def _config_classes():
-    from hybridctl.learn import ARSConfig, GateConfig, SACConfig, SSACConfig
-    return (SACConfig, SSACConfig, ARSConfig, GateConfig)
+    from hybridctl.learn import ARSConfig, FineTuneConfig, GateConfig, SACConfig, SSACConfig
+    return (SACConfig, SSACConfig, ARSConfig, GateConfig, FineTuneConfig)
 
 
 def _bad_values(hint, default):
@@ -291,6 +299,12 @@ RANGE_CASES = [
     ("ARSConfig", {"backend": "cloud"}, "backend must be one of"),
     ("ARSConfig", {"workers": 0}, "workers must be None"),
     ("ARSConfig", {"policy": "mlp:"}, "policy"),
+    ("FineTuneConfig", {"select": "value_net"}, "select must be one of"),
+    ("FineTuneConfig", {"reward": "fractal"}, "reward must be one of"),
+    ("FineTuneConfig", {"dimension_settings": "mine"}, "dimension_settings must be one of"),
+    ("FineTuneConfig", {"n_directions": 0}, "n_directions must be an integer >= 1"),
+    ("FineTuneConfig", {"noise_end": 0.0}, "noise_end must be a finite number > 0"),
+    ("FineTuneConfig", {"workers": 0}, "workers must be None"),
     ("GateConfig", {"hidden": ()}, "hidden must be a non-empty tuple"),
     ("GateConfig", {"hidden": (32, 0)}, "hidden must be a non-empty tuple"),
     ("GateConfig", {"warm_samples": 1}, "warm_samples must be an integer >= 2"),

@@ -34,7 +34,10 @@ OUT = Path("runs/ch6")
 RECORD = Path(__file__).with_name("results.json")
 EVAL_SEED = 12345
 FAILURE_ENVS = ("Hopper-v5", "Walker2d-v5")   # Table 6.2: 300 initial conditions
-SOURCES = {"ssac-acrobot": ("acrobot", "ssac:models/policies/ssac-acrobot")}
+SOURCES = {"ssac-acrobot": ("acrobot", "ssac:models/policies/ssac-acrobot"),
+           # plain SAC of Ch. 3 (return ~86 at 3e5 steps, success 0 %): hybridctl train sac acrobot --seed 0
+           # --steps 300000 --set polyak=0.9 --set obs_transform=angle_sincos --out runs/train/sac-acrobot-300k
+           "sac-acrobot-300k": ("acrobot", "sac:runs/train/sac-acrobot-300k")}
 
 
 def agent_record(agent: str) -> dict:
