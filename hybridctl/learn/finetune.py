@@ -45,11 +45,11 @@ from torch.func import functional_call, vmap
 from ..analysis.postprocess import FORMS as POSTPROCESS_FORMS
 from ..analysis.postprocess import KINDS as POSTPROCESS_KINDS
 from ..analysis.postprocess import PostProcessor
-from ..envs import env_id
 from ..parallel import BACKENDS, cached_env, make_backend
 from ..systems import known_systems
 from ..systems import load as load_system
 from . import checkpoint as ckpt
+from .ars import make_env as _make_env
 from .config_check import check_types
 from .run import PROGRESS_FILE, EvalResult, Learner, Saved, check_fields, check_finite, set_torch_threads
 
@@ -266,18 +266,6 @@ def _check_gym_spaces(tunable: TunablePolicy, env: str, obs_dim: int, act_dim: i
     if got != (obs_dim, act_dim):
         raise ValueError(f"{path} has {obs_dim} observations and {act_dim} actions; env {env} has {got[0]} "
                          f"observations and {got[1]} actions")
-
-
-def _make_env(env: str | Callable[[], gym.Env], env_kwargs: dict | None = None,
-              max_steps: int | None = None) -> gym.Env:
-    """A gymnasium env from an id (system names map to their swing-up env) or a factory."""
-    if callable(env):
-        return env()
-    name = env_id(env) if env in known_systems() else env
-    kwargs = dict(env_kwargs or {})
-    if max_steps is not None:
-        kwargs["max_episode_steps"] = max_steps
-    return gym.make(name, **kwargs)
 
 
 # ============================================================================ batched rollouts (run in workers)
@@ -750,4 +738,6 @@ def wilson_interval(k: int, n: int, z: float = 1.959964) -> tuple[float, float]:
     p = k / n
     centre = (p + z * z / (2 * n)) / (1 + z * z / n)
     half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return (max(0.0, centre - half), min(1.0, centre + half))
+    lo = 0.0 if k == 0 else max(0.0, centre - half)   # exact ends (no 1e-19 from rounding)
+    hi = 1.0 if k == n else min(1.0, centre + half)
+    return (lo, hi)
