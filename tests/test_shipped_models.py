@@ -30,7 +30,11 @@ def test_shipped_ssac_acrobot_reproduces_its_recorded_evaluation():
     torch.set_num_threads(1)  # the record was made with one torch thread
     recorded = recorded_ssac_eval()
     result = SSAC.load(POLICIES / "ssac-acrobot").evaluate(episodes=recorded["episodes"], seed=recorded["seed"])
-    assert result["mean_return"] == pytest.approx(recorded["mean_return"], abs=1e-9)
+    # 1e-7, not 1e-9: the machines differ in the last bit of a matrix product (numpy vs torch kernels,
+    # AVX-512 or not), and 100 chaotic swing-ups carry it to the 8th digit: 91.98468007287164 where
+    # the record was made, 91.98467998121106 on an AVX-512 Xeon (2026-12-02). A changed law or
+    # env moves the mean by far more.
+    assert result["mean_return"] == pytest.approx(recorded["mean_return"], abs=1e-7)
     assert result["success_rate"] == recorded["success_rate"] == 1.0
 
 
