@@ -223,3 +223,18 @@ def test_ray_gives_the_serial_result():
     a = tuner().learn(progress=False)
     b = tuner(backend="ray", workers=2).learn(progress=False)
     np.testing.assert_array_equal(a.theta, b.theta)
+
+
+@pytest.mark.parametrize("policy", ["linear", "mlp:8"])
+def test_ars_source_acts_like_the_ars_agent_with_its_frozen_statistics(policy, tmp_path):
+    from hybridctl.learn import ARS, ARSConfig
+
+    ars = ARS("Pendulum-v1", ARSConfig(n_directions=4, top_directions=2, backend="serial", policy=policy,
+                                       episode_steps=50))
+    ars.learn(epochs=2, log_dir=tmp_path, progress=False)
+    t = FineTune("Pendulum-v1", f"ars:{tmp_path / 'final'}", updates=1, n_directions=2, backend="serial")
+    obs = np.random.default_rng(0).uniform(-1, 1, size=(10, 3))
+    expected = np.stack([ars.predict(o) for o in obs])
+    np.testing.assert_allclose(t.predict(obs), expected, atol=1e-9)
+    t.learn(progress=False)
+    assert not np.allclose(t.predict(obs), expected)

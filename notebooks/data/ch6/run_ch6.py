@@ -130,6 +130,7 @@ def run_continue(agent: str, steps: int | None, cap_scale: float, command: str) 
                         "std_return": float(r.std()), "min_return": float(r.min()), "failures": fails,
                         "failure_rate": fails / episodes, "failure_interval": wilson_interval(fails, episodes),
                         "returns": r.tolist()}}
+    out.mkdir(parents=True, exist_ok=True)
     io.write_json(out / "record.json", record)
     return record
 
