@@ -238,3 +238,21 @@ def test_ars_source_acts_like_the_ars_agent_with_its_frozen_statistics(policy, t
     np.testing.assert_allclose(t.predict(obs), expected, atol=1e-9)
     t.learn(progress=False)
     assert not np.allclose(t.predict(obs), expected)
+
+
+def test_report_figures_draw_rates_at_zero_and_one(tmp_path):
+    """The Ch. 6 figures accept intervals at the ends (a rate of 0 % whose stored lower end is 1e-19)."""
+    from hybridctl.viz.finetune import plot_dimension_table, plot_failure_table, plot_finetune_report, plot_return_table
+
+    def ev(rate, lo, hi):
+        return {"episodes": 300, "mean_return": 100.0, "std_return": 5.0, "returns": [95.0, 105.0],
+                "failure_rate": rate, "failure_interval": [lo, hi], "mean_dimension": 2.0, "std_dimension": 0.1}
+
+    rows = [{"label": "a", "before": ev(0.0, 8.7e-19, 0.0126), "after": ev(1.0, 0.987, 1.0),
+             "continued": ev(0.5, 0.44, 0.56)}]
+    history = [{"update": 1, "mean_return": 1.0, "mean_raw_return": 2.0}]
+    for name, draw in (("r.png", lambda p: plot_return_table(rows, p)), ("f.png", lambda p: plot_failure_table(rows, p)),
+                       ("d.png", lambda p: plot_dimension_table(rows, p)),
+                       ("x.png", lambda p: plot_finetune_report(rows[0]["before"], rows[0]["after"], history, p))):
+        draw(tmp_path / name)
+        assert (tmp_path / name).stat().st_size > 5000

@@ -90,7 +90,8 @@ def plot_failure_table(rows: list[dict], path: str | Path | None = None,
         rates = np.array([100 * r[key]["failure_rate"] for r in rows])
         lo = np.array([100 * r[key]["failure_interval"][0] for r in rows])
         hi = np.array([100 * r[key]["failure_interval"][1] for r in rows])
-        ax.bar(np.arange(len(rows)) + (k - 0.5) * 0.38, rates, 0.38, yerr=[rates - lo, hi - rates], capsize=4,
+        ax.bar(np.arange(len(rows)) + (k - 0.5) * 0.38, rates, 0.38,
+               yerr=np.maximum([rates - lo, hi - rates], 0), capsize=4,   # rounding can put lo a hair above 0
                color=colour, label=key)
     ax.set_xticks(range(len(rows)), [r["label"] for r in rows], fontsize=8)
     ax.set(ylabel="early terminations (%)", title=title)
