@@ -24,8 +24,9 @@ venv: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/hybridctl demo --out runs/demo
 
+# two test processes (pytest-xdist): CI's 2 cores; each test still uses one torch thread
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2
 
 # Everything, the slow tests too (the documentation build in headless Chromium among them).
 test-all: $(DOCS_STAMP)
