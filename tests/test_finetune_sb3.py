@@ -86,3 +86,24 @@ def test_selection_all_perturbs_the_value_net_too(ppo_zip):
     assert any("value_net" in n for n in everything.names) and "log_std" in everything.names
     assert not any("value_net" in n or n == "log_std" for n in action.names)
     assert everything.n_params > action.n_params
+
+
+def test_a_normalised_agent_round_trips_through_the_hybridctl_checkpoint(ppo_zip, tmp_path):
+    """An agent with vecnormalize.npz: FineTune.load(final/) and the written-back zip + npz act alike."""
+    from hybridctl.learn.sb3 import Normalizer
+
+    folder = tmp_path / "agent"
+    folder.mkdir()
+    (folder / "model.zip").write_bytes(ppo_zip.read_bytes())
+    Normalizer(mean=np.array([0.1, -0.2, 0.5]), var=np.array([0.5, 0.4, 4.0]), count=100.0, clip_obs=10.0,
+               epsilon=1e-8).save_npz(folder / "vecnormalize.npz")
+    out = tmp_path / "ft"
+    assert main(["finetune", "Pendulum-v1", "--policy", f"sb3:{folder / 'model.zip'}", "--updates", "1",
+                 "--directions", "2", "--eval-episodes", "2", "--backend", "serial", "--out", str(out),
+                 "--quiet"]) == 0
+    tuner = FineTune.load(out / "final")
+    stats = np.load(out / "vecnormalize.npz")
+    obs = np.random.default_rng(1).normal(size=(6, 3))
+    z = np.clip((obs - stats["mean"]) / np.sqrt(stats["var"] + stats["epsilon"]), -10, 10)
+    tuned = sb3.PPO.load(out / "model.zip", device="cpu")
+    np.testing.assert_allclose(tuned.predict(z, deterministic=True)[0], tuner.predict(obs), atol=1e-5)

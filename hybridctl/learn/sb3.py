@@ -117,7 +117,7 @@ class Normalizer:
 
     def to_dict(self) -> dict[str, Any]:
         """The statistics as plain JSON values (lists and numbers)."""
-        return {"mean": self.mean.tolist(), "var": self.var.tolist(), "count": self.count,
+        return {"type": "vecnormalize_obs", "mean": self.mean.tolist(), "var": self.var.tolist(), "count": self.count,
                 "clip_obs": self.clip_obs, "epsilon": self.epsilon, "norm_obs": self.norm_obs}
 
     def save_npz(self, path: str | Path) -> Path:
