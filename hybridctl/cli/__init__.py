@@ -5,7 +5,7 @@
     hybridctl balance-map acrobot --controller energy --grid 41 --duration 15 --out runs/map
     hybridctl train ssac acrobot --seed 0 --out runs/train/ssac-acrobot-s0 [--resume] [--polyak 0.9]
     hybridctl mesh rimless-wheel --box-size 1e-3 --monte-carlo 2000 --out runs/mesh
-    hybridctl finetune Pendulum-v1 --policy sb3:runs/agents/Pendulum-v1-sac/model.zip --updates 200
+    hybridctl finetune Pendulum-v1 --policy sb3:models/policies/ppo-pendulum/model.zip --updates 200
     hybridctl demo --out runs/demo
 
 Add --debug to see the traceback of an error.

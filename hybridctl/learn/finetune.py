@@ -13,7 +13,7 @@ the mesh-dimension term of eq. 6.1 / 6.2 (``reward="mesh-mean"``): R / D for R >
 for R < 0, D the mean of the lower and upper mesh dimension of the episode's normalised
 observations (:class:`~hybridctl.analysis.PostProcessor`).
 
->>> tuner = FineTune("Pendulum-v1", "sb3:runs/agents/Pendulum-v1-sac/model.zip")
+>>> tuner = FineTune("Pendulum-v1", "sb3:models/policies/ppo-pendulum/model.zip")
 >>> before = tuner.evaluate(100)                         # deterministic returns, failure rate
 >>> tuner.learn(log_dir="runs/ft-pendulum-sac")          # 200 updates; progress, CSV, checkpoints
 >>> tuner.learn(log_dir="runs/ft-pendulum-sac", resume=True)
