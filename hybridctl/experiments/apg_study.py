@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import platform
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,6 +32,7 @@ from .. import io
 from ..learn.apg import APG, APGConfig
 from ..systems import System, load
 from ..systems.success import stabilisation
+from .training import machine
 
 STUDY_METHODS = ("ce-apg", "papg", "cem", "apg", "shapg", "sac")
 """Learners of the study, in the thesis' Table 7.1 order, then our SAC."""
@@ -182,14 +182,6 @@ def _train_sac(system_name: str, seed: int, settings: StudySettings, out: Path) 
     facts = {"interactions": int(agent.num_timesteps), "train_wall_time_s": wall, "best_training_return": None,
              "which": "deterministic actor", "config": dataclasses.asdict(agent.config)}
     return metrics, facts
-
-
-def machine() -> dict:
-    """Where a run ran."""
-    import os
-
-    return {"platform": platform.platform(), "python": platform.python_version(), "cpus": os.cpu_count(),
-            "torch": torch.__version__, "torch_threads": torch.get_num_threads()}
 
 
 def run_one(method: str, system_name: str, seed: int, out: str | Path, settings: StudySettings | None = None,

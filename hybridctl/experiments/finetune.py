@@ -15,29 +15,20 @@ source, ``model.zip`` (+ ``vecnormalize.npz``) that SB3's own ``load`` reads.
 from __future__ import annotations
 
 import dataclasses
-import os
-import platform
 import time
 from pathlib import Path
 
-import torch
 
 from ..io import read_json, write_json
 from ..learn.finetune import FineTune, FineTuneConfig
 from ..parallel import make_backend
-from .training import prepare_run_folder
+from .training import machine, prepare_run_folder
 
 FINETUNE_MARKERS = ("checkpoint", "final", "progress.csv", "before.json", "after.json", "report.json")
 """What makes a folder hold a fine-tuning run."""
 
 SUMMARY_KEYS = ("episodes", "seed", "mean_return", "std_return", "min_return", "success_rate", "failures",
                 "failure_rate", "failure_interval", "mean_dimension", "std_dimension", "nonfinite")
-
-
-def machine() -> dict:
-    """Where a run ran."""
-    return {"platform": platform.platform(), "python": platform.python_version(), "cpus": os.cpu_count(),
-            "torch": torch.__version__, "torch_threads": torch.get_num_threads()}
 
 
 def summary(result: dict) -> dict:

@@ -9,12 +9,16 @@ it with checkpoints and logs in a run folder, evaluate it and write ``eval.json`
 from __future__ import annotations
 
 import inspect
+import os
+import platform
 import shutil
 import time
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field, is_dataclass
 from pathlib import Path
 from typing import Any, Callable
+
+import torch
 
 from .. import io
 from ..learn import APG, ARS, SAC, SSAC, ARSConfig, SACConfig, SSACConfig
@@ -24,6 +28,13 @@ from ..learn.apg import APGConfig
 from ..learn.checkpoint import CheckpointError, newest_checkpoint, read_json
 from ..learn.run import checkpoint_minutes, describe_refused, resume_changes
 from ..systems import load
+
+
+def machine() -> dict:
+    """Where a run ran: platform, Python, CPU count, torch version and threads (for run records)."""
+    return {"platform": platform.platform(), "python": platform.python_version(), "cpus": os.cpu_count(),
+            "torch": torch.__version__, "torch_threads": torch.get_num_threads()}
+
 
 ALGORITHMS = {"sac": SAC, "ssac": SSAC, "ars": ARS}
 ALGORITHMS.update({method: APG for method in APG_METHODS})   # thesis Ch. 7: apg, shapg, papg, cem, ce-apg

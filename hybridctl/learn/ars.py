@@ -36,8 +36,6 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
-import time
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
@@ -456,20 +454,10 @@ class ARS(Learner):
             own_backend = backend is None
             pool = backend or make_backend(self.config.backend, self.config.workers, self.config.address)
             try:
-                while self.epoch < target and not run.stopped:
-                    start = time.perf_counter()
-                    row = self.train_epoch(pool)
-                    self.wall_time += time.perf_counter() - start
-                    row.update(wall_time=self.wall_time, steps_per_s=row["episode_steps"] * 2 * self.config.n_directions
-                               / max(time.perf_counter() - start, 1e-9))
-                    self.history.append(row)
-                    run.log(row)
-                    run.advance(1, ret=f"{row['mean_raw_return']:.1f}", dim=f"{row['mean_dimension']:.2f}",
-                                sps=f"{row['steps_per_s']:.0f}")
-                    run.after_update()
-                    by_epochs = self.epoch % self.config.checkpoint_every == 0
-                    if by_epochs or self.epoch < target:  # by time: not at the end (final/ follows)
-                        run.checkpoint_if_due(by_epochs)
+                self.run_updates(run, target, lambda: self.train_epoch(pool), 2 * self.config.n_directions,
+                                 self.config.checkpoint_every,
+                                 lambda row: {"ret": f"{row['mean_raw_return']:.1f}", "dim": f"{row['mean_dimension']:.2f}",
+                                              "sps": f"{row['steps_per_s']:.0f}"})
             finally:
                 if own_backend:
                     pool.close()
@@ -548,11 +536,8 @@ class ARS(Learner):
         elif (meta.get("env_kwargs") or {}) != ckpt.to_jsonable(self.env_kwargs or {}):
             problems.append(f"checkpoint {found} was trained on {self.env_name} with env_kwargs "
                             f"{meta.get('env_kwargs')}; this env has {self.env_kwargs}")
-        if problems:
-            if not force:
-                raise ckpt.CheckpointError(f"{'; '.join(problems)} ({ckpt.FORCE_HINT})")
-            warnings.warn(f"force: loading anyway: {'; '.join(problems)}", stacklevel=3)
-        elif "system" in meta and isinstance(self.env, str) and self.env in known_systems():
+        if not ckpt.refuse_unless_forced(problems, force) and "system" in meta and isinstance(self.env, str) \
+                and self.env in known_systems():
             ckpt.check_plant(found, meta["system"], load_system(self.env), force)
         if normalization.get("type") != "running_mean_std" or len(normalization.get("mean", [])) != \
                 self.policy.obs_dim:
@@ -580,8 +565,7 @@ class ARS(Learner):
                                        f"lacks 'config' or 'env'")
         ckpt.check_algorithm(folder, meta.get("algorithm") or "(no algorithm)", (cls.algorithm_name,),
                              cls.algorithm_name, force)
-        names = {f.name for f in dataclasses.fields(ARSConfig)}
-        config = ARSConfig(**{**{k: v for k, v in meta["config"].items() if k in names}, **overrides})
+        config = ckpt.config_from_meta(ARSConfig, meta, overrides)
         agent = cls(env if env is not None else meta["env"], config, env_kwargs=meta.get("env_kwargs"), policy=policy)
         if (agent.policy.obs_dim, agent.policy.act_dim) != (meta["obs_dim"], meta["act_dim"]):
             raise ckpt.CheckpointError(

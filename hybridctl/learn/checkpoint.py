@@ -30,6 +30,8 @@ spec hash was recorded is compared by name and spec overrides, with a warning). 
 
 from __future__ import annotations
 
+import dataclasses
+
 import hashlib
 import json
 import os
@@ -199,6 +201,25 @@ def plant_differences(found: Path, recorded: dict | None, system) -> tuple[list[
     if not complete:
         return [f"{line} (an old checkpoint: only its spec overrides are recorded)" for line in lines], False
     return lines, True  # hashes that differ only by optional keys at their defaults: the same plant
+
+
+def refuse_unless_forced(problems: list[str], force: bool = False) -> bool:
+    """Raise :class:`CheckpointError` listing ``problems`` (what does not fit), or with ``force`` warn
+    and go on. Returns whether there were any."""
+    if not problems:
+        return False
+    message = "; ".join(problems)
+    if not force:
+        raise CheckpointError(f"{message} ({FORCE_HINT})")
+    warnings.warn(f"force: loading anyway: {message}", stacklevel=3)
+    return True
+
+
+def config_from_meta(config_class: type, meta: dict, overrides: dict | None = None):
+    """The ``config_class`` recorded in a checkpoint's config.json (fields it no longer has are
+    dropped, so older checkpoints load), with ``overrides`` applied."""
+    names = {f.name for f in dataclasses.fields(config_class)}
+    return config_class(**{**{k: v for k, v in meta["config"].items() if k in names}, **(overrides or {})})
 
 
 def check_plant(found: Path, recorded: dict | None, system, force: bool = False) -> None:

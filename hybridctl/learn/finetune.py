@@ -29,10 +29,9 @@ backend or the number of workers, a seed gives the same run on every backend.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
-import time
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -51,6 +50,7 @@ from ..systems import load as load_system
 from . import checkpoint as ckpt
 from .ars import make_env as _make_env
 from .config_check import check_types
+from .robustness import wilson_interval
 from .run import PROGRESS_FILE, EvalResult, Learner, Saved, check_fields, check_finite, set_torch_threads
 
 SELECTIONS = ("action", "all", "last")
@@ -529,12 +529,19 @@ class FineTune(Learner):
                   max_steps: int | None = None, keep_states: bool = False) -> list[dict]:
         """One episode per (theta row, seed), in fixed chunks spread over ``backend``."""
         size = self.config.chunk_size
-        module, gate = Shipped(self.tunable.module), Shipped(self.tunable.gate)
+        module, gate = self._shipped()
         tasks = [ChunkTask(self.env, self.env_kwargs, module, self.names, thetas[i:i + size],
                            seeds[i:i + size], self.tunable.normalizer, max_steps or self.config.episode_steps,
                            postprocessor, self.tunable.system, gate, keep_states)
                  for i in range(0, len(seeds), size)]
         return [r for chunk in backend.map(run_chunk, tasks) for r in chunk]
+
+    def _shipped(self) -> tuple[Shipped, Shipped]:
+        """The policy and gate as bytes for the workers, made once: the parameters they keep are never
+        changed (the perturbed ones travel in the chunks' theta rows)."""
+        if getattr(self, "_shipped_pair", None) is None:
+            self._shipped_pair = (Shipped(self.tunable.module), Shipped(self.tunable.gate))
+        return self._shipped_pair
 
     def _update_draws(self, update: int) -> tuple[np.ndarray, list[int]]:
         """Directions (n, P) and one env seed per direction for ``update`` (from the seed alone)."""
@@ -583,21 +590,10 @@ class FineTune(Learner):
             own = backend is None
             pool = backend or make_backend(self.config.backend, self.config.workers, self.config.address)
             try:
-                while self.update < target and not run.stopped:
-                    start = time.perf_counter()
-                    row = self.train_update(pool)
-                    took = time.perf_counter() - start
-                    self.wall_time += took
-                    row.update(wall_time=self.wall_time,
-                               steps_per_s=row["episode_steps"] * 2 * self.config.n_directions / max(took, 1e-9))
-                    self.history.append(row)
-                    run.log(row)
-                    run.advance(1, ret=f"{row['mean_raw_return']:.1f}", dim=f"{row['mean_dimension']:.2f}",
-                                sps=f"{row['steps_per_s']:.0f}")
-                    run.after_update()
-                    by_updates = self.update % self.config.checkpoint_every == 0
-                    if by_updates or self.update < target:
-                        run.checkpoint_if_due(by_updates)
+                self.run_updates(run, target, lambda: self.train_update(pool), 2 * self.config.n_directions,
+                                 self.config.checkpoint_every,
+                                 lambda row: {"ret": f"{row['mean_raw_return']:.1f}", "dim": f"{row['mean_dimension']:.2f}",
+                                              "sps": f"{row['steps_per_s']:.0f}"})
             finally:
                 if own:
                     pool.close()
@@ -618,8 +614,6 @@ class FineTune(Learner):
     def tuned_module(self) -> torch.nn.Module:
         """A copy of the policy module with the fine-tuned weights (normalised observations -> actions),
         e.g. the swing-up block of a Drake diagram (``experiments.build_named_diagram(system, "finetune:PATH")``)."""
-        import copy
-
         self._write_theta()
         module = copy.deepcopy(self.tunable.module).eval()
         for p in module.parameters():
@@ -700,10 +694,7 @@ class FineTune(Learner):
         if meta.get("source") != self.tunable.source:
             problems.append(f"checkpoint {found} fine-tunes {meta.get('source')!r}; this policy is "
                             f"{self.tunable.source!r}")
-        if problems:
-            if not force:
-                raise ckpt.CheckpointError(f"{'; '.join(problems)} ({ckpt.FORCE_HINT})")
-            warnings.warn(f"force: loading anyway: {'; '.join(problems)}", stacklevel=3)
+        ckpt.refuse_unless_forced(problems, force)
         if meta.get("names") != self.names or meta.get("n_params") != self.n_params:
             raise ckpt.CheckpointError(f"checkpoint {found} perturbs {meta.get('n_params')} parameters "
                                        f"({meta.get('config', {}).get('select')!r}); this policy with select="
@@ -722,22 +713,9 @@ class FineTune(Learner):
                                        f"lacks 'config' or 'source'")
         ckpt.check_algorithm(folder, meta.get("algorithm") or "(no algorithm)", (cls.algorithm_name,),
                              cls.algorithm_name, force)
-        names = {f.name for f in dataclasses.fields(FineTuneConfig)}
-        config = FineTuneConfig(**{**{k: v for k, v in meta["config"].items() if k in names}, **overrides})
+        config = ckpt.config_from_meta(FineTuneConfig, meta, overrides)
         source = policy if policy is not None else meta["source"]
         tuner = cls(env if env is not None else meta["env"], source, config, env_kwargs=meta.get("env_kwargs"),
                     trust=trust)
         tuner.checkpointer.restore(folder, force=force)
         return tuner
-
-
-def wilson_interval(k: int, n: int, z: float = 1.959964) -> tuple[float, float]:
-    """95 % Wilson score interval of a rate k / n (sensible at 0 and n, unlike the normal approximation)."""
-    if n <= 0:
-        return (0.0, 1.0)
-    p = k / n
-    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    lo = 0.0 if k == 0 else max(0.0, centre - half)   # exact ends (no 1e-19 from rounding)
-    hi = 1.0 if k == n else min(1.0, centre + half)
-    return (lo, hi)

@@ -23,13 +23,16 @@ from ..analysis.postprocess import PostProcessor
 
 
 def wilson_interval(failures: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    """95 % Wilson score interval of a failure fraction."""
+    """95 % Wilson score interval of a failure fraction (sensible at 0 and n, unlike the normal
+    approximation; the ends are exact there, not 1e-19 from rounding)."""
     if n == 0:
         return (0.0, 1.0)
     p = failures / n
     centre = (p + z * z / (2 * n)) / (1 + z * z / n)
     half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return (max(0.0, centre - half), min(1.0, centre + half))
+    lo = 0.0 if failures == 0 else max(0.0, centre - half)
+    hi = 1.0 if failures == n else min(1.0, centre + half)
+    return (lo, hi)
 
 
 def failure_rates(policy: ARS | Callable[[np.ndarray], np.ndarray], env=None, conditions: dict | None = None,

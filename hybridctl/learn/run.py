@@ -763,6 +763,31 @@ class Learner:
         """Whether checkpoints written by ``learn`` include the bulky files (config ``save_replay``)."""
         return bool(getattr(self.config, "save_replay", True))
 
+    def run_updates(self, run: "Run", target: int, train: Callable[[], dict], rollouts: int, every: int,
+                    postfix: Callable[[dict], dict]) -> None:
+        """The loop of a learner that counts whole updates (ARS epochs, fine-tuning updates).
+
+        Until ``progress_count`` reaches ``target`` or a callback stops the run: ``train()``
+        returns the update's row (with ``episode_steps``, the mean episode length); the loop adds
+        the learner's ``wall_time`` and ``steps_per_s`` (over ``rollouts`` episodes), appends it to
+        ``history``, logs it, advances the bar (``postfix(row)``: its fields) and checkpoints every
+        ``every`` updates, or when ``checkpoint_minutes`` have passed (not after the last update,
+        which the run's ``final/`` follows).
+        """
+        while self.progress_count < target and not run.stopped:
+            start = time.perf_counter()
+            row = train()
+            took = time.perf_counter() - start
+            self.wall_time += took
+            row.update(wall_time=self.wall_time, steps_per_s=row["episode_steps"] * rollouts / max(took, 1e-9))
+            self.history.append(row)
+            run.log(row)
+            run.advance(1, **postfix(row))
+            run.after_update()
+            by_count = self.progress_count % every == 0
+            if by_count or self.progress_count < target:
+                run.checkpoint_if_due(by_count)
+
     # ------------------------------------------------------------------ the run context
     @contextlib.contextmanager
     def run(self, log_dir: str | Path | None, resume: bool, progress: bool, callback, total: int,

@@ -7,6 +7,17 @@ from pathlib import Path
 import numpy as np
 
 
+def _finish(fig, path: str | Path | None):
+    """Lay the figure out; write it to ``path`` (PNG) and close it when a path is given."""
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    if path is not None:
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+    return fig
+
+
 def plot_finetune_report(before: dict, after: dict, history: list[dict], path: str | Path | None = None,
                          title: str = ""):
     """Three panels: histogram of the deterministic episode returns before / after, early-termination
@@ -40,11 +51,7 @@ def plot_finetune_report(before: dict, after: dict, history: list[dict], path: s
     axes[2].set(xlabel="update", ylabel="return of the 2n perturbed policies", title="training")
     if title:
         fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    if path is not None:
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-    return fig
+    return _finish(fig, path)
 
 
 def plot_return_table(rows: list[dict], path: str | Path | None = None, title: str = "returns before and after"):
@@ -72,11 +79,7 @@ def plot_return_table(rows: list[dict], path: str | Path | None = None, title: s
     ax.set_xticks(range(len(rows)), [r["label"] for r in rows], rotation=30, ha="right", fontsize=8)
     ax.set(ylabel="return / |pretrained mean|", title=title)
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    if path is not None:
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-    return fig
+    return _finish(fig, path)
 
 
 def plot_failure_table(rows: list[dict], path: str | Path | None = None,
@@ -96,11 +99,7 @@ def plot_failure_table(rows: list[dict], path: str | Path | None = None,
     ax.set_xticks(range(len(rows)), [r["label"] for r in rows], fontsize=8)
     ax.set(ylabel="early terminations (%)", title=title)
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    if path is not None:
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-    return fig
+    return _finish(fig, path)
 
 
 def plot_dimension_table(rows: list[dict], path: str | Path | None = None,
@@ -123,8 +122,4 @@ def plot_dimension_table(rows: list[dict], path: str | Path | None = None,
         ax.set(ylabel=label)
         ax.legend(fontsize=8)
     fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    if path is not None:
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-    return fig
+    return _finish(fig, path)
