@@ -124,3 +124,23 @@ def test_mfpt_benchmark_agrees_with_spsolve(tmp_path):
     assert entry["max_rel_diff_vs_spsolve"] < 1e-8 and entry["krylov_solver"]["converged"]
     assert _positive_finite(entry["krylov_s"]) and _positive_finite(entry["speedup_vs_spsolve"])
     assert 1 < entry["mfpt_mean_over_states"] < 1e6 and entry["infinite_states"] == 0
+
+
+def test_training_benchmark_reports_rates_and_projection(tmp_path):
+    """benchmarks/training.py --quick (eager only): our SAC and SSAC env rates, SB3's when installed."""
+    out = tmp_path / "training.json"
+    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "training.py"), "--quick", "--no-compile",
+                           "--out", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    report = json.loads(proc.stdout)
+    assert json.loads(out.read_text()) == report
+    assert _positive_finite(report["sac"]["off"]["env_steps_per_s"]["per_s"])
+    assert _positive_finite(report["sac"]["off"]["gradient_steps_per_s"]["per_s"])
+    assert _positive_finite(report["ssac_env"]["off"]["env_steps_per_s"]["per_s"])
+    assert report["projected_ssac_2e6"]["gradient_steps"] == 499_200   # 3900 rounds x 4 updates x 32 minibatches
+    assert _positive_finite(report["projected_ssac_2e6"]["hybridctl_off_s"])
+    if "skipped" in report["sb3_sac"]:
+        assert "stable-baselines3" in report["sb3_sac"]["skipped"]
+    else:
+        ratio = report["sac"]["off"]["gradient_steps_per_s"]["ratio_vs_sb3"]
+        assert _positive_finite(ratio)
