@@ -344,11 +344,11 @@ class SAC(VectorEnvAgent):
             self.actor_opt.zero_grad(set_to_none=True)
             pi_loss.backward()
         else:
-            actor_params = {k: v.detach() for k, v in self.actor.named_parameters()}
+            actor_params = {k: v.detach() for k, v in self._named_params[0]}
             a_grads, (pi_loss, logp) = self._grads["actor"](actor_params, self._q_param_dicts(), obs, eps_new,
                                                             alpha)
             self._check_finite("pi_loss", pi_loss)
-            _set_grads(list(self.actor.parameters()), list(a_grads.values()))
+            _set_grads(self._actor_params, list(a_grads.values()))
         self.actor_opt.step()
 
         out = {"q_loss": q_loss.detach(), "pi_loss": pi_loss.detach()}
@@ -364,7 +364,7 @@ class SAC(VectorEnvAgent):
 
     def _q_param_dicts(self) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
         """The critics' parameters, detached (torch.func differentiates with respect to them)."""
-        return tuple({k: v.detach() for k, v in q.named_parameters()} for q in (self.q1, self.q2))
+        return tuple({k: v.detach() for k, v in named} for named in self._named_params[1:])
 
     def use_compile(self, remaining_steps: int | None) -> bool:
         """Set up eager or compiled gradients (and the agent-built env's decision) for a run of
@@ -372,6 +372,9 @@ class SAC(VectorEnvAgent):
         ``learn`` calls it; the compiled functions are kept across calls."""
         cfg = self.config
         enabled = wants_compile(cfg.compile, remaining_steps)
+        if enabled:  # parameters are updated in place (optimizers, load_state_dict): list them once
+            self._named_params = [list(net.named_parameters()) for net in (self.actor, self.q1, self.q2)]
+            self._actor_params = [p for _, p in self._named_params[0]]
         if enabled and self._compiled_grads is None:
             strict = cfg.compile == "on"
             self._compiled_grads = {
