@@ -124,3 +124,25 @@ def test_mfpt_benchmark_agrees_with_spsolve(tmp_path):
     assert entry["max_rel_diff_vs_spsolve"] < 1e-8 and entry["krylov_solver"]["converged"]
     assert _positive_finite(entry["krylov_s"]) and _positive_finite(entry["speedup_vs_spsolve"])
     assert 1 < entry["mfpt_mean_over_states"] < 1e6 and entry["infinite_states"] == 0
+
+
+def test_step_limits_beside_the_measured_rate(report):
+    limits = report["step_limits"]
+    assert _positive_finite(limits["machine"]["float64_flops_per_s"])
+    assert _positive_finite(limits["machine"]["sin_seconds_per_element"])
+    assert set(limits["systems"]) == {"acrobot", "cartpole", "double_cartpole", "pendulum"}
+    for name, entry in limits["systems"].items():
+        assert isinstance(entry["arithmetic_flops"], int) and entry["arithmetic_flops"] > 0, name
+        assert isinstance(entry["trig_calls"], int) and entry["trig_calls"] > 0, name
+        for key in ("flop_limit_state_steps_per_s", "arithmetic_limit_state_steps_per_s",
+                    "measured_state_steps_per_s", "fraction_of_flop_limit", "flop_limit_ratio_vs_gym_acrobot"):
+            assert _positive_finite(entry[key]), (name, key)
+        assert entry["flop_limit_state_steps_per_s"] < entry["arithmetic_limit_state_steps_per_s"]
+    # the acrobot's Euler step: 4 sin/cos (phi1, phi2, th2 twice), as the formula needs
+    assert limits["systems"]["acrobot"]["trig_calls"] == 4
+
+
+def test_single_env_entry(report):
+    entry = report["single_env"]
+    assert entry["env"].startswith("hybridctl SwingupEnv") and entry["substeps_per_step"] == 20
+    assert _positive_finite(entry["steps_per_s"]) and _positive_finite(entry["ratio_vs_gym_acrobot"])
