@@ -146,3 +146,27 @@ def test_single_env_entry(report):
     entry = report["single_env"]
     assert entry["env"].startswith("hybridctl SwingupEnv") and entry["substeps_per_step"] == 20
     assert _positive_finite(entry["steps_per_s"]) and _positive_finite(entry["ratio_vs_gym_acrobot"])
+
+
+def test_mesh_scaling_benchmark_structure(tmp_path):
+    """benchmarks/mesh_scaling.py --quick: the same mesh on 1 and 2 worker processes, a ratio
+    between them, the 16-worker projection and the figure (no speed thresholds)."""
+    out, png = tmp_path / "scaling.json", tmp_path / "scaling.png"
+    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "mesh_scaling.py"), "--quick", "--out", str(out),
+                           "--figure", str(png)], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    report = json.loads(proc.stdout)
+    assert json.loads(out.read_text()) == report and report["benchmark"] == "mesh_scaling"
+    assert report["problem"]["backend"] == "processes"
+    one, two = report["builds"]
+    assert (one["workers"], two["workers"]) == (1, 2) and one["ratio_vs_1_worker"] == 1.0
+    assert one["expanded_states"] == two["expanded_states"] > 0 and one["complete"] and two["complete"]
+    assert one["same_mesh_as_first"] and two["same_mesh_as_first"]        # the wheel is deterministic
+    for row in (one, two):
+        assert _positive_finite(row["states_per_s"]) and _positive_finite(row["ratio_vs_1_worker"])
+    projection = report["projection"]
+    assert projection["states"] == 275_658 and projection["workers"] == 16
+    for key in ("per_worker_states_per_s", "hours_at_measured_efficiency", "hours_at_linear_scaling",
+                "driver_array_mib"):
+        assert _positive_finite(projection[key]), key
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and report["figure"] == str(png)

@@ -177,13 +177,11 @@ class System:
         return self._step_torch(x, u)
 
     def _step_torch(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        """The batched, differentiable torch step."""
-        f = self.dynamics.derivatives
-        k1 = f(x, u)
-        if self.integrator == "euler":
-            return x + self.dt * k1
-        k2 = f(x + self.dt * k1, u)
-        return x + 0.5 * self.dt * (k1 + k2)
+        """The batched, differentiable torch step: ``euler`` x + dt f(x, u); ``runge_kutta2``
+        x + (0.5 dt)(k1 + k2), k2 = f(x + dt k1, u) (generated code, ``ChainDynamics.torch_step``)."""
+        if self.integrator not in ("euler", "runge_kutta2"):
+            raise ValueError(f"integrator must be 'euler' or 'runge_kutta2', got {self.integrator!r}")
+        return self.dynamics.torch_step(x, u, self.dt, self.integrator)
 
     def _step_one(self, x, u, check: bool):
         """``step`` of one float64 CPU state through the plain-float path, or None where it

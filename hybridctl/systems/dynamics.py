@@ -34,12 +34,17 @@ operations on (batch,) columns, and M is inverted in closed form for n_q <= 3
 
 The functions below take an array namespace (numpy or torch) so the Drake
 controller blocks (numpy, one state: evaluated on Python floats) and the
-training fast path (torch, batched, differentiable) share one formula.
+training fast path (torch, batched, differentiable) share one formula. A third
+"namespace", ``_CodeWriter``, runs the same formula on symbols and records it as
+straight-line Python over floats (``ChainDynamics.scalar``): one state then costs a few
+microseconds per step instead of tens of torch calls (``System.step`` on one float64
+state, ``System.step_single``, ``SwingupEnv``).
 """
 
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -114,6 +119,7 @@ class _Namespace:
         self.torch = isinstance(like, torch.Tensor)
         self.dtype, self.device = (like.dtype, like.device) if self.torch else (None, None)
         self._consts: dict[float, torch.Tensor] = {}
+        self._generated: dict = {}
 
     def columns(self, a):
         """The last axis of ``a`` as a list of arrays of the batch shape (views)."""
@@ -130,6 +136,13 @@ class _Namespace:
         if self.torch:
             return torch.linalg.solve(A, b.unsqueeze(-1)).squeeze(-1)
         return np.linalg.solve(A, b[..., None])[..., 0]
+
+    def consts_for(self, fn) -> list:
+        """The cached 0-d constants generated torch code ``fn`` refers to as ``K[i]``."""
+        cached = self._generated.get(fn)
+        if cached is None:
+            cached = self._generated[fn] = [self.const(v) for v in fn.constants]
+        return cached
 
     def cos(self, a):
         if self.torch:
@@ -391,6 +404,95 @@ def _scalar_source(dynamics: "ChainDynamics", name: str, dt: float, integrator: 
                      + [f"    return [{', '.join(state)}]"]) + "\n"
 
 
+class _TorchCodeWriter(_CodeWriter):
+    """As :class:`_CodeWriter`, but records the torch namespace's calls (``_Namespace`` with
+    ``torch=True``): the same ``add(alpha=)`` / ``addcmul(value=)`` chains from cached 0-d
+    constants, the same operators, the same stack. The generated function therefore computes
+    bit for bit what the table-driven torch path computes (batched, differentiable), without
+    its Python bookkeeping (dict lookups, term loops) at every call.
+    """
+
+    torch = True
+
+    def __init__(self):
+        super().__init__()
+        self.constants: list[float] = []
+
+    def const(self, value: float) -> str:
+        if value not in self.constants:
+            self.constants.append(value)
+        return f"K[{self.constants.index(value)}]"
+
+    def sin(self, a):
+        return self.assign(f"_torch.sin({self._text(a)})")
+
+    def cos(self, a):
+        return self.assign(f"_torch.cos({self._text(a)})")
+
+    def lincomb(self, const: float, terms):
+        out = None
+        for t in terms:
+            if out is None and const == 0.0 and t[0] == 1.0 and len(t) == 2:
+                out = t[1]
+                continue
+            base = self.const(const) if out is None else self._text(out)
+            factors = ", ".join(self._text(f) for f in t[1:])
+            out = self.assign(f"_torch.add({base}, {factors}, alpha={t[0]!r})" if len(t) == 2
+                              else f"_torch.addcmul({base}, {factors}, value={t[0]!r})")
+        return const if out is None else out
+
+
+def _torch_source(dynamics: "ChainDynamics", dt: float | None, integrator: str | None):
+    """(source, constants) of ``f(x, u, xp, K)``: the batched torch derivatives (``integrator``
+    None) or one integrator step, as ``System.step`` computes it (see ``ChainDynamics.torch_step``)."""
+    n_q, n_u = dynamics.p.n_q, dynamics.p.actuation.shape[1]
+    writer = _TorchCodeWriter()
+
+    def derivative(state: str, tag: str) -> str:
+        """Lines computing dx/dt at tensor ``state`` into ``d{tag}``; returns its name."""
+        names = [f"{tag}{i}" for i in range(2 * n_q)]
+        writer.lines.append(f"{', '.join(names)}, = {state}.unbind(-1)")
+        syms = [_Sym(writer, s) for s in names]
+        acc = dynamics._accelerations(writer, syms[:n_q], syms[n_q:], [_Sym(writer, f"u{i}") for i in range(n_u)])
+        cols = names[n_q:] + [writer._text(a) for a in acc]
+        writer.lines.append(f"d{tag} = xp.stack([{', '.join(cols)}], {names[0]})")
+        return f"d{tag}"
+
+    writer.lines.append(f"{', '.join(f'u{i}' for i in range(n_u))}, = u.unbind(-1)")
+    k1 = derivative("x", "a")
+    if integrator is None:
+        writer.lines.append(f"return {k1}")
+    elif integrator == "euler":
+        writer.lines.append(f"return x + {dt!r} * {k1}")
+    elif integrator == "runge_kutta2":
+        writer.lines.append(f"m = x + {dt!r} * {k1}")
+        k2 = derivative("m", "b")
+        writer.lines.append(f"return x + {0.5 * dt!r} * ({k1} + {k2})")
+    else:
+        raise ValueError(f"integrator must be 'euler' or 'runge_kutta2', got {integrator!r}")
+    source = "def torch_step(x, u, xp, K):\n" + "".join(f"    {line}\n" for line in _free_early(writer.lines))
+    return source, writer.constants
+
+
+def _free_early(lines: list[str]) -> list[str]:
+    """``lines`` with ``del`` of each temporary ``tN`` right after its last use: straight-line code
+    would otherwise keep every intermediate (batch,) tensor alive to the end (hundreds for the
+    double cart-pole), which at large batches leaves the cache and slows every operation."""
+    names = [re.findall(r"\bt\d+\b", line) for line in lines]
+    last = {}
+    for i, used in enumerate(names):
+        for name in used:
+            last[name] = i
+    out = []
+    for i, line in enumerate(lines):
+        out.append(line)
+        dead = sorted({n for n in names[i] if last[n] == i and not line.lstrip().startswith("return")},
+                      key=lambda n: int(n[1:]))
+        if dead:
+            out.append(f"del {', '.join(dead)}")
+    return out
+
+
 class ChainDynamics:
     """Manipulator terms and time derivatives of a planar chain, for numpy or torch arrays."""
 
@@ -403,6 +505,7 @@ class ChainDynamics:
         self._fold()
         self._namespaces: dict = {}
         self._scalar: dict = {}
+        self._torch_code: dict = {}
         self._lengths = [float(v) for v in params.link_length]
 
     def _xp(self, like) -> _Namespace:
@@ -439,6 +542,36 @@ class ChainDynamics:
             fn = self._scalar[key] = namespace["scalar_step" if integrator is not None else "scalar_derivatives"]
             fn.source = source
         return fn
+
+    def torch_step(self, x, u, dt: float | None = None, integrator: str | None = None):
+        """The batched torch derivatives (``integrator`` None) or one step of ``integrator`` with
+        ``dt`` (``euler``: x + dt f; ``runge_kutta2``: x + (0.5 dt)(k1 + k2), k2 at x + dt k1),
+        through generated straight-line torch code (:class:`_TorchCodeWriter`): the same torch
+        calls as the table-driven path, bit for bit, with less Python per call. Differentiable.
+        Chains of more than 3 joint coordinates use the table-driven path."""
+        xp = self._xp(x)
+        key = (dt, integrator)
+        fn = self._torch_code.get(key)
+        if fn is None:
+            try:
+                source, constants = _torch_source(self, dt, integrator)
+            except NotImplementedError:
+                fn = None
+            else:
+                namespace = {"_torch": torch}
+                exec(compile(source, f"<hybridctl.systems.dynamics torch {key}>", "exec"), namespace)
+                fn = namespace["torch_step"]
+                fn.source, fn.constants = source, constants
+            self._torch_code[key] = fn
+        if fn is None:
+            k1 = self.derivatives(x, u)
+            if integrator is None:
+                return k1
+            if integrator == "euler":
+                return x + dt * k1
+            return x + 0.5 * dt * (k1 + self.derivatives(x + dt * k1, u))
+        K = xp.consts_for(fn)
+        return fn(x, u, xp, K)
 
     def _fold(self) -> None:
         """Tables of the folded form (module docstring), kept as lists of nonzero terms.
@@ -576,6 +709,8 @@ class ChainDynamics:
     def derivatives(self, x, u):
         """Time derivative [v, qdd] of x = [q, v] under input u (batched over leading dims)."""
         xp = self._xp(x)
+        if xp.torch and self.p.n_q <= 3:
+            return self.torch_step(x, u)          # the same calls, generated once
         cols = xp.columns(x)
         q, v = cols[:self.p.n_q], cols[self.p.n_q:]
         return xp.stack(v + self._accelerations(xp, q, v, xp.columns(u)), cols[0])
