@@ -257,3 +257,13 @@ def test_tip_height_centered_penalises_only_the_cart():
     acrobot = systems.load("acrobot", **{"reward.kind": "tip_height_centered"})
     xa = torch.tensor([[1.0, 0.3, 2.0, -1.0]], dtype=torch.float64)
     torch.testing.assert_close(acrobot.reward(xa), systems.load("acrobot").reward(xa))   # no cart: unchanged
+
+
+def test_finite_check_is_not_fooled_by_an_overflowing_sum():
+    """Validation sums the batch once; finite entries whose sum overflows are still accepted."""
+    system = systems.load("acrobot")
+    x = torch.full((2, 4), 1e308, dtype=torch.float64)          # the sum is inf, every entry finite
+    assert system.derivatives(x, torch.zeros(2, 1, dtype=torch.float64)).shape == (2, 4)
+    x[1, 2] = float("-inf")
+    with pytest.raises(ValueError, match="x contains NaN or Inf"):
+        system.step(x, torch.zeros(2, 1, dtype=torch.float64))

@@ -45,8 +45,12 @@ def check_array(name: str, value, width: int) -> None:
     if len(shape) == 2 and shape[0] == 0:
         raise ValueError(f"{name} is an empty batch (0, {width}); give at least one row")
     if isinstance(value, torch.Tensor):
-        # NaN and Inf both turn a sum of zeros into NaN: one reduction, no boolean tensor.
-        finite = torch.isfinite((value * 0).sum())
+        # NaN and Inf make the sum non-finite, so a finite sum proves every entry finite: one
+        # reduction, no temporary. Only a non-finite sum (bad input, or finite values whose
+        # sum overflows) needs the entry-wise test.
+        finite = torch.isfinite(value.sum())
+        if not bool(finite):
+            finite = torch.isfinite(value).all()
     else:
         finite = np.isfinite(value).all()
     if not bool(finite):
