@@ -38,7 +38,9 @@ training fast path (torch, batched, differentiable) share one formula. A third
 "namespace", ``_CodeWriter``, runs the same formula on symbols and records it as
 straight-line Python over floats (``ChainDynamics.scalar``): one state then costs a few
 microseconds per step instead of tens of torch calls (``System.step`` on one float64
-state, ``System.step_single``, ``SwingupEnv``).
+state, ``System.step_single``, ``SwingupEnv``). ``_TorchCodeWriter`` records the torch
+namespace's calls the same way (``ChainDynamics.torch_step``, what ``System.step`` runs on
+batches): bit for bit the table-driven result, without its Python bookkeeping per call.
 """
 
 from __future__ import annotations
