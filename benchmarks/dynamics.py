@@ -138,6 +138,30 @@ def bench_step(system, batch: int, dtype: torch.dtype, method: str, settings: di
             "cpu_seconds_per_call": t["cpu_median"], "calls_per_repeat": t["calls_per_repeat"]}
 
 
+def bench_columns(system, settings: dict, compiled: bool) -> dict:
+    """``System.step_columns`` (states (n, 4096) column-major, float64), eager or through
+    ``torch.compile`` (its build time reported; skipped under --quick, which must stay fast)."""
+    method = "step_columns_compiled" if compiled else "step_columns"
+    entry = {"system": system.name, "method": method, "batch": OTHER_BATCH, "dtype": "float64"}
+    rng = np.random.default_rng(0)
+    x = torch.tensor(system.sample_initial_states(OTHER_BATCH, rng).T.copy())
+    u = torch.tensor(rng.uniform(-1, 1, size=(system.n_actions, OTHER_BATCH)) * system.action_limit)
+    if compiled:
+        if settings["repeats"] < 5:
+            return {**entry, "skipped": "--quick (torch.compile takes ~15 s)"}
+        start = time.perf_counter()
+        try:
+            system.step_columns(x, u, compiled=True)
+        except Exception as exc:  # no C++ compiler, an inductor failure: report, don't crash
+            return {**entry, "error": f"{type(exc).__name__}: {exc}"}
+        entry["compile_s"] = time.perf_counter() - start
+    t = time_calls(lambda: system.step_columns(x, u, compiled=compiled), settings["seconds_per_repeat"],
+                   settings["repeats"])
+    return {**entry, "state_steps_per_s": OTHER_BATCH / t["median"], "seconds_per_call": t["median"],
+            "seconds_per_call_min": t["min"], "seconds_per_call_max": t["max"],
+            "cpu_seconds_per_call": t["cpu_median"], "calls_per_repeat": t["calls_per_repeat"]}
+
+
 def formula_ops(system) -> dict:
     """Operations per state-step of the dynamics formula: the binary float operations (+ - * /)
     and sin/cos calls of one integrator step, counted in the straight-line one-state code
@@ -186,6 +210,10 @@ def step_limits(systems_by_name: dict, steps: list, machine: dict) -> dict:
         if measured:
             entry["measured_state_steps_per_s"] = measured[0]
             entry["fraction_of_flop_limit"] = measured[0] / entry["flop_limit_state_steps_per_s"]
+        fused = [e["state_steps_per_s"] for e in steps if e["system"] == name and e["method"] == "step_columns_compiled"]
+        if fused:
+            entry["measured_compiled_columns_state_steps_per_s"] = fused[0]
+            entry["compiled_columns_fraction_of_flop_limit"] = fused[0] / entry["flop_limit_state_steps_per_s"]
         out[name] = entry
     return out
 
@@ -242,6 +270,8 @@ def run(quick: bool = False, threads: int = 1) -> dict:
         for batch in ACROBOT_BATCHES:
             for dtype in (torch.float32, torch.float64):
                 steps.append(bench_step(acrobot, batch, dtype, method, settings))
+    columns = [bench_columns(acrobot, settings, compiled) for compiled in (False, True)]
+    steps += [c for c in columns if "state_steps_per_s" in c]
     for name in systems.known_systems():
         if name != "acrobot":
             for method in ("step", "step_unchecked"):
@@ -259,6 +289,7 @@ def run(quick: bool = False, threads: int = 1) -> dict:
     limits = {"machine": flops, "systems": step_limits(loaded, steps, flops)}
     for entry in limits["systems"].values():
         entry["flop_limit_ratio_vs_gym_acrobot"] = entry["flop_limit_state_steps_per_s"] / gym_rate
+    report["step_columns_not_measured"] = [c for c in columns if "state_steps_per_s" not in c]
     report.update({"gym_acrobot": gym_result, "single_env": single_env, "step": steps, "step_limits": limits, "drake_hybrid": drake_result})
     return report
 

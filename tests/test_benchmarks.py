@@ -170,3 +170,11 @@ def test_mesh_scaling_benchmark_structure(tmp_path):
                 "driver_array_mib"):
         assert _positive_finite(projection[key]), key
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and report["figure"] == str(png)
+
+
+def test_column_major_entries(report):
+    """step_columns is timed (eager); its torch.compile build is skipped under --quick and says so."""
+    eager = [e for e in report["step"] if e["method"] == "step_columns"]
+    assert len(eager) == 1 and eager[0]["batch"] == 4096 and _positive_finite(eager[0]["ratio_vs_gym_acrobot"])
+    (skipped,) = report["step_columns_not_measured"]
+    assert skipped["method"] == "step_columns_compiled" and "--quick" in skipped["skipped"]
