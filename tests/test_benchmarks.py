@@ -145,6 +145,7 @@ def test_training_benchmark_reports_rates_and_projection(tmp_path):
         ratio = report["sac"]["off"]["gradient_steps_per_s"]["ratio_vs_sb3"]
         assert _positive_finite(ratio)
 
+
 def test_step_limits_beside_the_measured_rate(report):
     limits = report["step_limits"]
     assert _positive_finite(limits["machine"]["float64_flops_per_s"])
