@@ -1,0 +1,101 @@
+"""The batched MuJoCo stepper reproduces gymnasium's Hopper/Walker2d/HalfCheetah v5 ``env.step``
+bit for bit (observations, rewards, terminations, info); needs the `mujoco` extra."""
+
+import numpy as np
+import pytest
+
+pytest.importorskip("mujoco")
+pytest.importorskip("mujoco.batch")
+
+import gymnasium as gym  # noqa: E402
+
+from hybridctl.envs.mujoco_batch import MujocoBatchEnv, supports  # noqa: E402
+
+ENVS = [("Hopper-v5", {}), ("Walker2d-v5", {}), ("HalfCheetah-v5", {}),
+        ("Hopper-v5", {"exclude_current_positions_from_observation": False, "healthy_reward": 0.5,
+                       "ctrl_cost_weight": 0.01, "terminate_when_unhealthy": False})]
+
+
+def gym_reference(env_id, kwargs, seeds, actions, pushes=None):
+    """Each seed's trajectory through the gymnasium env itself (pushes set on data.xfrc_applied[1])."""
+    env = gym.make(env_id, **kwargs).unwrapped
+    out = {"obs0": [], "obs": [], "reward": [], "terminated": [], "x_velocity": []}
+    for b, seed in enumerate(seeds):
+        obs, _ = env.reset(seed=seed)
+        out["obs0"].append(obs)
+        rows = {k: [] for k in ("obs", "reward", "terminated", "x_velocity")}
+        for t in range(actions.shape[1]):
+            if pushes is not None:
+                env.data.xfrc_applied[1, :3] = pushes[b, t]
+            obs, reward, terminated, _, info = env.step(actions[b, t])
+            env.data.xfrc_applied[1, :3] = 0.0
+            for k, v in (("obs", obs), ("reward", reward), ("terminated", terminated),
+                         ("x_velocity", info["x_velocity"])):
+                rows[k].append(v)
+        for k, v in rows.items():
+            out[k].append(v)
+    env.close()
+    return {k: np.array(v) for k, v in out.items()}
+
+
+@pytest.mark.parametrize("env_id,kwargs", ENVS)
+@pytest.mark.parametrize("nthread", [1, 2])
+def test_identical_to_gymnasium(env_id, kwargs, nthread):
+    seeds, steps = [0, 1, 2, 7], 150
+    batch = MujocoBatchEnv(env_id, num_envs=len(seeds), nthread=nthread, env_kwargs=kwargs)
+    rng = np.random.default_rng(3)
+    actions = rng.uniform(-1.0, 1.0, (len(seeds), steps, batch.nu))
+    ref = gym_reference(env_id, kwargs, seeds, actions)
+    obs0 = batch.reset(seeds)
+    np.testing.assert_array_equal(obs0, ref["obs0"])
+    for t in range(steps):
+        obs, reward, terminated, info = batch.step(actions[:, t])
+        np.testing.assert_array_equal(obs, ref["obs"][:, t], err_msg=f"step {t}")
+        np.testing.assert_array_equal(reward, ref["reward"][:, t], err_msg=f"step {t}")
+        np.testing.assert_array_equal(terminated, ref["terminated"][:, t], err_msg=f"step {t}")
+        np.testing.assert_array_equal(info["x_velocity"], ref["x_velocity"][:, t])
+    if "Cheetah" not in env_id and kwargs.get("terminate_when_unhealthy", True):
+        assert ref["terminated"].any(), "the random actions should make some episode unhealthy"
+
+
+def test_subsets_pushes_and_explicit_states():
+    """Stepping a subset leaves the others alone; pushes act for one step; explicit qpos/qvel work."""
+    seeds, steps = [4, 5, 6], 40
+    batch = MujocoBatchEnv("Hopper-v5", num_envs=5, nthread=2)
+    rng = np.random.default_rng(0)
+    actions = rng.uniform(-0.5, 0.5, (3, steps, 3))
+    pushes = np.zeros((3, steps, 3))
+    pushes[:, 2] = [[30.0, 0.0, 0.0], [-20.0, 0.0, 10.0], [0.0, 0.0, -40.0]]
+    ref = gym_reference("Hopper-v5", {}, seeds, actions, pushes)
+    qpos, qvel = batch.reset_states(seeds)
+    ids = np.array([0, 2, 4])
+    batch.reset([9] * 5)                         # the others hold some other state
+    batch.set_state(qpos, qvel, ids)
+    other = batch.observe([1, 3])
+    for t in range(steps):
+        push = pushes[:, t] if t == 2 else None
+        obs, reward, terminated, _ = batch.step(actions[:, t], ids=ids, push=push)
+        np.testing.assert_array_equal(obs, ref["obs"][:, t])
+        np.testing.assert_array_equal(reward, ref["reward"][:, t])
+        np.testing.assert_array_equal(terminated, ref["terminated"][:, t])
+    np.testing.assert_array_equal(batch.observe([1, 3]), other)
+    assert not np.allclose(ref["obs"][:, 3], gym_reference("Hopper-v5", {}, seeds, actions)["obs"][:, 3])
+    assert np.all(batch.xfrc_applied == 0.0)
+
+
+def test_bad_input():
+    assert supports("Hopper-v5") and not supports("Hopper-v4") and not supports("Ant-v5") and not supports(3)
+    with pytest.raises(ValueError, match="env_id"):
+        MujocoBatchEnv("Ant-v5")
+    with pytest.raises(ValueError, match="num_envs"):
+        MujocoBatchEnv("Hopper-v5", num_envs=0)
+    batch = MujocoBatchEnv("Hopper-v5", num_envs=2)
+    batch.reset([0, 1])
+    with pytest.raises(ValueError, match="actions"):
+        batch.step(np.zeros((2, 4)))
+    with pytest.raises(ValueError, match="ids"):
+        batch.step(np.zeros((1, 3)), ids=[2])
+    with pytest.raises(ValueError, match="push"):
+        batch.step(np.zeros((2, 3)), push=np.zeros((2, 2)))
+    with pytest.raises(ValueError, match="sorted"):
+        batch.step(np.zeros((2, 3)), ids=[1, 0])
