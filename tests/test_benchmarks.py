@@ -124,3 +124,24 @@ def test_mfpt_benchmark_agrees_with_spsolve(tmp_path):
     assert entry["max_rel_diff_vs_spsolve"] < 1e-8 and entry["krylov_solver"]["converged"]
     assert _positive_finite(entry["krylov_s"]) and _positive_finite(entry["speedup_vs_spsolve"])
     assert 1 < entry["mfpt_mean_over_states"] < 1e6 and entry["infinite_states"] == 0
+
+
+def test_mujoco_rollout_benchmark_structure(tmp_path):
+    """benchmarks/mujoco_rollout.py --quick: gymnasium, mj_step and the batched stepper in one run (no thresholds)."""
+    pytest.importorskip("mujoco")
+    pytest.importorskip("mujoco.batch")
+    out = tmp_path / "mujoco.json"
+    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "mujoco_rollout.py"), "--quick", "--out", str(out)],
+                          cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    report = json.loads(proc.stdout)
+    assert json.loads(out.read_text()) == report and report["benchmark"] == "mujoco_rollout" and report["quick"]
+    assert report["env"] == "Hopper-v5" and report["frame_skip"] == 4
+    assert _positive_finite(report["gym"]["env_steps_per_s"]) and _positive_finite(report["mj_step"]["seconds"])
+    assert {r["nthread"] for r in report["batched"]} == {1, 2}
+    for row in report["batched"] + report["rollout_open_loop_calls"]:
+        for key in ("env_steps_per_s", "ratio_vs_gym", "limit_over_measured"):
+            assert _positive_finite(row[key]), (key, row)
+    for row in report["batched"]:
+        assert row["physics_limit_steps_per_s"] == pytest.approx(
+            row["nthread"] / (4 * report["mj_step"]["seconds"]))

@@ -195,6 +195,22 @@ class FrozenPolicy:
             self._actor = self.spec.actor(self.theta)
         return self._actor((np.asarray(obs, dtype=np.float64) - self.obs_mean) / self.obs_std)
 
+    def many(self, obs: np.ndarray) -> np.ndarray:
+        """Actions (n, act_dim) for observations (n, obs_dim), equal bit for bit to calling the
+        policy on each row (the normalisation and the clip are elementwise and run batched; the
+        linear map runs row by row, the same matrix-vector product as one call)."""
+        z = (np.asarray(obs, dtype=np.float64) - self.obs_mean) / self.obs_std
+        if z.ndim != 2 or z.shape[1] != self.spec.obs_dim:
+            raise ValueError(f"obs must have shape (n, {self.spec.obs_dim}), got {np.shape(obs)}")
+        if self.spec.module is not None or self.spec.function is not None:
+            return np.array([self(o) for o in obs], dtype=np.float64).reshape(len(z), self.spec.act_dim)
+        matrix = self.theta.reshape(self.spec.act_dim, self.spec.obs_dim)
+        z = np.ascontiguousarray(z)
+        out = np.empty((z.shape[0], self.spec.act_dim))
+        for i in range(z.shape[0]):
+            out[i] = matrix @ z[i]
+        return np.clip(out, self.spec.low, self.spec.high)
+
 
 # ----------------------------------------------------------------------------- one rollout (runs in workers)
 

@@ -1,0 +1,224 @@
+"""MuJoCo rollouts (issue 15, part 5): the batched closed-loop stepper against gymnasium and the physics limit.
+
+Measured in one run, on Hopper-v5 under the shipped ARS hopper (a linear policy with its
+observation normalisation), every episode reset from a gymnasium reset state when it falls:
+
+* ``gym``: gymnasium's ``env.step`` (``gym.make("Hopper-v5")``, wrappers included), the
+  policy evaluated per observation, as a user's loop does (the peer);
+* ``mj_step``: the time of one ``mujoco.mj_step`` (one physics step, no Python in it) along
+  the same closed loop on one ``MjData``, timed around ``mj_step`` only; the physics limit
+  of ``nthread`` threads is ``nthread / (frame_skip x mj_step time)`` env steps/s;
+* ``batched``: :class:`hybridctl.envs.mujoco_batch.MujocoBatchEnv` at batch 64 and 256 on 1
+  and 2 threads, the policy evaluated for the whole batch in numpy between env steps, with
+  its env steps/s, ``ratio_vs_gym`` (aim >= 2.5) and ``limit_over_measured`` (physics limit /
+  measured; aim <= 1.5);
+* ``rollout_open_loop_calls``: ``mujoco.rollout.rollout`` called once per env step with
+  ``nstep = frame_skip`` (the closed loop the issue first proposed; not bit-identical to
+  gymnasium, since its state output drops the solver's warm start), for comparison.
+
+    .venv/bin/python benchmarks/mujoco_rollout.py [--quick] [--steps N] [--out FILE]
+
+Prints one JSON document (no thresholds; tests/test_benchmarks.py checks its structure).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.metadata
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import numpy as np  # noqa: E402
+
+from common import emit, machine_info  # noqa: E402
+
+ENV_ID = "Hopper-v5"
+CHECKPOINT = ROOT / "models" / "policies" / "ars-hopper"
+
+
+def linear_policy():
+    """The shipped ARS hopper as (M, mean, std, low, high): action = clip(M (obs - mean) / std)."""
+    from hybridctl.learn.ars import ARS
+    agent = ARS.load(CHECKPOINT, backend="serial")
+    frozen = agent.frozen_policy()
+    M = frozen.theta.reshape(agent.policy.act_dim, agent.policy.obs_dim)
+    return M, frozen.obs_mean, frozen.obs_std, agent.policy.low, agent.policy.high, frozen
+
+
+def gym_rate(steps: int, frozen, seed: int = 0) -> dict:
+    """gymnasium env.step with the policy per observation, resetting when an episode ends."""
+    import gymnasium as gym
+    env = gym.make(ENV_ID)
+    obs, _ = env.reset(seed=seed)
+    episodes = 1
+    start = time.perf_counter()
+    for _ in range(steps):
+        obs, _, terminated, truncated, _ = env.step(frozen(obs))
+        if terminated or truncated:
+            obs, _ = env.reset(seed=seed + episodes)
+            episodes += 1
+    wall = time.perf_counter() - start
+    env.close()
+    return {"env_steps_per_s": steps / wall, "steps": steps, "episodes": episodes, "wall_s": wall}
+
+
+def mj_step_time(steps: int, M, mean, std, low, high, batch_env) -> dict:
+    """Seconds per mj_step along the closed loop on one MjData (timed around mj_step only)."""
+    import mujoco
+    model, frame_skip = batch_env.model, batch_env.frame_skip
+    data = mujoco.MjData(model)
+    qpos0, qvel0 = batch_env.reset_states(range(1000, 1000 + 64))
+
+    def reset(k):
+        mujoco.mj_resetData(model, data)
+        data.qpos[:], data.qvel[:] = qpos0[k % 64], qvel0[k % 64]
+        mujoco.mj_forward(model, data)
+    reset(0)
+    episodes, inside, length = 1, 0.0, 0
+    for _ in range(steps):
+        obs = batch_env.observation(data.qpos[None, :], data.qvel[None, :])[0]
+        data.ctrl[:] = np.clip(M @ ((obs - mean) / std), low, high)
+        t0 = time.perf_counter()
+        mujoco.mj_step(model, data, nstep=frame_skip)
+        inside += time.perf_counter() - t0
+        length += 1
+        if not batch_env.is_healthy(data.qpos[None, :], data.qvel[None, :])[0] or length >= 1000:
+            reset(episodes)
+            episodes += 1
+            length = 0
+    return {"seconds": inside / (steps * frame_skip), "physics_steps": steps * frame_skip, "episodes": episodes}
+
+
+def batched_rate(batch: int, nthread: int, steps: int, M, mean, std, low, high) -> dict:
+    """MujocoBatchEnv with the batched linear policy; fallen episodes restart from reset states."""
+    from hybridctl.envs.mujoco_batch import MujocoBatchEnv
+    env = MujocoBatchEnv(ENV_ID, num_envs=batch, nthread=nthread)
+    qpos0, qvel0 = env.reset_states(range(1000, 1000 + batch))
+    obs = env.set_state(qpos0, qvel0)
+    length = np.zeros(batch, dtype=np.int64)
+    resets = 0
+    start = time.perf_counter()
+    for _ in range(steps):
+        actions = np.clip(((obs - mean) / std) @ M.T, low, high)
+        obs, _, terminated, _ = env.step(actions)
+        length += 1
+        done = np.flatnonzero(terminated | (length >= 1000))
+        if done.size:
+            obs[done] = env.set_state(qpos0[done], qvel0[done], done)
+            length[done] = 0
+            resets += done.size
+    wall = time.perf_counter() - start
+    env.close()
+    return {"batch": batch, "nthread": nthread, "env_steps_per_s": batch * steps / wall, "steps": steps,
+            "resets": resets, "wall_s": wall}
+
+
+def rollout_rate(batch: int, nthread: int, steps: int, M, mean, std, low, high) -> dict:
+    """mujoco.rollout.rollout called once per env step (nstep = frame_skip), fallen episodes restarted."""
+    import mujoco
+    from mujoco import rollout
+
+    from hybridctl.envs.mujoco_batch import MujocoBatchEnv
+    env = MujocoBatchEnv(ENV_ID, num_envs=1)
+    model, frame_skip, nq, nv = env.model, env.frame_skip, env.nq, env.nv
+    spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
+    nstate = mujoco.mj_stateSize(model, spec)
+    qpos0, qvel0 = env.reset_states(range(1000, 1000 + batch))
+    state0 = np.zeros((batch, nstate))
+    state0[:, 1:1 + nq], state0[:, 1 + nq:1 + nq + nv] = qpos0, qvel0
+    state = state0.copy()
+    datas = [mujoco.MjData(model) for _ in range(nthread)]
+    length = np.zeros(batch, dtype=np.int64)
+    out = np.zeros((batch, frame_skip, nstate))
+    with rollout.Rollout(nthread=nthread) as pool:
+        start = time.perf_counter()
+        for _ in range(steps):
+            qpos, qvel = state[:, 1:1 + nq], state[:, 1 + nq:1 + nq + nv]
+            actions = np.clip(((env.observation(qpos, qvel) - mean) / std) @ M.T, low, high)
+            pool.rollout(model, datas, state, np.repeat(actions[:, None, :], frame_skip, axis=1), state=out)
+            state = out[:, -1].copy()
+            length += 1
+            done = np.flatnonzero(~env.is_healthy(state[:, 1:1 + nq], state[:, 1 + nq:1 + nq + nv])
+                                  | (length >= 1000))
+            state[done], length[done] = state0[done], 0
+        wall = time.perf_counter() - start
+    env.close()
+    return {"batch": batch, "nthread": nthread, "env_steps_per_s": batch * steps / wall, "steps": steps,
+            "wall_s": wall}
+
+
+def run(quick: bool, steps: int | None, repeats: int) -> dict:
+    """All measurements, in one run."""
+    import mujoco
+    from hybridctl.envs.mujoco_batch import MujocoBatchEnv
+    load_before = list(os.getloadavg())
+    M, mean, std, low, high, frozen = linear_policy()
+    probe = MujocoBatchEnv(ENV_ID, num_envs=1)
+    batched_steps = steps or (10 if quick else 200)
+    gym_steps = 200 if quick else 4000
+    repeats = 1 if quick else repeats
+    median = lambda rows, key: statistics.median(r[key] for r in rows)   # noqa: E731
+
+    gym_runs = [gym_rate(gym_steps, frozen) for _ in range(repeats)]
+    gym = {**gym_runs[0], "env_steps_per_s": median(gym_runs, "env_steps_per_s"),
+           "all": [r["env_steps_per_s"] for r in gym_runs]}
+    mj_runs = [mj_step_time(gym_steps, M, mean, std, low, high, probe) for _ in range(repeats)]
+    mj = {**mj_runs[0], "seconds": median(mj_runs, "seconds"), "all": [r["seconds"] for r in mj_runs]}
+    frame_skip = probe.frame_skip
+    rows = []
+    for nthread in (1, 2):
+        limit = nthread / (frame_skip * mj["seconds"])
+        for batch in ((16,) if quick else (64, 256)):
+            runs = [batched_rate(batch, nthread, batched_steps, M, mean, std, low, high) for _ in range(repeats)]
+            rate = median(runs, "env_steps_per_s")
+            rows.append({**runs[0], "env_steps_per_s": rate, "all": [r["env_steps_per_s"] for r in runs],
+                         "physics_limit_steps_per_s": limit, "ratio_vs_gym": rate / gym["env_steps_per_s"],
+                         "limit_over_measured": limit / rate})
+    rollout_rows = []
+    for nthread in (1, 2):
+        batch = 16 if quick else 256
+        r = rollout_rate(batch, nthread, batched_steps, M, mean, std, low, high)
+        limit = nthread / (frame_skip * mj["seconds"])
+        rollout_rows.append({**r, "ratio_vs_gym": r["env_steps_per_s"] / gym["env_steps_per_s"],
+                             "limit_over_measured": limit / r["env_steps_per_s"]})
+    probe.close()
+    machine = machine_info()
+    machine["mujoco"] = mujoco.__version__
+    try:
+        machine["gymnasium_mujoco_envs"] = importlib.metadata.version("gymnasium")
+    except importlib.metadata.PackageNotFoundError:
+        pass
+    machine["load_average_before"] = load_before
+    return {"benchmark": "mujoco_rollout", "quick": quick, "env": ENV_ID, "frame_skip": frame_skip,
+            "policy": "the shipped ARS hopper (models/policies/ars-hopper), linear",
+            "timestamp": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "machine": machine, "repeats": repeats,
+            "gym": gym, "mj_step": mj, "batched": rows, "rollout_open_loop_calls": rollout_rows,
+            "aims": {"ratio_vs_gym": ">= 2.5", "limit_over_measured": "<= 1.5"}}
+
+
+def main() -> None:
+    """Command line."""
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--quick", action="store_true", help="a few steps and batch 16 only (for tests)")
+    parser.add_argument("--steps", type=int, default=None, help="env steps per batched measurement")
+    parser.add_argument("--repeats", type=int, default=3, help="repeats of every measurement (median)")
+    parser.add_argument("--out", type=Path, help="also write the JSON to this file")
+    args = parser.parse_args()
+    try:
+        import mujoco.batch  # noqa: F401
+    except ImportError as exc:
+        emit({"benchmark": "mujoco_rollout", "quick": args.quick, "skipped": f"mujoco >= 3.17 is missing: {exc}"},
+             args.out)
+        return
+    emit(run(args.quick, args.steps, args.repeats), args.out)
+
+
+if __name__ == "__main__":
+    main()
