@@ -99,3 +99,63 @@ def test_bad_input():
         batch.step(np.zeros((2, 3)), push=np.zeros((2, 2)))
     with pytest.raises(ValueError, match="sorted"):
         batch.step(np.zeros((2, 3)), ids=[1, 0])
+
+
+# ----------------------------------------------------------------------------- ARS and failure rates on it
+
+from hybridctl.learn.ars import ARS, ARSConfig, RolloutTask, batchable, run_episode, run_episodes_batched  # noqa: E402
+from hybridctl.learn.robustness import failure_rates  # noqa: E402
+
+
+def _assert_same_results(batched, looped):
+    assert len(batched) == len(looped)
+    for b, r in zip(batched, looped):
+        assert b.keys() == r.keys()
+        for key in r:
+            np.testing.assert_array_equal(b[key], r[key], err_msg=key)
+
+
+@pytest.mark.parametrize("env_id", ["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5"])
+def test_ars_epochs_are_bit_identical_on_the_batched_stepper(env_id):
+    """Two ARS epochs: batched (engine auto, 2 threads) and one gymnasium rollout per task give the same bits."""
+    settings = dict(seed=3, n_directions=4, top_directions=2, episode_steps=120, reward_shift=1.0, workers=2)
+    batched = ARS(env_id, ARSConfig(backend="serial", **settings))
+    looped = ARS(env_id, ARSConfig(backend="serial", engine="backend", **settings))
+    for _ in range(2):
+        rows = batched.train_epoch(None), looped.train_epoch(looped_pool)
+        assert rows[0] == rows[1]
+    np.testing.assert_array_equal(batched.theta, looped.theta)
+    np.testing.assert_array_equal(batched.stats.sum, looped.stats.sum)
+    assert batched.stats.count == looped.stats.count
+
+
+class _Serial:
+    @staticmethod
+    def map(f, tasks):
+        return [f(t) for t in tasks]
+
+
+looped_pool = _Serial()
+
+
+def test_noisy_and_pushed_episodes_are_bit_identical():
+    """Observation and action noise and random pushes draw the same numbers in the same order."""
+    agent = ARS("Hopper-v5", ARSConfig(backend="serial", seed=0))
+    agent.theta = np.random.default_rng(1).normal(scale=0.05, size=agent.theta.size)
+    tasks = agent._tasks([agent.theta] * 4, [11, 12, 13, 14], max_steps=150, keep_states=True,
+                         action_noise=0.1, obs_noise=0.02, push=(0.2, 40.0))
+    assert batchable(tasks)
+    _assert_same_results(run_episodes_batched(tasks, nthread=2), [run_episode(t) for t in tasks])
+    fixed = [RolloutTask(t.env, t.env_kwargs, t.policy.__class__(t.policy.obs_dim, t.policy.act_dim, t.policy.low,
+                                                              t.policy.high, function=lambda z: -0.1 * z[:3]),
+                         np.zeros(0), np.zeros(11), np.ones(11), t.seed, 90, 0.0, t.postprocessor) for t in tasks]
+    _assert_same_results(run_episodes_batched(fixed), [run_episode(t) for t in fixed])
+
+
+def test_failure_rates_use_the_batched_stepper_with_the_same_answer():
+    agent = ARS("Hopper-v5", ARSConfig(backend="serial", seed=0))
+    conditions = {"none": {}, "push": {"push": (0.05, 60.0)}, "action": {"action_noise": 0.3}}
+    batched = failure_rates(agent, conditions=conditions, episodes=6, episode_steps=80, backend="serial")
+    agent.config.engine = "backend"
+    looped = failure_rates(agent, conditions=conditions, episodes=6, episode_steps=80, backend="serial")
+    assert batched == looped
