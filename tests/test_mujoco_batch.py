@@ -159,3 +159,28 @@ def test_failure_rates_use_the_batched_stepper_with_the_same_answer():
     agent.config.engine = "backend"
     looped = failure_rates(agent, conditions=conditions, episodes=6, episode_steps=80, backend="serial")
     assert batched == looped
+
+
+# ----------------------------------------------------------------------------- fine-tuning on it
+
+@pytest.mark.parametrize("env_id", ["Hopper-v5", "HalfCheetah-v5"])
+def test_finetune_updates_are_bit_identical_on_the_batched_stepper(env_id, monkeypatch):
+    """FineTune's chunks on MujocoBatchEnv give the gymnasium loop's bits (float32 policy, float32 actions)."""
+    import torch
+
+    import hybridctl.learn.finetune as finetune
+    from hybridctl.parallel import make_backend
+
+    def tuner():
+        torch.manual_seed(0)
+        obs_dim, act_dim = (11, 3) if env_id == "Hopper-v5" else (17, 6)
+        net = torch.nn.Sequential(torch.nn.Linear(obs_dim, 16), torch.nn.Tanh(), torch.nn.Linear(16, act_dim),
+                                  torch.nn.Tanh())
+        return finetune.FineTune(env_id, net, n_directions=3, chunk_size=4, episode_steps=150, seed=1)
+
+    batched, looped = tuner(), tuner()
+    rows_b = [batched.train_update(make_backend("serial")) for _ in range(2)]
+    monkeypatch.setattr(finetune, "batch_supports", lambda *a, **k: False)
+    rows_l = [looped.train_update(make_backend("serial")) for _ in range(2)]
+    assert rows_b == rows_l
+    np.testing.assert_array_equal(batched.theta, looped.theta)
