@@ -14,7 +14,12 @@ observation normalisation), every episode reset from a gymnasium reset state whe
   measured; aim <= 1.5);
 * ``rollout_open_loop_calls``: ``mujoco.rollout.rollout`` called once per env step with
   ``nstep = frame_skip`` (the closed loop the issue first proposed; not bit-identical to
-  gymnasium, since its state output drops the solver's warm start), for comparison.
+  gymnasium, since its state output drops the solver's warm start), for comparison;
+* ``hopper_section_map``: apex-to-apex transitions/s of the Ch. 5 hopper map (8 apexes x 25
+  pushes), gymnasium path against the batched one (1 thread), projected to the issue's mesh;
+* ``ars_epoch``: one ARS epoch at the thesis' N = 50 on HalfCheetah-v5 (100 episodes of 1000
+  steps) on one core, one gymnasium rollout per task against the batched stepper, projected to
+  the Ch. 4 lane at N = 50 (220 epochs).
 
     .venv/bin/python benchmarks/mujoco_rollout.py [--quick] [--steps N] [--out FILE]
 
@@ -154,6 +159,52 @@ def rollout_rate(batch: int, nthread: int, steps: int, M, mean, std, low, high) 
             "wall_s": wall}
 
 
+def section_map_rates(quick: bool, frozen) -> dict:
+    """Hopper apex-to-apex transitions/s (thesis Ch. 5 mesh and Monte Carlo work) on the gymnasium path
+    and on the batched stepper (1 thread), the same states and pushes, with the projection to the
+    3,715-state x 25-push mesh of issue 15 (1,410 s on the gymnasium path and 2 processes)."""
+    from hybridctl.envs.sections import HopperApexMap, x_pushes
+    gym_map = HopperApexMap(frozen, engine="gym")
+    starts = gym_map.apex_states(steps=400 if quick else 2000)
+    apexes, count = (2, 3) if quick else (8, 25)
+    pushes = x_pushes(15.0, count).values
+    states, disturbances = np.repeat(starts[:apexes], count, axis=0), pushes * apexes
+    out = {"transitions": len(states)}
+    for name, section in (("gym", gym_map), ("batched_1_thread", HopperApexMap(frozen, engine="batch"))):
+        section.step_many(states[:2], disturbances[:2])      # build the env outside the timing
+        t0 = time.perf_counter()
+        result = section.step_many(states, disturbances)
+        wall = time.perf_counter() - t0
+        out[name] = {"transitions_per_s": len(states) / wall, "wall_s": wall,
+                     "failures": int(np.isnan(result).any(axis=1).sum())}
+    out["ratio_vs_gym"] = out["batched_1_thread"]["transitions_per_s"] / out["gym"]["transitions_per_s"]
+    out["projected_mesh_3715x25_s_per_core"] = {k: 3715 * 25 / out[k]["transitions_per_s"]
+                                                 for k in ("gym", "batched_1_thread")}
+    return out
+
+
+def ars_epoch_rates(quick: bool) -> dict:
+    """One ARS epoch at the thesis' N = 50 (b = 20) on HalfCheetah-v5 (episodes always 1000 steps), one core:
+    one gymnasium rollout per task against the batched stepper (1 thread), with the projection to the
+    Ch. 4 lane (100 identity epochs + 3 x 40 continued, run_table41.sh) at N = 50."""
+    from hybridctl.learn.ars import ARS, ARSConfig
+    from hybridctl.parallel import make_backend
+    n, steps = (2, 50) if quick else (50, None)
+    out = {"env": "HalfCheetah-v5", "n_directions": n, "episode_steps": steps or 1000}
+    for engine in ("backend", "auto"):
+        agent = ARS("HalfCheetah-v5", ARSConfig(backend="serial", engine=engine, workers=1, n_directions=n,
+                                                top_directions=min(20, n), episode_steps=steps, seed=0))
+        t0 = time.perf_counter()
+        row = agent.train_epoch(make_backend("serial"))
+        wall = time.perf_counter() - t0
+        out["gym_per_task" if engine == "backend" else "batched_1_thread"] = {
+            "epoch_s": wall, "env_steps_per_s": row["episode_steps"] * 2 * n / wall, "mean_return": row["mean_return"]}
+    out["ratio_vs_gym"] = out["gym_per_task"]["epoch_s"] / out["batched_1_thread"]["epoch_s"]
+    out["projected_ch4_lane_n50_min"] = {k: 220 * 100 * 1000 / out[k]["env_steps_per_s"] / 60
+                                         for k in ("gym_per_task", "batched_1_thread")}
+    return out
+
+
 def run(quick: bool, steps: int | None, repeats: int) -> dict:
     """All measurements, in one run."""
     import mujoco
@@ -189,6 +240,8 @@ def run(quick: bool, steps: int | None, repeats: int) -> dict:
         rollout_rows.append({**r, "ratio_vs_gym": r["env_steps_per_s"] / gym["env_steps_per_s"],
                              "limit_over_measured": limit / r["env_steps_per_s"]})
     probe.close()
+    sections = section_map_rates(quick, frozen)
+    ars = ars_epoch_rates(quick)
     machine = machine_info()
     machine["mujoco"] = mujoco.__version__
     try:
@@ -200,6 +253,7 @@ def run(quick: bool, steps: int | None, repeats: int) -> dict:
             "policy": "the shipped ARS hopper (models/policies/ars-hopper), linear",
             "timestamp": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "machine": machine, "repeats": repeats,
             "gym": gym, "mj_step": mj, "batched": rows, "rollout_open_loop_calls": rollout_rows,
+            "hopper_section_map": sections, "ars_epoch": ars,
             "aims": {"ratio_vs_gym": ">= 2.5", "limit_over_measured": "<= 1.5"}}
 
 

@@ -142,6 +142,10 @@ def test_mujoco_rollout_benchmark_structure(tmp_path):
     for row in report["batched"] + report["rollout_open_loop_calls"]:
         for key in ("env_steps_per_s", "ratio_vs_gym", "limit_over_measured"):
             assert _positive_finite(row[key]), (key, row)
+    assert _positive_finite(report["hopper_section_map"]["ratio_vs_gym"])
+    assert report["hopper_section_map"]["gym"]["failures"] == report["hopper_section_map"]["batched_1_thread"]["failures"]
+    assert _positive_finite(report["ars_epoch"]["ratio_vs_gym"])
+    assert report["ars_epoch"]["gym_per_task"]["mean_return"] == report["ars_epoch"]["batched_1_thread"]["mean_return"]
     for row in report["batched"]:
         assert row["physics_limit_steps_per_s"] == pytest.approx(
             row["nthread"] / (4 * report["mj_step"]["seconds"]))
