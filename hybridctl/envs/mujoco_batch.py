@@ -251,4 +251,4 @@ def pushes_on_root(forces: Sequence | np.ndarray) -> np.ndarray:
     return np.array(out, dtype=np.float64).reshape(-1, 3)
 
 
-__all__ = ["MujocoBatchEnv", "supports", "SUPPORTED"]
+__all__ = ["MujocoBatchEnv", "supports", "pushes_on_root", "SUPPORTED"]
