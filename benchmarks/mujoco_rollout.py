@@ -217,17 +217,24 @@ def run(quick: bool, steps: int | None, repeats: int) -> dict:
     repeats = 1 if quick else repeats
     median = lambda rows, key: statistics.median(r[key] for r in rows)   # noqa: E731
 
-    gym_runs = [gym_rate(gym_steps, frozen) for _ in range(repeats)]
+    # the repeats are interleaved (gym, mj_step, every batched setting, then again), so that a change of
+    # load on a shared machine touches every measurement alike
+    configs = [(nthread, batch) for nthread in (1, 2) for batch in ((16,) if quick else (64, 256))]
+    gym_runs, mj_runs, batched_runs = [], [], {c: [] for c in configs}
+    for _ in range(repeats):
+        gym_runs.append(gym_rate(gym_steps, frozen))
+        mj_runs.append(mj_step_time(gym_steps, M, mean, std, low, high, probe))
+        for nthread, batch in configs:
+            batched_runs[nthread, batch].append(batched_rate(batch, nthread, batched_steps, M, mean, std, low, high))
     gym = {**gym_runs[0], "env_steps_per_s": median(gym_runs, "env_steps_per_s"),
            "all": [r["env_steps_per_s"] for r in gym_runs]}
-    mj_runs = [mj_step_time(gym_steps, M, mean, std, low, high, probe) for _ in range(repeats)]
     mj = {**mj_runs[0], "seconds": median(mj_runs, "seconds"), "all": [r["seconds"] for r in mj_runs]}
     frame_skip = probe.frame_skip
     rows = []
     for nthread in (1, 2):
         limit = nthread / (frame_skip * mj["seconds"])
         for batch in ((16,) if quick else (64, 256)):
-            runs = [batched_rate(batch, nthread, batched_steps, M, mean, std, low, high) for _ in range(repeats)]
+            runs = batched_runs[nthread, batch]
             rate = median(runs, "env_steps_per_s")
             rows.append({**runs[0], "env_steps_per_s": rate, "all": [r["env_steps_per_s"] for r in runs],
                          "physics_limit_steps_per_s": limit, "ratio_vs_gym": rate / gym["env_steps_per_s"],
