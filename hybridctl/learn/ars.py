@@ -87,7 +87,8 @@ class ARSConfig:
     torch_threads: int = 1           # hybridctl: torch threads of the learner's own process (torch policies)
     engine: str = "auto"             # hybridctl: "auto" steps an epoch's rollouts together on the batched MuJoCo
     #                                  stepper (envs.mujoco_batch: Hopper/Walker2d/HalfCheetah v5, linear or fixed
-    #                                  policies; bit-identical results) on `workers` threads, else on `backend`;
+    #                                  policies; bit-identical results) on `workers` threads when the backend is
+    #                                  local (serial or processes), else on `backend`;
     #                                  "backend": always one rollout per task on `backend`
 
     def validate(self) -> None:
@@ -388,9 +389,10 @@ def run_episodes_batched(tasks: list[RolloutTask], nthread: int = 1) -> list[dic
 
 
 def rollouts(tasks: list[RolloutTask], backend, engine: str = "auto", nthread: int | None = None) -> list[dict]:
-    """:func:`run_episode` of every task: batched on MuJoCo threads (``engine="auto"`` and
-    :func:`batchable` tasks; ``nthread`` threads, default every core) or on ``backend``."""
-    if engine == "auto" and batchable(tasks):
+    """:func:`run_episode` of every task: batched on this machine's MuJoCo threads (``engine="auto"``,
+    :func:`batchable` tasks and a local backend; ``nthread`` threads, default every core) or on
+    ``backend`` (always on a Ray backend, which may reach a cluster's CPUs)."""
+    if engine == "auto" and getattr(backend, "name", "serial") != "ray" and batchable(tasks):
         threads = nthread or (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count())
         return run_episodes_batched(tasks, max(1, int(threads or 1)))
     return backend.map(run_episode, tasks)
