@@ -238,7 +238,12 @@ def run(quick: bool, steps: int | None, repeats: int) -> dict:
             rate = median(runs, "env_steps_per_s")
             rows.append({**runs[0], "env_steps_per_s": rate, "all": [r["env_steps_per_s"] for r in runs],
                          "physics_limit_steps_per_s": limit, "ratio_vs_gym": rate / gym["env_steps_per_s"],
-                         "limit_over_measured": limit / rate})
+                         "limit_over_measured": limit / rate,
+                         # paired with the peers measured just before it in the same repeat (same load)
+                         "ratio_vs_gym_by_repeat": [r["env_steps_per_s"] / g["env_steps_per_s"]
+                                                    for r, g in zip(runs, gym_runs)],
+                         "limit_over_measured_by_repeat": [nthread / (frame_skip * m["seconds"]) / r["env_steps_per_s"]
+                                                           for r, m in zip(runs, mj_runs)]})
     rollout_rows = []
     for nthread in (1, 2):
         batch = 16 if quick else 256

@@ -147,5 +147,6 @@ def test_mujoco_rollout_benchmark_structure(tmp_path):
     assert _positive_finite(report["ars_epoch"]["ratio_vs_gym"])
     assert report["ars_epoch"]["gym_per_task"]["mean_return"] == report["ars_epoch"]["batched_1_thread"]["mean_return"]
     for row in report["batched"]:
+        assert len(row["ratio_vs_gym_by_repeat"]) == len(row["limit_over_measured_by_repeat"]) == report["repeats"]
         assert row["physics_limit_steps_per_s"] == pytest.approx(
             row["nthread"] / (4 * report["mj_step"]["seconds"]))
