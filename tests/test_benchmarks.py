@@ -198,3 +198,28 @@ def test_column_major_entries(report):
     assert len(eager) == 1 and eager[0]["batch"] == 4096 and _positive_finite(eager[0]["ratio_vs_gym_acrobot"])
     (skipped,) = report["step_columns_not_measured"]
     assert skipped["method"] == "step_columns_compiled" and "--quick" in skipped["skipped"]
+
+def test_mujoco_rollout_benchmark_structure(tmp_path):
+    """benchmarks/mujoco_rollout.py --quick: gymnasium, mj_step and the batched stepper in one run (no thresholds)."""
+    pytest.importorskip("mujoco")
+    pytest.importorskip("mujoco.batch")
+    out = tmp_path / "mujoco.json"
+    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "mujoco_rollout.py"), "--quick", "--out", str(out)],
+                          cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    report = json.loads(proc.stdout)
+    assert json.loads(out.read_text()) == report and report["benchmark"] == "mujoco_rollout" and report["quick"]
+    assert report["env"] == "Hopper-v5" and report["frame_skip"] == 4
+    assert _positive_finite(report["gym"]["env_steps_per_s"]) and _positive_finite(report["mj_step"]["seconds"])
+    assert {r["nthread"] for r in report["batched"]} == {1, 2}
+    for row in report["batched"] + report["rollout_open_loop_calls"]:
+        for key in ("env_steps_per_s", "ratio_vs_gym", "limit_over_measured"):
+            assert _positive_finite(row[key]), (key, row)
+    assert _positive_finite(report["hopper_section_map"]["ratio_vs_gym"])
+    assert report["hopper_section_map"]["gym"]["failures"] == report["hopper_section_map"]["batched_1_thread"]["failures"]
+    assert _positive_finite(report["ars_epoch"]["ratio_vs_gym"])
+    assert report["ars_epoch"]["gym_per_task"]["mean_return"] == report["ars_epoch"]["batched_1_thread"]["mean_return"]
+    for row in report["batched"]:
+        assert len(row["ratio_vs_gym_by_repeat"]) == len(row["limit_over_measured_by_repeat"]) == report["repeats"]
+        assert row["physics_limit_steps_per_s"] == pytest.approx(
+            row["nthread"] / (4 * report["mj_step"]["seconds"]))
