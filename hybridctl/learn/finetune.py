@@ -372,15 +372,27 @@ def run_chunk(task: ChunkTask) -> list[dict]:
                 if "success" in info:
                     success[i] = bool(info["success"])
         returns[stepped] += rewards[stepped]
-        steps[stepped] += 1
-        bad = stepped[~(np.isfinite(obs[stepped]).all(axis=1) & np.isfinite(returns[stepped]))]
-        finite[bad], active[bad] = False, False
-        active &= steps < limit
-        z = _normalise(task.normalizer, obs)
-        history.append(z.copy())
-    states = np.stack(history)    # (T + 1, n, obs); member i's episode is states[: steps[i] + 1, i]
+        z = _after_step(task, obs, returns, steps, stepped, finite, active, limit, history)
+    return _chunk_results(task, history, returns, steps, terminated, finite, success)
+
+
+def _after_step(task: ChunkTask, obs, returns, steps, stepped, finite, active, limit, history) -> np.ndarray:
+    """Book-keeping after the ``stepped`` episodes took a step (their rewards already in ``returns``):
+    count the step, stop non-finite and over-long episodes, record and return the normalised observations."""
+    steps[stepped] += 1
+    bad = stepped[~(np.isfinite(obs[stepped]).all(axis=1) & np.isfinite(returns[stepped]))]
+    finite[bad], active[bad] = False, False
+    active &= steps < limit
+    z = _normalise(task.normalizer, obs)
+    history.append(z.copy())
+    return z
+
+
+def _chunk_results(task: ChunkTask, history, returns, steps, terminated, finite, success) -> list[dict]:
+    """One result per episode of a chunk; member i's episode is states[: steps[i] + 1, i]."""
+    states = np.stack(history)    # (T + 1, n, obs)
     return [_episode_result(task, states[: steps[i] + 1, i], returns[i], int(steps[i]), bool(terminated[i]),
-                            bool(finite[i]), success[i]) for i in range(n)]
+                            bool(finite[i]), None if success is None else success[i]) for i in range(len(steps))]
 
 
 def _run_mujoco_chunk(task: ChunkTask) -> list[dict]:
@@ -408,15 +420,8 @@ def _run_mujoco_chunk(task: ChunkTask) -> list[dict]:
         terminated[stepped] = term
         active[stepped[term]] = False
         returns[stepped] += r
-        steps[stepped] += 1
-        bad = stepped[~(np.isfinite(obs[stepped]).all(axis=1) & np.isfinite(returns[stepped]))]
-        finite[bad], active[bad] = False, False
-        active &= steps < limit
-        z = _normalise(task.normalizer, obs)
-        history.append(z.copy())
-    states = np.stack(history)
-    return [_episode_result(task, states[: steps[i] + 1, i], returns[i], int(steps[i]), bool(terminated[i]),
-                            bool(finite[i]), None) for i in range(n)]
+        z = _after_step(task, obs, returns, steps, stepped, finite, active, limit, history)
+    return _chunk_results(task, history, returns, steps, terminated, finite, None)
 
 
 def _run_system_chunk(task: ChunkTask) -> list[dict]:
