@@ -114,6 +114,8 @@ class System:
             self._has_scalar = True
         except NotImplementedError:          # > 3 joint coordinates: batched LU only
             self._has_scalar = False
+        if self.integrator in ("euler", "runge_kutta2"):  # generated now: not inside a torch.compile trace
+            self.dynamics.generate_torch_step(self.dt, self.integrator)
         self._lqr_cache: dict = {}
 
     def __repr__(self) -> str:

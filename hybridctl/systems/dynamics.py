@@ -548,6 +548,23 @@ class ChainDynamics:
             fn.source = source
         return fn
 
+    def generate_torch_step(self, dt: float, integrator: str | None):
+        """The generated straight-line torch step for (``dt``, ``integrator``), cached; None for chains
+        the generator does not cover (they use the table-driven path)."""
+        key = (dt, integrator)
+        if key not in self._torch_code:
+            try:
+                source, constants = _torch_source(self, dt, integrator)
+            except NotImplementedError:
+                fn = None
+            else:
+                namespace = {"_torch": torch}
+                exec(compile(source, f"<hybridctl.systems.dynamics torch {key}>", "exec"), namespace)
+                fn = namespace["torch_step"]
+                fn.source, fn.constants = source, constants
+            self._torch_code[key] = fn
+        return self._torch_code[key]
+
     def torch_step_columns(self, x, u, dt: float, integrator: str, compiled: bool = False):
         """One integrator step of states stored column-major: ``x`` (n, batch), ``u`` (m, batch),
         each row contiguous over the batch; returns (n, batch). The formula and operations of
@@ -583,17 +600,10 @@ class ChainDynamics:
         xp = self._xp(x)
         key = (dt, integrator)
         fn = self._torch_code.get(key)
-        if fn is None:
-            try:
-                source, constants = _torch_source(self, dt, integrator)
-            except NotImplementedError:
-                fn = None
-            else:
-                namespace = {"_torch": torch}
-                exec(compile(source, f"<hybridctl.systems.dynamics torch {key}>", "exec"), namespace)
-                fn = namespace["torch_step"]
-                fn.source, fn.constants = source, constants
-            self._torch_code[key] = fn
+        # generating code (exec) inside a torch.compile trace would break the graph: there the
+        # table-driven path below runs (the same torch calls); System generates its own step up front
+        if fn is None and key not in self._torch_code and not torch.compiler.is_compiling():
+            fn = self.generate_torch_step(dt, integrator)
         if fn is None:
             k1 = self.derivatives(x, u)
             if integrator is None:
