@@ -13,7 +13,9 @@ from typing import Callable
 
 import numpy as np
 import torch
-from pydrake.systems.framework import BasicVector, Context, DiscreteValues, LeafSystem
+from pydrake.common.value import AbstractValue
+from pydrake.systems.framework import (BasicVector, Context, DiscreteValues, InputPortIndex, LeafSystem,
+                                       State)
 
 from ..systems import control
 
@@ -169,41 +171,59 @@ class Gate(LeafSystem):
     p < ``off``; in between it keeps its mode. Mode and p are discrete state, so a
     new Context starts in swing-up (thesis: reset to swing-up at episode start).
 
-    Ports: input ``state``; outputs ``mode`` (1) and ``probability`` (1).
+    Ports: input ``state``; outputs ``mode`` (1), ``probability`` (1) and ``selector``
+    (abstract ``InputPortIndex``: ``selector_ports[mode]``), which drives Drake's C++
+    ``PortSwitch`` (``build_hybrid_diagram``), so no Python runs between updates. The
+    selector is abstract state written by the same (unrestricted) periodic update.
     ``on`` and ``off`` have no defaults: a system's are ``system.gate.on`` / ``.off``
-    (``build_hybrid_diagram`` passes them).
+    (``build_hybrid_diagram`` passes them). ``selector_ports``: the switch's input port
+    indices of the swing-up and the balancing command (a ``PortSwitch`` numbers its
+    selector 0 and the declared inputs from 1).
     """
 
     def __init__(self, classifier, n_states: int, period: float, *, on: float, off: float,
-                 name: str = "gate"):
+                 name: str = "gate", selector_ports: tuple[int, int] = (1, 2)):
         super().__init__()
         if not 0.0 < off < on < 1.0:
             raise ValueError(f"gate thresholds need 0 < off < on < 1, got off={off}, on={on}")
+        if len(selector_ports) != 2 or min(selector_ports) < 0:
+            raise ValueError(f"selector_ports must be two input port indices >= 0, got {selector_ports!r}")
         self._classify = _as_numpy_fn(classifier, "classifier")
         self.on, self.off = float(on), float(off)
         self.period = _check_period(period)
+        self.selector_ports = tuple(int(i) for i in selector_ports)
+        self._selectors = tuple(InputPortIndex(i) for i in self.selector_ports)
         self.DeclareVectorInputPort("state", n_states)
         self._mode = self.DeclareDiscreteState(1)
         self._probability = self.DeclareDiscreteState(1)
-        self.DeclarePeriodicDiscreteUpdateEvent(self.period, 0.0, self._update)
+        self._selector = self.DeclareAbstractState(AbstractValue.Make(self._selectors[0]))
+        self.DeclarePeriodicUnrestrictedUpdateEvent(self.period, 0.0, self._update)
         self.DeclareStateOutputPort("mode", self._mode)
         self.DeclareStateOutputPort("probability", self._probability)
+        self.DeclareStateOutputPort("selector", self._selector)
         self.set_name(name)
 
     def next_mode(self, mode: float, probability: float) -> float:
         """Hysteresis (:func:`hybridctl.systems.control.hysteresis`): on above ``on``, off below ``off``."""
         return float(control.hysteresis(float(probability), float(mode), self.on, self.off))
 
-    def _update(self, context: Context, discrete_state: DiscreteValues) -> None:
+    def _update(self, context: Context, state: State) -> None:
         x = self.get_input_port(0).Eval(context)
         p = float(self._classify(x)[0])
-        mode = context.get_discrete_state(self._mode).GetAtIndex(0)
-        discrete_state.get_mutable_vector(self._mode).SetAtIndex(0, self.next_mode(mode, p))
-        discrete_state.get_mutable_vector(self._probability).SetAtIndex(0, p)
+        mode = self.next_mode(context.get_discrete_state(self._mode).GetAtIndex(0), p)
+        state.get_mutable_discrete_state(self._mode).SetAtIndex(0, mode)
+        state.get_mutable_discrete_state(self._probability).SetAtIndex(0, p)
+        state.get_mutable_abstract_state(self._selector).set_value(self._selectors[int(mode > 0.5)])
 
 
 class ModeSwitch(LeafSystem):
-    """Passes ``balance`` when ``mode`` > 0.5, else ``swingup`` (output ``command``)."""
+    """Passes ``balance`` when ``mode`` > 0.5, else ``swingup`` (output ``command``).
+
+    A Python feedthrough block: Drake evaluates it at every derivative evaluation.
+    ``build_hybrid_diagram`` uses Drake's C++ ``PortSwitch`` driven by the gate's
+    ``selector`` instead; this block is its ``switch="python"`` option (the loop before
+    issue 15, kept to measure against in ``benchmarks/dynamics.py``).
+    """
 
     def __init__(self, n_actions: int, name: str = "switch"):
         super().__init__()

@@ -2,7 +2,11 @@
 
     plant --state--> [swing-up] --\\
           --state--> [LQR]     ----> [switch] -> [saturation] -> plant
-          --state--> [gate] --mode--/
+          --state--> [gate] --selector--/
+
+The swing-up, the LQR and the gate are Python blocks updated periodically (zero-order
+holds, :mod:`.blocks`); the switch (Drake's ``PortSwitch``) and the saturation are C++
+primitives, so between the periodic updates the loop runs without calling Python.
 
 Exported ports (by name): outputs ``state`` (spec convention), ``command``
 (saturated input applied to the plant), ``mode`` (0 swing-up, 1 LQR),
@@ -14,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 from pydrake.systems.framework import Diagram, DiagramBuilder
-from pydrake.systems.primitives import AffineSystem, LogVectorOutput, Saturation
+from pydrake.systems.primitives import AffineSystem, LogVectorOutput, PortSwitch, Saturation
 
 from ..systems import System
 from ..systems import plants as _plants
@@ -78,6 +82,9 @@ def _swingup_block(system: System, swingup, period: float | None):
                           limit=system.action_limit, name="swingup")
 
 
+SWITCHES = ("drake", "python")
+
+
 def _gate_block(system: System, gate, on: float | None, off: float | None):
     on = system.gate.on if on is None else float(on)
     off = system.gate.off if off is None else float(off)
@@ -92,7 +99,8 @@ def _gate_block(system: System, gate, on: float | None, off: float | None):
 
 def build_hybrid_diagram(system: System, swingup=None, gate=None, *, balance=None,
                          swingup_period: float | None = None, gate_on: float | None = None,
-                         gate_off: float | None = None, meshcat=None, log: bool = True) -> HybridDiagram:
+                         gate_off: float | None = None, meshcat=None, log: bool = True,
+                         switch: str = "drake") -> HybridDiagram:
     """Build plant + swing-up + LQR + gate + switch + saturation as a Drake Diagram.
 
     Args:
@@ -108,9 +116,15 @@ def build_hybrid_diagram(system: System, swingup=None, gate=None, *, balance=Non
         gate_on, gate_off: hysteresis thresholds (default: the spec's, 0.9 / 0.5).
         meshcat: a ``pydrake.geometry.Meshcat`` to draw the robot live, or None.
         log: add VectorLogSinks (one sample per integration step) for simulate().
+        switch: "drake" (default): Drake's C++ ``PortSwitch`` driven by the gate's
+            ``selector`` output; "python": the Python feedthrough ``ModeSwitch`` driven by
+            its ``mode`` (the loop before issue 15, evaluated at every derivative
+            evaluation; kept to measure against). Both give the same run.
     """
     if not isinstance(system, System):
         raise TypeError(f"system must be a hybridctl.systems.System, got {type(system).__name__}")
+    if switch not in SWITCHES:
+        raise ValueError(f"switch must be one of {SWITCHES}, got {switch!r}")
     builder = DiagramBuilder()
     handle, scene_graph = _plants.add_plant(system, builder, with_geometry=meshcat is not None)
     if meshcat is not None:
@@ -138,16 +152,26 @@ def build_hybrid_diagram(system: System, swingup=None, gate=None, *, balance=Non
         name="balance")
     bal = builder.AddSystem(bal)
     gate_block = builder.AddSystem(_gate_block(system, gate, gate_on, gate_off))
-    switch = builder.AddSystem(ModeSwitch(system.n_actions))
+    if switch == "python":
+        switch = builder.AddSystem(ModeSwitch(system.n_actions))
+        swing_in, balance_in = switch.GetInputPort("swingup"), switch.GetInputPort("balance")
+        builder.Connect(gate_block.GetOutputPort("mode"), switch.GetInputPort("mode"))
+    else:
+        switch = builder.AddSystem(PortSwitch(system.n_actions))
+        switch.set_name("switch")
+        swing_in, balance_in = switch.DeclareInputPort("swingup"), switch.DeclareInputPort("balance")
+        if (swing_in.get_index(), balance_in.get_index()) != gate_block.selector_ports:
+            raise ValueError(f"the gate selects input ports {gate_block.selector_ports}; the switch has swingup "
+                             f"{swing_in.get_index()} and balance {balance_in.get_index()}")
+        builder.Connect(gate_block.GetOutputPort("selector"), switch.get_port_selector_input_port())
     limit = np.full(system.n_actions, system.action_limit)
     saturation = builder.AddSystem(Saturation(-limit, limit))
     saturation.set_name("saturation")
 
     for block in (swing, bal, gate_block):
         builder.Connect(state_port, block.get_input_port(0))
-    builder.Connect(gate_block.GetOutputPort("mode"), switch.GetInputPort("mode"))
-    builder.Connect(swing.get_output_port(0), switch.GetInputPort("swingup"))
-    builder.Connect(bal.get_output_port(0), switch.GetInputPort("balance"))
+    builder.Connect(swing.get_output_port(0), swing_in)
+    builder.Connect(bal.get_output_port(0), balance_in)
     builder.Connect(switch.get_output_port(0), saturation.get_input_port())
     builder.Connect(saturation.get_output_port(), handle.actuation_input)
 
