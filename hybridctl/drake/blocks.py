@@ -14,8 +14,9 @@ from typing import Callable
 import numpy as np
 import torch
 from pydrake.common.value import AbstractValue
-from pydrake.systems.framework import (BasicVector, Context, DiscreteValues, InputPortIndex, LeafSystem,
-                                       State)
+from pydrake.systems.framework import (BasicVector, Context, Diagram, DiagramBuilder, DiscreteValues, InputPortIndex,
+                                       LeafSystem, State)
+from pydrake.systems.primitives import AffineSystem, MatrixGain, Saturation, WrapToSystem, ZeroOrderHold
 
 from ..systems import control
 
@@ -193,7 +194,7 @@ class Gate(LeafSystem):
         self.period = _check_period(period)
         self.selector_ports = tuple(int(i) for i in selector_ports)
         self._selectors = tuple(InputPortIndex(i) for i in self.selector_ports)
-        self.DeclareVectorInputPort("state", n_states)
+        self._state_port = self.DeclareVectorInputPort("state", n_states)
         self._mode = self.DeclareDiscreteState(1)
         self._probability = self.DeclareDiscreteState(1)
         self._selector = self.DeclareAbstractState(AbstractValue.Make(self._selectors[0]))
@@ -205,15 +206,67 @@ class Gate(LeafSystem):
 
     def next_mode(self, mode: float, probability: float) -> float:
         """Hysteresis (:func:`hybridctl.systems.control.hysteresis`): on above ``on``, off below ``off``."""
-        return float(control.hysteresis(float(probability), float(mode), self.on, self.off))
+        return control.hysteresis(float(probability), float(mode), self.on, self.off)
 
     def _update(self, context: Context, state: State) -> None:
-        x = self.get_input_port(0).Eval(context)
-        p = float(self._classify(x)[0])
-        mode = self.next_mode(context.get_discrete_state(self._mode).GetAtIndex(0), p)
-        state.get_mutable_discrete_state(self._mode).SetAtIndex(0, mode)
+        # Called at every control period: kept to the fewest Drake calls (the state handed in is a
+        # copy of the current one, so an unchanged mode and selector need no write).
+        p = float(self._classify(self._state_port.Eval(context))[0])
+        mode = context.get_discrete_state(self._mode).GetAtIndex(0)
+        new_mode = self.next_mode(mode, p)
         state.get_mutable_discrete_state(self._probability).SetAtIndex(0, p)
-        state.get_mutable_abstract_state(self._selector).set_value(self._selectors[int(mode > 0.5)])
+        if new_mode != mode:
+            state.get_mutable_discrete_state(self._mode).SetAtIndex(0, new_mode)
+            state.get_mutable_abstract_state(self._selector).set_value(self._selectors[int(new_mode > 0.5)])
+
+
+class HeldLQR(Diagram):
+    """The saturated LQR u = clip(-K wrap(x - goal)), sampled every ``period`` and held, in C++ only.
+
+    Drake primitives: an ``AffineSystem`` (x - goal), ``WrapToSystem`` (the angle coordinates to
+    [-pi, pi), as :func:`hybridctl.systems.control.wrap_angles`), ``MatrixGain`` (-K), ``Saturation``
+    (+-``limit``) and a ``ZeroOrderHold`` (sampled at t = k * period, starting from 0, as
+    ``HeldController``). The law is :func:`hybridctl.systems.control.lqr_command`'s; it agrees with
+    ``HeldController(LQRController(system))`` to rounding (~1e-16: C++ sums the product in its own
+    order, and ``WrapToSystem`` returns an angle already in range unchanged). No Python runs in it.
+
+    Ports: input ``state`` (spec convention), output ``command``.
+    """
+
+    def __init__(self, system, K: np.ndarray, period: float, limit: float | None = None, name: str = "balance"):
+        super().__init__()
+        n, m = system.n_states, system.n_actions
+        K = np.atleast_2d(np.asarray(K, dtype=float))
+        if K.shape != (m, n):
+            raise ValueError(f"K must have shape ({m}, {n}), got {K.shape}")
+        self.K = K
+        self.period = _check_period(period)
+        self.limit = None if limit is None else float(limit)
+        builder = DiagramBuilder()
+        error = builder.AddSystem(AffineSystem(np.zeros((0, 0)), np.zeros((0, n)), np.zeros(0), np.zeros((n, 0)),
+                                               np.eye(n), -np.asarray(system.goal, dtype=float)))
+        error.set_name("error")
+        wrap = builder.AddSystem(WrapToSystem(n))
+        wrap.set_name("wrap")
+        for i in system.angle_indices:
+            wrap.set_interval(i, -np.pi, np.pi)
+        gain = builder.AddSystem(MatrixGain(-K))
+        gain.set_name("gain")
+        hold = builder.AddSystem(ZeroOrderHold(self.period, m))
+        hold.set_name("hold")
+        builder.Connect(error.get_output_port(), wrap.get_input_port())
+        builder.Connect(wrap.get_output_port(), gain.get_input_port())
+        last = gain.get_output_port()
+        if self.limit is not None:
+            saturation = builder.AddSystem(Saturation(np.full(m, -self.limit), np.full(m, self.limit)))
+            saturation.set_name("saturation")
+            builder.Connect(last, saturation.get_input_port())
+            last = saturation.get_output_port()
+        builder.Connect(last, hold.get_input_port())
+        builder.ExportInput(error.get_input_port(), "state")
+        builder.ExportOutput(hold.get_output_port(), "command")
+        builder.BuildInto(self)
+        self.set_name(name)
 
 
 class ModeSwitch(LeafSystem):

@@ -24,7 +24,7 @@ from ..systems import System
 from ..systems import plants as _plants
 from ..systems.control import CostToGoGate
 from ..viz.meshcat import add_meshcat
-from .blocks import Gate, HeldController, ModeSwitch, RecurrentTorchPolicy, TorchPolicy
+from .blocks import Gate, HeldController, HeldLQR, ModeSwitch, RecurrentTorchPolicy, TorchPolicy
 from .controllers import LQRController, energy_swingup
 
 
@@ -110,16 +110,18 @@ def build_hybrid_diagram(system: System, swingup=None, gate=None, *, balance=Non
             held for ``control.swingup_period``), a numpy callable, or a ready block.
         gate: None or "cost" (cost-to-go gate ``CostToGoGate``), a torch classifier
             returning a probability, a callable, or a ready ``Gate``.
-        balance: the balancing controller (default: Drake LQR from the spec's Q, R),
-            a callable or block; updated every ``control.period``.
+        balance: the balancing controller, updated every ``control.period``: None (the
+            LQR from the spec's Q, R) or a gain K (m, n) run as ``HeldLQR`` (C++ primitives), a
+            callable (run in a Python ``HeldController``) or a ready block.
         swingup_period: override the swing-up hold period.
         gate_on, gate_off: hysteresis thresholds (default: the spec's, 0.9 / 0.5).
         meshcat: a ``pydrake.geometry.Meshcat`` to draw the robot live, or None.
         log: add VectorLogSinks (one sample per integration step) for simulate().
         switch: "drake" (default): Drake's C++ ``PortSwitch`` driven by the gate's
-            ``selector`` output; "python": the Python feedthrough ``ModeSwitch`` driven by
-            its ``mode`` (the loop before issue 15, evaluated at every derivative
-            evaluation; kept to measure against). Both give the same run.
+            ``selector`` output and the LQR as ``HeldLQR``; "python": the loop before issue
+            15, kept to measure against: the Python feedthrough ``ModeSwitch`` (evaluated at
+            every derivative evaluation) driven by the gate's ``mode``, and the LQR in a
+            Python ``HeldController``. Both give the same run (to rounding in the LQR).
     """
     if not isinstance(system, System):
         raise TypeError(f"system must be a hybridctl.systems.System, got {type(system).__name__}")
@@ -145,11 +147,15 @@ def build_hybrid_diagram(system: System, swingup=None, gate=None, *, balance=Non
         state_port = convert.get_output_port()
 
     swing = builder.AddSystem(_swingup_block(system, swingup, swingup_period))
-    if balance is None or isinstance(balance, np.ndarray):
-        balance = LQRController(system, K=balance)
-    bal = balance if isinstance(balance, HeldController) else HeldController(
-        balance, system.n_states, system.n_actions, system.control_period, limit=system.action_limit,
-        name="balance")
+    if (balance is None or isinstance(balance, np.ndarray)) and switch == "drake":
+        bal = HeldLQR(system, system.lqr()[0] if balance is None else balance, system.control_period,
+                      limit=system.action_limit, name="balance")
+    else:
+        if balance is None or isinstance(balance, np.ndarray):
+            balance = LQRController(system, K=balance)
+        bal = balance if isinstance(balance, (HeldController, HeldLQR)) else HeldController(
+            balance, system.n_states, system.n_actions, system.control_period, limit=system.action_limit,
+            name="balance")
     bal = builder.AddSystem(bal)
     gate_block = builder.AddSystem(_gate_block(system, gate, gate_on, gate_off))
     if switch == "python":
