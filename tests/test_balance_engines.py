@@ -110,9 +110,11 @@ def test_learned_gate_numpy_forward_is_its_torch_forward():
     np.testing.assert_allclose(gate.numpy_forward(x), expected, rtol=0, atol=1e-4)
 
 
-@pytest.mark.parametrize("name, controller, seconds", [("acrobot", SSAC, 6.0), ("acrobot", "energy", 3.0),
-                                                       ("cartpole", PAPG, 4.0)])
-def test_torch_rollouts_follow_the_drake_trajectory(name, controller, seconds):
+# The PAPG policy is float32: Drake evaluates it in numpy on one state, the torch engine in torch on the batch,
+# and the two roundings (~1e-6 of the 200 N action) move the cart-pole's states by ~1e-5 within a second.
+@pytest.mark.parametrize("name, controller, seconds, tol", [("acrobot", SSAC, 6.0, 1e-6), ("acrobot", "energy", 3.0, 1e-6),
+                                                            ("cartpole", PAPG, 4.0, 1e-3)])
+def test_torch_rollouts_follow_the_drake_trajectory(name, controller, seconds, tol):
     """The torch engine's states at its decision times equal Drake's while the run is not chaotic."""
     system = systems.load(name)
     x0 = system.nudged_nominal_state()
@@ -120,7 +122,7 @@ def test_torch_rollouts_follow_the_drake_trajectory(name, controller, seconds):
     traj = drake.simulate(build_named_diagram(system, controller), x0, 10.0)
     stride = int(round((runs["times"][1] - runs["times"][0]) / system.dt))
     upto = int(round(seconds / (stride * system.dt))) + 1
-    np.testing.assert_allclose(runs["states"][0, :upto], traj.x[::stride][:upto], rtol=0, atol=1e-6)
+    np.testing.assert_allclose(runs["states"][0, :upto], traj.x[::stride][:upto], rtol=0, atol=tol)
     assert bool(runs["balanced"][0]) == traj.balanced
     assert runs["returns"][0] == pytest.approx(traj.episode_return, abs=1e-3)
 
@@ -168,3 +170,25 @@ def test_cli_balance_map_torch_engine(tmp_path):
     assert main(["balance-map", "pendulum", "--grid", "3", "--engine", "torch", "--quiet", "--out", str(out)]) == 0
     summary = json.loads((out / "balance_map.json").read_text())
     assert summary["engine"] == "torch" and np.array(summary["balanced"]).shape == (3, 3)
+
+
+@pytest.mark.parametrize("kind, hidden", [("gru", ()), ("mlp", (8, 8))])
+def test_policy_numpy_forward_is_its_torch_forward(kind, hidden):
+    """The Drake RecurrentTorchPolicy runs APG policies through numpy_forward: the same numbers in float64."""
+    from hybridctl.learn.apg import ClosedLoopPolicy
+    from hybridctl.learn.policies import Policy
+
+    system = systems.load("acrobot")
+    policy = Policy.build(kind, 6, 1, 25.0, hidden=hidden, dtype=torch.float64, init_std=0.3)
+    module = ClosedLoopPolicy(system, policy)
+    rng = np.random.default_rng(0)
+    x, h = rng.normal(size=(40, 4)) * 3, rng.normal(size=(40, policy.hidden_dim))
+    with torch.no_grad():
+        u, h_next = module(torch.as_tensor(x), torch.as_tensor(h))
+    u_np, h_np = module.numpy_forward(x, h)
+    np.testing.assert_allclose(u_np, u.numpy(), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(h_np, h_next.numpy(), rtol=1e-12, atol=1e-12)
+    with torch.no_grad():
+        policy.population.l0_bias.add_(0.5)          # parameters changed in place: the copies follow
+        u = module(torch.as_tensor(x), torch.as_tensor(h))[0]
+    np.testing.assert_allclose(module.numpy_forward(x, h)[0], u.numpy(), rtol=1e-12, atol=1e-12)

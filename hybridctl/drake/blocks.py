@@ -143,7 +143,19 @@ class RecurrentTorchPolicy(LeafSystem):
         self.set_name(name)
 
     def compute(self, x: np.ndarray, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(action, next h) for one state and recurrent state (the action clipped to ``limit``)."""
+        """(action, next h) for one state and recurrent state (the action clipped to ``limit``).
+
+        A module with ``numpy_forward(x, h)`` (``hybridctl.learn.apg.ClosedLoopPolicy``) runs in
+        numpy, without torch's per-call overhead; others through torch.
+        """
+        if hasattr(self.module, "numpy_forward"):
+            u, h_next = self.module.numpy_forward(np.asarray(x, dtype=float), np.asarray(h, dtype=float)[:self.hidden_dim])
+            u = np.asarray(u, dtype=float).reshape(-1)
+            if u.shape != (self.n_actions,):
+                raise ValueError(f"{self.get_name()}: the module returned shape {u.shape}, expected ({self.n_actions},)")
+            if self._limit is not None:
+                u = np.clip(u, -self._limit, self._limit)
+            return u, np.asarray(h_next, dtype=float).reshape(-1)
         with torch.no_grad():
             xt = torch.as_tensor(np.asarray(x, dtype=float), dtype=self._dtype).reshape(1, -1)
             ht = torch.as_tensor(np.asarray(h, dtype=float)[:self.hidden_dim], dtype=self._dtype).reshape(1, -1)
