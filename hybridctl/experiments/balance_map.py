@@ -125,8 +125,10 @@ def _worker_diagram(spec_name: str, overrides: dict, controller: str):
     return _WORKER_DIAGRAMS[key]
 
 
-def _simulate_chunk(args) -> list[tuple[int, bool, float, bool]]:
-    """Worker: simulate starts with this process' diagram (Drake objects do not pickle)."""
+def _simulate_chunk(args) -> tuple[list[tuple[int, bool, float, bool]], float]:
+    """Worker: simulate starts with this process' diagram (Drake objects do not pickle); returns the
+    results and the CPU seconds this process spent on them."""
+    cpu = time.process_time()
     torch.set_num_threads(1)
     spec_name, overrides, controller, duration, starts = args
     diagram = _worker_diagram(spec_name, overrides, controller)
@@ -134,7 +136,7 @@ def _simulate_chunk(args) -> list[tuple[int, bool, float, bool]]:
     for index, x0 in starts:
         traj = simulate(diagram, x0, duration)
         results.append((index, traj.balanced, traj.episode_return, traj.diverged))
-    return results
+    return results, time.process_time() - cpu
 
 
 def _grid_starts(system: System, grid: int, axes, ranges):
@@ -252,7 +254,9 @@ def balance_map(system: System | str, controller: str = "energy", grid: int = 41
     episode). ``engine``: ``"drake"`` runs the Drake diagram in ``workers`` local
     processes (default: all cores, at most the number of starts), each building its
     diagram once; ``"torch"`` runs every start as one batch in this process
-    (:func:`torch_rollouts`; ``workers`` is ignored).
+    (:func:`torch_rollouts`; ``workers`` is ignored). The map's ``meta`` records the engine,
+    the workers and, for Drake, the workers' CPU seconds (``cpu_s``) and the load average
+    at the end: on a shared machine the wall time alone says little.
     """
     if engine not in ENGINES:
         raise ValueError(f"engine must be one of {ENGINES}, got {engine!r}")
@@ -290,8 +294,10 @@ def balance_map(system: System | str, controller: str = "energy", grid: int = 41
         require_main_guard()
         pool = mp.get_context("spawn").Pool(workers)
         results_iter = pool.imap_unordered(_simulate_chunk, jobs)
+    cpu = 0.0
     try:
-        for results in results_iter:
+        for results, seconds in results_iter:
+            cpu += seconds
             for index, ok, ret, div in results:
                 balanced[index], returns[index], diverged[index] = ok, ret, div
             bar.update(len(results))
@@ -301,7 +307,8 @@ def balance_map(system: System | str, controller: str = "energy", grid: int = 41
             pool.terminate()
     return BalanceMap(system.name, controller, names, values1, values2, balanced.reshape(grid, grid),
                       returns.reshape(grid, grid), diverged.reshape(grid, grid), duration,
-                      time.perf_counter() - start_time, meta={"engine": "drake", "workers": workers})
+                      time.perf_counter() - start_time,
+                      meta={"engine": "drake", "workers": workers, "cpu_s": cpu, "load_average": list(os.getloadavg())})
 
 
 def divergence_time(times, a, b, tol: float = 1e-3) -> float | None:
