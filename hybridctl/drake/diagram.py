@@ -4,9 +4,10 @@
           --state--> [LQR]     ----> [switch] -> [saturation] -> plant
           --state--> [gate] --selector--/
 
-The swing-up, the LQR and the gate are Python blocks updated periodically (zero-order
-holds, :mod:`.blocks`); the switch (Drake's ``PortSwitch``) and the saturation are C++
-primitives, so between the periodic updates the loop runs without calling Python.
+The swing-up and the gate are Python blocks updated periodically (zero-order holds,
+:mod:`.blocks`); the LQR (``HeldLQR``), the switch (Drake's ``PortSwitch``, driven by the gate's
+``selector`` state) and the saturation are C++ primitives, so between the periodic updates
+the loop runs without calling Python.
 
 Exported ports (by name): outputs ``state`` (spec convention), ``command``
 (saturated input applied to the plant), ``mode`` (0 swing-up, 1 LQR),
@@ -159,17 +160,17 @@ def build_hybrid_diagram(system: System, swingup=None, gate=None, *, balance=Non
     bal = builder.AddSystem(bal)
     gate_block = builder.AddSystem(_gate_block(system, gate, gate_on, gate_off))
     if switch == "python":
-        switch = builder.AddSystem(ModeSwitch(system.n_actions))
-        swing_in, balance_in = switch.GetInputPort("swingup"), switch.GetInputPort("balance")
-        builder.Connect(gate_block.GetOutputPort("mode"), switch.GetInputPort("mode"))
+        switch_block = builder.AddSystem(ModeSwitch(system.n_actions))
+        swing_in, balance_in = switch_block.GetInputPort("swingup"), switch_block.GetInputPort("balance")
+        builder.Connect(gate_block.GetOutputPort("mode"), switch_block.GetInputPort("mode"))
     else:
-        switch = builder.AddSystem(PortSwitch(system.n_actions))
-        switch.set_name("switch")
-        swing_in, balance_in = switch.DeclareInputPort("swingup"), switch.DeclareInputPort("balance")
+        switch_block = builder.AddSystem(PortSwitch(system.n_actions))
+        switch_block.set_name("switch")
+        swing_in, balance_in = switch_block.DeclareInputPort("swingup"), switch_block.DeclareInputPort("balance")
         if (swing_in.get_index(), balance_in.get_index()) != gate_block.selector_ports:
             raise ValueError(f"the gate selects input ports {gate_block.selector_ports}; the switch has swingup "
                              f"{swing_in.get_index()} and balance {balance_in.get_index()}")
-        builder.Connect(gate_block.GetOutputPort("selector"), switch.get_port_selector_input_port())
+        builder.Connect(gate_block.GetOutputPort("selector"), switch_block.get_port_selector_input_port())
     limit = np.full(system.n_actions, system.action_limit)
     saturation = builder.AddSystem(Saturation(-limit, limit))
     saturation.set_name("saturation")
@@ -178,7 +179,7 @@ def build_hybrid_diagram(system: System, swingup=None, gate=None, *, balance=Non
         builder.Connect(state_port, block.get_input_port(0))
     builder.Connect(swing.get_output_port(0), swing_in)
     builder.Connect(bal.get_output_port(0), balance_in)
-    builder.Connect(switch.get_output_port(0), saturation.get_input_port())
+    builder.Connect(switch_block.get_output_port(0), saturation.get_input_port())
     builder.Connect(saturation.get_output_port(), handle.actuation_input)
 
     outputs = {
@@ -196,6 +197,6 @@ def build_hybrid_diagram(system: System, swingup=None, gate=None, *, balance=Non
         for name in ("state", "command", "mode", "probability"):
             loggers[name] = LogVectorOutput(outputs[name], builder, system.dt)
             loggers[name].set_name(f"log_{name}")
-    parts = dict(plant=handle, swingup=swing, balance=bal, gate=gate_block, switch=switch,
+    parts = dict(plant=handle, swingup=swing, balance=bal, gate=gate_block, switch=switch_block,
                  loggers=loggers, scene_graph=scene_graph)
     return HybridDiagram(builder, system, parts)
