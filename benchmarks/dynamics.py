@@ -115,14 +115,16 @@ DRAKE_CONTROLLERS = (("acrobot", "energy"), ("acrobot", "ssac:models/policies/ss
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _time_simulation(drake, diagram, x0, repeats: int) -> list[float]:
-    """Wall seconds of ``repeats`` 10 s runs after one warm-up run."""
+def _time_simulation(drake, diagram, x0, repeats: int, cpu: list | None = None) -> list[float]:
+    """Wall seconds of ``repeats`` 10 s runs after one warm-up run (their CPU seconds appended to ``cpu``)."""
     drake.simulate(diagram, x0, DRAKE_DURATION)
     walls = []
     for _ in range(repeats):
-        start = time.perf_counter()
+        start, cpu_start = time.perf_counter(), time.thread_time()
         drake.simulate(diagram, x0, DRAKE_DURATION)
         walls.append(time.perf_counter() - start)
+        if cpu is not None:
+            cpu.append(time.thread_time() - cpu_start)
     return walls
 
 
@@ -136,14 +138,16 @@ def bench_drake_controller(drake, name: str, controller: str, repeats: int) -> d
     x0 = system.nudged_nominal_state()
     diagrams = {"drake": build_named_diagram(system, controller),
                 "python": build_named_diagram(system, controller, switch="python")}
-    walls = {"drake": [], "python": []}
+    walls, cpus = {"drake": [], "python": []}, {"drake": [], "python": []}
     for _ in range(repeats):
         for key, diagram in diagrams.items():
-            walls[key] += _time_simulation(drake, diagram, x0, 1)
+            walls[key] += _time_simulation(drake, diagram, x0, 1, cpus[key])
     traj = drake.simulate(diagrams["drake"], x0, DRAKE_DURATION)
     fast, slow = statistics.median(walls["drake"]), statistics.median(walls["python"])
     return {"system": name, "controller": controller, "realtime_factor": DRAKE_DURATION / fast,
             "realtime_factor_python_switch": DRAKE_DURATION / slow, "speedup_vs_python_switch": slow / fast,
+            "realtime_factor_cpu": DRAKE_DURATION / statistics.median(cpus["drake"]),
+            "realtime_factor_python_switch_cpu": DRAKE_DURATION / statistics.median(cpus["python"]),
             "wall_s": fast, "wall_s_min": min(walls["drake"]), "wall_s_max": max(walls["drake"]),
             "wall_s_python_switch": slow, "repeats": repeats, "balanced": bool(traj.balanced)}
 
