@@ -38,6 +38,9 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/mfpt.py
 	$(BIN)/python benchmarks/apg.py --compile
 	$(BIN)/python benchmarks/finetune.py
+	$(BIN)/python benchmarks/training.py
+	$(BIN)/python benchmarks/mesh_scaling.py
+	$(BIN)/python benchmarks/mujoco_rollout.py
 
 # The documentation site, offline, into site/ (open site/index.html): the README as home page,
 # ARCHITECTURE.md, the API reference from the docstrings and the four notebooks, executed

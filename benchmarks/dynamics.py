@@ -12,6 +12,7 @@ not comparable.
 from __future__ import annotations
 
 import argparse
+import ast
 import datetime as _dt
 import statistics
 import sys
@@ -91,6 +92,35 @@ def bench_gym_acrobot(settings: dict) -> dict:
             "steps_per_repeat": n, "repeats": settings["repeats"]}
 
 
+def bench_single_env(settings: dict) -> dict:
+    """``SwingupEnv("acrobot").step`` rate (one decision: 0.2 s = 20 Euler steps of one state on
+    plain floats, the reward, the checks), random actions, reset at the end of each episode;
+    the same loop as :func:`bench_gym_acrobot`."""
+    from hybridctl.envs import SwingupEnv
+
+    env = SwingupEnv("acrobot")
+    env.reset(seed=0)
+    n = max(settings["gym_steps"] // 2, 500)
+    limit = env.system.action_limit
+    actions = [np.array([a], dtype=np.float32) for a in np.random.default_rng(0).uniform(-limit, limit, size=n)]
+
+    def run(count):
+        for a in actions[:count]:
+            _, _, terminated, truncated, _ = env.step(a)
+            if terminated or truncated:
+                env.reset()
+
+    run(min(n, 500))
+    rates = []
+    for _ in range(settings["repeats"]):
+        start = time.perf_counter()
+        run(n)
+        rates.append(n / (time.perf_counter() - start))
+    return {"env": "hybridctl SwingupEnv('acrobot')", "substeps_per_step": env.substeps,
+            "steps_per_s": statistics.median(rates), "min": min(rates), "max": max(rates),
+            "steps_per_repeat": n, "repeats": settings["repeats"]}
+
+
 def bench_step(system, batch: int, dtype: torch.dtype, method: str, settings: dict) -> dict:
     """State-steps per second of ``System.step`` (or ``step_unchecked``) at one batch size and dtype.
 
@@ -106,6 +136,86 @@ def bench_step(system, batch: int, dtype: torch.dtype, method: str, settings: di
             "state_steps_per_s": batch / t["median"], "seconds_per_call": t["median"],
             "seconds_per_call_min": t["min"], "seconds_per_call_max": t["max"],
             "cpu_seconds_per_call": t["cpu_median"], "calls_per_repeat": t["calls_per_repeat"]}
+
+
+def bench_columns(system, settings: dict, compiled: bool) -> dict:
+    """``System.step_columns`` (states (n, 4096) column-major, float64), eager or through
+    ``torch.compile`` (its build time reported; skipped under --quick, which must stay fast)."""
+    method = "step_columns_compiled" if compiled else "step_columns"
+    entry = {"system": system.name, "method": method, "batch": OTHER_BATCH, "dtype": "float64"}
+    rng = np.random.default_rng(0)
+    x = torch.tensor(system.sample_initial_states(OTHER_BATCH, rng).T.copy())
+    u = torch.tensor(rng.uniform(-1, 1, size=(system.n_actions, OTHER_BATCH)) * system.action_limit)
+    if compiled:
+        if settings["repeats"] < 5:
+            return {**entry, "skipped": "--quick (torch.compile takes ~15 s)"}
+        start = time.perf_counter()
+        try:
+            system.step_columns(x, u, compiled=True)
+        except Exception as exc:  # no C++ compiler, an inductor failure: report, don't crash
+            return {**entry, "error": f"{type(exc).__name__}: {exc}"}
+        entry["compile_s"] = time.perf_counter() - start
+    t = time_calls(lambda: system.step_columns(x, u, compiled=compiled), settings["seconds_per_repeat"],
+                   settings["repeats"])
+    return {**entry, "state_steps_per_s": OTHER_BATCH / t["median"], "seconds_per_call": t["median"],
+            "seconds_per_call_min": t["min"], "seconds_per_call_max": t["max"],
+            "cpu_seconds_per_call": t["cpu_median"], "calls_per_repeat": t["calls_per_repeat"]}
+
+
+def formula_ops(system) -> dict:
+    """Operations per state-step of the dynamics formula: the binary float operations (+ - * /)
+    and sin/cos calls of one integrator step, counted in the straight-line one-state code
+    (``ChainDynamics.scalar``: constants folded, terms with zero coefficients dropped,
+    multiplications by +-1 not written), integrator update included."""
+    source = system.dynamics.scalar(system.dt, system.integrator).source
+    loop = next(node for node in ast.walk(ast.parse(source)) if isinstance(node, ast.For))
+    arithmetic = sum(isinstance(node, ast.BinOp) for node in ast.walk(loop))
+    trig = sum(isinstance(node, ast.Call) and getattr(node.func, "id", "") in ("_sin", "_cos")
+               for node in ast.walk(loop))
+    return {"arithmetic_flops": arithmetic, "trig_calls": trig}
+
+
+def machine_flops(settings: dict) -> dict:
+    """Measured float64 FLOP/s of one core (a dense 512 x 512 matmul, torch/MKL, torch's threads)
+    and the cost of torch.sin per float64 element at batch 4096 (contiguous)."""
+    n = 512
+    a, b = torch.rand(n, n, dtype=torch.float64), torch.rand(n, n, dtype=torch.float64)
+    mm = time_calls(lambda: a @ b, settings["seconds_per_repeat"], settings["repeats"])
+    angles = torch.rand(OTHER_BATCH, dtype=torch.float64) * 6.0
+    sin = time_calls(lambda: torch.sin(angles), settings["seconds_per_repeat"], settings["repeats"])
+    flops = 2 * n ** 3 / mm["median"]
+    return {"float64_flops_per_s": flops, "matmul": f"{n}x{n} @ {n}x{n} float64, median",
+            "sin_seconds_per_element": sin["median"] / OTHER_BATCH,
+            "sin_flop_equivalents": sin["median"] / OTHER_BATCH * flops}
+
+
+def step_limits(systems_by_name: dict, steps: list, machine: dict) -> dict:
+    """FLOP-based limits of the batched step, per system, beside the measured batch-4096 float64 rate.
+
+    ``arithmetic_limit``: FLOP/s / arithmetic FLOPs per state-step (sin/cos free);
+    ``flop_limit``: sin/cos counted at their measured cost (``sin_flop_equivalents`` FLOPs each),
+    i.e. 1 / (arithmetic / FLOP/s + trig calls x seconds per sin). Both assume every
+    operation runs at the matmul's rate, with no memory traffic or call overhead.
+    """
+    out = {}
+    for name, system in systems_by_name.items():
+        ops = formula_ops(system)
+        seconds = ops["arithmetic_flops"] / machine["float64_flops_per_s"] \
+            + ops["trig_calls"] * machine["sin_seconds_per_element"]
+        measured = [e["state_steps_per_s"] for e in steps if e["system"] == name and e["batch"] == OTHER_BATCH
+                    and e["dtype"] == "float64" and e["method"] == "step_unchecked"]
+        entry = {**ops, "integrator": system.integrator,
+                 "arithmetic_limit_state_steps_per_s": machine["float64_flops_per_s"] / ops["arithmetic_flops"],
+                 "flop_limit_state_steps_per_s": 1.0 / seconds}
+        if measured:
+            entry["measured_state_steps_per_s"] = measured[0]
+            entry["fraction_of_flop_limit"] = measured[0] / entry["flop_limit_state_steps_per_s"]
+        fused = [e["state_steps_per_s"] for e in steps if e["system"] == name and e["method"] == "step_columns_compiled"]
+        if fused:
+            entry["measured_compiled_columns_state_steps_per_s"] = fused[0]
+            entry["compiled_columns_fraction_of_flop_limit"] = fused[0] / entry["flop_limit_state_steps_per_s"]
+        out[name] = entry
+    return out
 
 
 # The shipped learned controllers that run in Drake (ppo-pendulum and ars-hopper are gymnasium agents) and the
@@ -203,16 +313,21 @@ def run(quick: bool = False, threads: int = 1) -> dict:
                    "unit": "state-steps/s = batch size x System.step calls per second"},
     }
     gym_result = bench_gym_acrobot(settings)
+    single_env = bench_single_env(settings)
     steps = []
     acrobot = systems.load("acrobot")
     for method in ("step", "step_unchecked"):
         for batch in ACROBOT_BATCHES:
             for dtype in (torch.float32, torch.float64):
                 steps.append(bench_step(acrobot, batch, dtype, method, settings))
+    columns = [bench_columns(acrobot, settings, compiled) for compiled in (False, True)]
+    steps += [c for c in columns if "state_steps_per_s" in c]
     for name in systems.known_systems():
         if name != "acrobot":
             for method in ("step", "step_unchecked"):
                 steps.append(bench_step(systems.load(name), OTHER_BATCH, torch.float64, method, settings))
+    loaded = {name: (acrobot if name == "acrobot" else systems.load(name)) for name in systems.known_systems()}
+    flops = machine_flops(settings)
     drake_result = bench_drake(quick)
 
     gym_rate = gym_result["steps_per_s"]
@@ -220,7 +335,12 @@ def run(quick: bool = False, threads: int = 1) -> dict:
         entry["ratio_vs_gym_acrobot"] = entry["state_steps_per_s"] / gym_rate
     if "steps_per_s" in drake_result:
         drake_result["ratio_vs_gym_acrobot"] = drake_result["steps_per_s"] / gym_rate
-    report.update({"gym_acrobot": gym_result, "step": steps, "drake_hybrid": drake_result})
+    single_env["ratio_vs_gym_acrobot"] = single_env["steps_per_s"] / gym_rate
+    limits = {"machine": flops, "systems": step_limits(loaded, steps, flops)}
+    for entry in limits["systems"].values():
+        entry["flop_limit_ratio_vs_gym_acrobot"] = entry["flop_limit_state_steps_per_s"] / gym_rate
+    report["step_columns_not_measured"] = [c for c in columns if "state_steps_per_s" not in c]
+    report.update({"gym_acrobot": gym_result, "single_env": single_env, "step": steps, "step_limits": limits, "drake_hybrid": drake_result})
     return report
 
 

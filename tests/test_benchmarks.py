@@ -131,3 +131,102 @@ def test_mfpt_benchmark_agrees_with_spsolve(tmp_path):
     assert entry["max_rel_diff_vs_spsolve"] < 1e-8 and entry["krylov_solver"]["converged"]
     assert _positive_finite(entry["krylov_s"]) and _positive_finite(entry["speedup_vs_spsolve"])
     assert 1 < entry["mfpt_mean_over_states"] < 1e6 and entry["infinite_states"] == 0
+
+
+def test_training_benchmark_reports_rates_and_projection(tmp_path):
+    """benchmarks/training.py --quick (eager only): our SAC and SSAC env rates, SB3's when installed."""
+    out = tmp_path / "training.json"
+    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "training.py"), "--quick", "--no-compile",
+                           "--out", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    report = json.loads(proc.stdout)
+    assert json.loads(out.read_text()) == report
+    assert _positive_finite(report["sac"]["off"]["env_steps_per_s"]["per_s"])
+    assert _positive_finite(report["sac"]["off"]["gradient_steps_per_s"]["per_s"])
+    assert _positive_finite(report["ssac_env"]["off"]["env_steps_per_s"]["per_s"])
+    assert report["projected_ssac_2e6"]["gradient_steps"] == 499_200   # 3900 rounds x 4 updates x 32 minibatches
+    assert _positive_finite(report["projected_ssac_2e6"]["hybridctl_off_s"])
+    if "skipped" in report["sb3_sac"]:
+        assert "stable-baselines3" in report["sb3_sac"]["skipped"]
+    else:
+        ratio = report["sac"]["off"]["gradient_steps_per_s"]["ratio_vs_sb3"]
+        assert _positive_finite(ratio)
+
+
+def test_step_limits_beside_the_measured_rate(report):
+    limits = report["step_limits"]
+    assert _positive_finite(limits["machine"]["float64_flops_per_s"])
+    assert _positive_finite(limits["machine"]["sin_seconds_per_element"])
+    assert set(limits["systems"]) == {"acrobot", "cartpole", "double_cartpole", "pendulum"}
+    for name, entry in limits["systems"].items():
+        assert isinstance(entry["arithmetic_flops"], int) and entry["arithmetic_flops"] > 0, name
+        assert isinstance(entry["trig_calls"], int) and entry["trig_calls"] > 0, name
+        for key in ("flop_limit_state_steps_per_s", "arithmetic_limit_state_steps_per_s",
+                    "measured_state_steps_per_s", "fraction_of_flop_limit", "flop_limit_ratio_vs_gym_acrobot"):
+            assert _positive_finite(entry[key]), (name, key)
+        assert entry["flop_limit_state_steps_per_s"] < entry["arithmetic_limit_state_steps_per_s"]
+    # the acrobot's Euler step: 4 sin/cos (phi1, phi2, th2 twice), as the formula needs
+    assert limits["systems"]["acrobot"]["trig_calls"] == 4
+
+
+def test_single_env_entry(report):
+    entry = report["single_env"]
+    assert entry["env"].startswith("hybridctl SwingupEnv") and entry["substeps_per_step"] == 20
+    assert _positive_finite(entry["steps_per_s"]) and _positive_finite(entry["ratio_vs_gym_acrobot"])
+
+
+def test_mesh_scaling_benchmark_structure(tmp_path):
+    """benchmarks/mesh_scaling.py --quick: the same mesh on 1 and 2 worker processes, a ratio
+    between them, the 16-worker projection and the figure (no speed thresholds)."""
+    out, png = tmp_path / "scaling.json", tmp_path / "scaling.png"
+    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "mesh_scaling.py"), "--quick", "--out", str(out),
+                           "--figure", str(png)], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    report = json.loads(proc.stdout)
+    assert json.loads(out.read_text()) == report and report["benchmark"] == "mesh_scaling"
+    assert report["problem"]["backend"] == "processes"
+    one, two = report["builds"]
+    assert (one["workers"], two["workers"]) == (1, 2) and one["ratio_vs_1_worker"] == 1.0
+    assert one["expanded_states"] == two["expanded_states"] > 0 and one["complete"] and two["complete"]
+    assert one["same_mesh_as_first"] and two["same_mesh_as_first"]        # the wheel is deterministic
+    for row in (one, two):
+        assert _positive_finite(row["states_per_s"]) and _positive_finite(row["ratio_vs_1_worker"])
+    projection = report["projection"]
+    assert projection["states"] == 275_658 and projection["workers"] == 16
+    for key in ("per_worker_states_per_s", "hours_at_measured_efficiency", "hours_at_linear_scaling",
+                "driver_array_mib"):
+        assert _positive_finite(projection[key]), key
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and report["figure"] == str(png)
+
+
+def test_column_major_entries(report):
+    """step_columns is timed (eager); its torch.compile build is skipped under --quick and says so."""
+    eager = [e for e in report["step"] if e["method"] == "step_columns"]
+    assert len(eager) == 1 and eager[0]["batch"] == 4096 and _positive_finite(eager[0]["ratio_vs_gym_acrobot"])
+    (skipped,) = report["step_columns_not_measured"]
+    assert skipped["method"] == "step_columns_compiled" and "--quick" in skipped["skipped"]
+
+def test_mujoco_rollout_benchmark_structure(tmp_path):
+    """benchmarks/mujoco_rollout.py --quick: gymnasium, mj_step and the batched stepper in one run (no thresholds)."""
+    pytest.importorskip("mujoco")
+    pytest.importorskip("mujoco.batch")
+    out = tmp_path / "mujoco.json"
+    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "mujoco_rollout.py"), "--quick", "--out", str(out)],
+                          cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    report = json.loads(proc.stdout)
+    assert json.loads(out.read_text()) == report and report["benchmark"] == "mujoco_rollout" and report["quick"]
+    assert report["env"] == "Hopper-v5" and report["frame_skip"] == 4
+    assert _positive_finite(report["gym"]["env_steps_per_s"]) and _positive_finite(report["mj_step"]["seconds"])
+    assert {r["nthread"] for r in report["batched"]} == {1, 2}
+    for row in report["batched"] + report["rollout_open_loop_calls"]:
+        for key in ("env_steps_per_s", "ratio_vs_gym", "limit_over_measured"):
+            assert _positive_finite(row[key]), (key, row)
+    assert _positive_finite(report["hopper_section_map"]["ratio_vs_gym"])
+    assert report["hopper_section_map"]["gym"]["failures"] == report["hopper_section_map"]["batched_1_thread"]["failures"]
+    assert _positive_finite(report["ars_epoch"]["ratio_vs_gym"])
+    assert report["ars_epoch"]["gym_per_task"]["mean_return"] == report["ars_epoch"]["batched_1_thread"]["mean_return"]
+    for row in report["batched"]:
+        assert len(row["ratio_vs_gym_by_repeat"]) == len(row["limit_over_measured_by_repeat"]) == report["repeats"]
+        assert row["physics_limit_steps_per_s"] == pytest.approx(
+            row["nthread"] / (4 * report["mj_step"]["seconds"]))

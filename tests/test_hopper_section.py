@@ -61,3 +61,30 @@ def test_disturbance_sets_and_bad_input():
         HopperApexMap(policy=3)
     with pytest.raises(ValueError, match="timeout_steps"):
         HopperApexMap(policy=lambda o: o, timeout_steps=1)
+
+
+def test_a_step_does_not_depend_on_the_previous_one(section):
+    """The same state and push give the same next apex whatever the worker stepped before
+    (what makes build_mesh give one mesh on every backend and worker count)."""
+    apexes = section.apex_states(steps=600)
+    first = section.step(apexes[0], [-10.0, 0.0])
+    section.step(apexes[2], [15.0, 0.0])
+    np.testing.assert_array_equal(section.step(apexes[0], [-10.0, 0.0]), first)
+
+def test_batched_engine_is_bit_identical_to_gymnasium(section):
+    """engine="batch" (all states at once on MuJoCo threads) gives the gymnasium path's bits, failures included."""
+    pytest.importorskip("mujoco.batch")
+    starts = section.apex_states(steps=600, skip=1)[:3]
+    pushes = [[-15.0, 0.0], [0.0, 0.0], [15.0, 0.0], [0.0, -30_000.0], [40.0, 10.0], [-60.0, 0.0]]
+    states = np.repeat(starts, len(pushes), axis=0)
+    disturbances = pushes * len(starts)
+    gym_map = HopperApexMap(section.policy, engine="gym")
+    expected = gym_map.step_many(states, disturbances)
+    assert np.isnan(expected).any(axis=1).sum() >= len(starts)      # the slam fails from every start
+    for nthread in (1, 2):
+        batched = HopperApexMap(section.policy, engine="batch", nthread=nthread)
+        np.testing.assert_array_equal(batched.step_many(states, disturbances), expected)
+    # a state's successor does not depend on what the process stepped before
+    np.testing.assert_array_equal(gym_map.step_many(states[::-1], disturbances[::-1]), expected[::-1])
+    with pytest.raises(ValueError, match="engine"):
+        HopperApexMap(section.policy, engine="rollout")

@@ -170,3 +170,36 @@ def test_monte_carlo_chunks_give_the_same_result_on_every_backend():
     assert serial.interval95[0] < one.mean < serial.interval95[1] or one.interval95[0] < serial.mean < one.interval95[1]
     with pytest.raises(ValueError, match="chunks"):
         monte_carlo_mfpt(WHEEL, [[w]], SLOPES, episodes=10, chunks=11)
+
+
+@pytest.fixture(scope="module")
+def local_ray():
+    """A local 2-CPU Ray instance for this module's Ray tests (skipped when Ray is not installed)."""
+    ray = pytest.importorskip("ray")
+    import os
+    import sys
+    started = not ray.is_initialized()
+    if started:
+        env = {"env_vars": {"PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}}
+        ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, _node_ip_address="127.0.0.1",
+                 runtime_env=env)
+    yield ray
+    if started:
+        ray.shutdown()
+
+
+def test_ray_backend_builds_the_same_mesh_and_monte_carlo(local_ray):
+    """build_mesh and monte_carlo_mfpt on a local 2-CPU Ray instance equal the serial backend."""
+    assert local_ray.cluster_resources().get("CPU") == 2
+    args = (WHEEL, [[WHEEL.fixed_point(0.15)]], SLOPES, 1e-2)
+    serial = build_mesh(*args, batch_size=16, progress=False)
+    on_ray = build_mesh(*args, backend="ray", workers=2, batch_size=16, progress=False)
+    assert on_ray.size == serial.size > 16 and on_ray.complete          # more than one batch went out
+    np.testing.assert_array_equal(serial.successors, on_ray.successors)
+    np.testing.assert_array_equal(serial.states, on_ray.states)
+    assert local_ray.is_initialized()          # the backend did not shut down an instance it did not start
+    w = WHEEL.fixed_point(0.15)
+    serial_mc = monte_carlo_mfpt(WHEEL, [[w]], SLOPES, episodes=400, seed=5, chunks=4)
+    ray_mc = monte_carlo_mfpt(WHEEL, [[w]], SLOPES, episodes=400, seed=5, chunks=4, backend="ray", workers=2)
+    np.testing.assert_array_equal(serial_mc.steps, ray_mc.steps)
+    assert ray_mc.censored == serial_mc.censored

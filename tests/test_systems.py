@@ -79,11 +79,81 @@ def test_step_matches_drake_simulator(name, rng):
     steps = 50
     simulator.AdvanceTo(steps * system.dt)
     drake_x = system.from_drake_state(context.get_continuous_state_vector().CopyToVector())
-    x = torch.tensor(x0[None])
-    ut = torch.tensor(u[None])
-    for _ in range(steps):
-        x = system.step(x, ut)
-    np.testing.assert_allclose(x[0].numpy(), drake_x, rtol=1e-9, atol=1e-9)
+    # one state (the plain-float path), the batched torch path (two copies) and step_single
+    for x in (torch.tensor(x0[None]), torch.tensor(np.stack([x0, x0]))):
+        ut = torch.tensor(np.stack([u] * len(x)))
+        for _ in range(steps):
+            x = system.step(x, ut)
+        np.testing.assert_allclose(x[0].numpy(), drake_x, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(system.step_single(x0.tolist(), u.tolist(), steps), drake_x, rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("name", ALL)
+def test_single_state_path_matches_torch(name, rng):
+    """One float64 state steps on plain floats (System.step_single, ChainDynamics.scalar); it
+    agrees with the batched torch path to rounding, for every spec, integrator and step count."""
+    system = systems.load(name)
+    n = 300
+    X = rng.uniform(-np.pi, np.pi, size=(n, system.n_states)) * 2
+    U = rng.uniform(-1, 1, size=(n, system.n_actions)) * system.action_limit
+    Xt, Ut = torch.tensor(X), torch.tensor(U)
+    batched = system.step(Xt, Ut).numpy()                     # a batch: the torch path
+    scale = np.abs(batched).max()
+    single = np.stack([system.step_single(X[i].tolist(), U[i].tolist()) for i in range(n)])
+    np.testing.assert_allclose(single, batched, rtol=1e-12, atol=1e-12 * scale)
+    for i in range(5):                                        # System.step on (1, n) and (n,), unchecked too
+        for method in (system.step, system.step_unchecked):
+            row, flat = method(Xt[i:i + 1], Ut[i:i + 1]), method(Xt[i], Ut[i])
+            assert row.shape == (1, system.n_states) and flat.shape == (system.n_states,)
+            assert row.dtype == flat.dtype == torch.float64
+            np.testing.assert_array_equal(row[0].numpy(), single[i])
+            np.testing.assert_array_equal(flat.numpy(), single[i])
+    derivatives = system.dynamics.derivatives(Xt, Ut).numpy()
+    scalar = np.stack([system.dynamics.scalar()(X[i].tolist(), U[i].tolist()) for i in range(n)])
+    np.testing.assert_allclose(scalar, derivatives, rtol=1e-12, atol=1e-12 * np.abs(derivatives).max())
+    # 20 steps in one call (an env decision) against 20 batched steps from near the start state
+    X0 = system.sample_initial_states(8, rng)
+    x = torch.tensor(X0)
+    for _ in range(20):
+        x = system.step(x, Ut[:8])
+    many = np.stack([system.step_single(X0[i].tolist(), U[i].tolist(), 20) for i in range(8)])
+    np.testing.assert_allclose(many, x.numpy(), rtol=1e-12, atol=1e-12)
+    heights = system.dynamics.tip_height(torch.tensor(X)).numpy()
+    np.testing.assert_allclose([system.reward_single(X[i].tolist()) for i in range(n)],
+                               system.reward(torch.tensor(X)).numpy(), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose([system.dynamics.tip_height_single(X[i].tolist()) for i in range(n)], heights,
+                               rtol=1e-12, atol=1e-12)
+
+
+def test_single_state_path_bound_and_fallbacks():
+    system = systems.load("acrobot")
+    x0, u0 = [0.0, 0.0, 1e5, -1e5], [0.0]
+    assert system.step_single(x0, u0, 1) is not None                  # no bound: no check
+    assert system.step_single(x0, u0, 20, bound=1e6) is None          # leaves +-1e6 within 0.2 s
+    assert system.step_single([0.1, 0.2, 0.0, 0.0], u0, 5, bound=1e6) is not None
+    # requires_grad: the torch path, and the gradient flows through one state
+    x = torch.tensor([[0.3, 0.2, 0.1, 0.0]], dtype=torch.float64, requires_grad=True)
+    system.step(x, torch.ones(1, 1, dtype=torch.float64)).sum().backward()
+    assert x.grad is not None and x.grad.abs().sum() > 0
+    # float32 stays on torch (float32 results), and bad single states still raise
+    assert system.step(torch.zeros(1, 4), torch.zeros(1, 1)).dtype == torch.float32
+    with pytest.raises(ValueError, match="x contains NaN"):
+        system.step(torch.tensor([[float("nan"), 0.0, 0.0, 0.0]], dtype=torch.float64), torch.zeros(1, 1, dtype=torch.float64))
+    with pytest.raises(ValueError, match="u contains NaN"):
+        system.step(torch.zeros(4, dtype=torch.float64), torch.tensor([float("inf")], dtype=torch.float64))
+    # functorch transforms see per-sample tensors: they must take the torch path
+    X = torch.tensor(system.sample_initial_states(3, np.random.default_rng(0)))
+    U = torch.zeros(3, 1, dtype=torch.float64)
+    torch.testing.assert_close(torch.vmap(system.step_unchecked)(X, U), system.step(X, U), rtol=0, atol=0)
+    # step_unchecked of an infinite state: math.sin(inf) raises inside, torch answers (NaN)
+    out = system.step_unchecked(torch.tensor([[float("inf"), 0.0, 0.0, 0.0]], dtype=torch.float64),
+                                torch.zeros(1, 1, dtype=torch.float64))
+    assert torch.isnan(out).any()
+    # dt and integrator are attributes: the plain-float path follows changes
+    changed = systems.load("acrobot")
+    changed.integrator, changed.dt = "runge_kutta2", 0.005
+    xs = torch.tensor([[0.3, 0.2, 0.1, 0.0]] * 2, dtype=torch.float64)
+    np.testing.assert_allclose(changed.step(xs[:1], U[:1])[0].numpy(), changed.step(xs, U[:2])[0].numpy(), rtol=1e-12)
 
 
 @pytest.mark.parametrize("name", ALL)
@@ -187,3 +257,43 @@ def test_tip_height_centered_penalises_only_the_cart():
     acrobot = systems.load("acrobot", **{"reward.kind": "tip_height_centered"})
     xa = torch.tensor([[1.0, 0.3, 2.0, -1.0]], dtype=torch.float64)
     torch.testing.assert_close(acrobot.reward(xa), systems.load("acrobot").reward(xa))   # no cart: unchanged
+
+
+def test_finite_check_is_not_fooled_by_an_overflowing_sum():
+    """Validation sums the batch once; finite entries whose sum overflows are still accepted."""
+    system = systems.load("acrobot")
+    x = torch.full((2, 4), 1e308, dtype=torch.float64)          # the sum is inf, every entry finite
+    assert system.derivatives(x, torch.zeros(2, 1, dtype=torch.float64)).shape == (2, 4)
+    x[1, 2] = float("-inf")
+    with pytest.raises(ValueError, match="x contains NaN or Inf"):
+        system.step(x, torch.zeros(2, 1, dtype=torch.float64))
+
+
+@pytest.mark.parametrize("name", ALL)
+def test_column_major_step_equals_step(name, rng):
+    """step_columns on (n, B) states: bit for bit System.step on the transposed (B, n) batch, and
+    differentiable."""
+    system = systems.load(name)
+    X = torch.tensor(system.sample_initial_states(50, rng))
+    U = torch.tensor(rng.uniform(-1, 1, size=(50, system.n_actions)) * system.action_limit)
+    out = system.step_columns(X.T.contiguous(), U.T.contiguous())
+    assert out.shape == (system.n_states, 50) and out.is_contiguous()
+    assert torch.equal(out.T, system.step(X, U))
+    u = U.T.contiguous().requires_grad_(True)
+    system.step_columns(X.T.contiguous(), u).pow(2).sum().backward()
+    assert u.grad is not None and u.grad.abs().sum() > 0
+    with pytest.raises(ValueError, match=r"x must be \(\d, B\)"):
+        system.step_columns(X, U)                       # rows, not columns
+
+
+@pytest.mark.slow
+def test_compiled_column_major_step_agrees():
+    """torch.compile of the column-major step (one fused loop) agrees with eager to rounding."""
+    system = systems.load("acrobot")
+    rng = np.random.default_rng(0)
+    x = torch.tensor(system.sample_initial_states(256, rng).T.copy())
+    u = torch.tensor(rng.uniform(-25, 25, size=(1, 256)))
+    eager = system.step_columns(x, u)
+    for _ in range(2):                                   # built once, then reused
+        compiled = system.step_columns(x, u, compiled=True)
+        np.testing.assert_allclose(compiled.numpy(), eager.numpy(), rtol=1e-12, atol=1e-12)

@@ -17,6 +17,13 @@ than 0.2 rad, or any state beyond 100) or no apex comes within ``timeout_steps``
 >>> mesh = build_mesh(section, seeds, x_pushes(15.0, 25), box_size=0.5, mean=..., std=..., backend="processes")
 
 The env is built lazily in each process that steps the map, so the map pickles to workers.
+
+``engine="batch"`` (default where MuJoCo >= 3.17 is installed): ``step_many`` runs all its
+states together on :class:`~hybridctl.envs.mujoco_batch.MujocoBatchEnv` (``nthread``
+threads), the policy evaluated row by row between env steps; results are bit-identical to
+``engine="gym"``, the gymnasium env stepped one state at a time (tested). Every transition
+starts from a freshly reset simulator (``mj_resetData``: time and the solver's warm start
+zero), so a state's successor does not depend on which states the process stepped before.
 """
 
 from __future__ import annotations
@@ -27,8 +34,9 @@ from typing import Callable, Sequence
 import gymnasium as gym
 import numpy as np
 
-from ..analysis.poincare import FiniteDisturbances, SectionMap
+from ..analysis.poincare import FiniteDisturbances, SectionMap, check_section_states
 from ..parallel import cached_env
+from .mujoco_batch import MujocoBatchEnv, pushes_on_root, supports
 
 TORSO_BODY = 1        # MuJoCo body id of the torso (body 0 is the world)
 HEIGHT, VZ = 1, 1     # qpos[1]: torso height; qvel[1]: its vertical velocity
@@ -40,19 +48,32 @@ class HopperApexMap(SectionMap):
 
     ``policy``: a picklable callable observation -> action (e.g. ``ARS.frozen_policy()``).
     Disturbance: a push ``(fx, fz)`` in N on the torso for one env step (a scalar is
-    ``fx``). ``timeout_steps``: env steps allowed to reach the next apex.
+    ``fx``). ``timeout_steps``: env steps allowed to reach the next apex. ``engine``:
+    ``"batch"`` (all states of a ``step_many`` call stepped together on ``nthread`` MuJoCo
+    threads; the default where MuJoCo >= 3.17 is installed) or ``"gym"`` (one state at a time
+    through the gymnasium env); both give the same bits.
     """
 
     policy: Callable[[np.ndarray], np.ndarray]
     env_id: str = "Hopper-v5"
     timeout_steps: int = 300
     env_kwargs: dict = field(default_factory=dict)
+    engine: str = "auto"
+    nthread: int = 1
 
     def __post_init__(self):
         if not callable(self.policy):
             raise ValueError(f"policy must be a callable observation -> action, got {type(self.policy).__name__}")
         if not (isinstance(self.timeout_steps, int) and self.timeout_steps >= 2):
             raise ValueError(f"timeout_steps must be an integer >= 2, got {self.timeout_steps!r}")
+        if self.engine not in ("auto", "batch", "gym"):
+            raise ValueError(f"engine must be 'auto', 'batch' or 'gym', got {self.engine!r}")
+        if not (isinstance(self.nthread, int) and self.nthread >= 1):
+            raise ValueError(f"nthread must be an integer >= 1, got {self.nthread!r}")
+        if self.engine == "auto":
+            self.engine = "batch" if supports(self.env_id) else "gym"
+        elif self.engine == "batch" and not supports(self.env_id):
+            raise ValueError(f"engine='batch' needs mujoco >= 3.17 and a Hopper/Walker2d v5 env, got {self.env_id!r}")
 
     @property
     def state_names(self) -> tuple[str, ...]:
@@ -67,12 +88,65 @@ class HopperApexMap(SectionMap):
         return cached_env(("apex-map", self.env_id, repr(sorted(self.env_kwargs.items()))), make)
 
     def _set_state(self, env, state: np.ndarray) -> None:
+        import mujoco
         nq = env.model.nq
         qpos = np.concatenate([[0.0], state[:nq - 1]])
+        mujoco.mj_resetData(env.model, env.data)   # as gymnasium's reset: time, warm start, pushes zero
         env.set_state(qpos, state[nq - 1:])
+
+    def _batch_env(self, n: int) -> MujocoBatchEnv:
+        """This process' batched stepper with room for ``n`` simulations (grown in powers of 2)."""
+        holder = cached_env(("apex-map-batch", self.env_id, repr(sorted(self.env_kwargs.items())), self.nthread),
+                            dict)
+        if holder.get("env") is None or holder["env"].num_envs < n:
+            size = 1 << max(0, int(n - 1).bit_length())
+            holder["env"] = MujocoBatchEnv(self.env_id, num_envs=size, nthread=self.nthread,
+                                           env_kwargs=self.env_kwargs)
+        return holder["env"]
+
+    def step_many(self, states, disturbances) -> np.ndarray:
+        """Next apex states (NaN rows for failures) of ``states[i]`` pushed by ``disturbances[i]``."""
+        if self.engine != "batch":
+            return super().step_many(states, disturbances)
+        states = check_section_states(states, disturbances)
+        n = states.shape[0]
+        env = self._batch_env(n)
+        nq = env.nq
+        if states.shape[1] != nq - 1 + env.nv:
+            raise ValueError(f"states must have {nq - 1 + env.nv} columns (qpos[1:], qvel), got {states.shape[1]}")
+        ids = np.arange(n)
+        obs = env.set_state(np.concatenate([np.zeros((n, 1)), states[:, :nq - 1]], axis=1), states[:, nq - 1:], ids)
+        push = pushes_on_root(disturbances)
+        out = np.full(states.shape, np.nan)
+        alive, rising = np.ones(n, dtype=bool), np.zeros(n, dtype=bool)
+        for k in range(self.timeout_steps):
+            idx = ids[alive]
+            if idx.size == 0:
+                break
+            actions = self._actions(obs[idx], env.nu)
+            new, _, terminated, _ = env.step(actions, ids=idx, push=push[idx] if k == 0 else None)
+            obs[idx] = new
+            failed = terminated | ~np.all(np.isfinite(new), axis=1)
+            up = env.qvel[idx, VZ] > 0
+            apex = ~failed & ~up & rising[idx]
+            rising[idx] |= ~failed & up
+            done = idx[apex]
+            out[done] = np.concatenate([env.qpos[done, 1:], env.qvel[done]], axis=1)
+            alive[idx[failed | apex]] = False
+        return out
+
+    def _actions(self, obs: np.ndarray, nu: int) -> np.ndarray:
+        """The policy's actions for rows of ``obs``: its ``many`` where it has one (which must equal
+        calling it row by row, as ``FrozenPolicy.many`` does), else one call per row."""
+        many = getattr(self.policy, "many", None)
+        if many is not None:
+            return np.asarray(many(obs), dtype=np.float64).reshape(obs.shape[0], nu)
+        return np.array([self.policy(o) for o in obs], dtype=np.float64).reshape(obs.shape[0], nu)
 
     def step(self, state, disturbance):
         """The next apex state after a push at this apex, or None for failure."""
+        if self.engine == "batch":
+            return super().step(state, disturbance)
         env = self._env()
         state = np.asarray(state, dtype=np.float64)
         self._set_state(env, state)

@@ -1,7 +1,8 @@
 """One swing-up episode of one benchmark system as a ``gymnasium.Env``.
 
 An action is held for one decision period (the spec's ``control.swingup_period``
-unless given), integrated with ``System.step_unchecked`` every ``dt``; the reward is
+unless given), integrated every ``dt`` with ``System.step_single`` (one state on plain
+floats; the batched envs use ``System.step_unchecked`` in :func:`advance`); the reward is
 ``System.reward`` of the state after the decision (thesis eq. 3.1, tip height).
 """
 
@@ -125,7 +126,7 @@ class SwingupEnv(gym.Env):
         # How to build this env again (gymnasium.make replaces it with the registry's spec).
         self.spec = EnvSpec(env_id(self.system.name), entry_point="hybridctl.envs.single:SwingupEnv",
                             kwargs={"system": system, "decision_period": decision_period, **spec_overrides})
-        self._state: torch.Tensor | None = None  # (1, n) float64
+        self._state: list[float] | None = None   # the state, plain floats (System.step_single)
         self._history: deque = deque(maxlen=self.system.success_lookback)
         self._t = 0
         self._done = False
@@ -137,40 +138,48 @@ class SwingupEnv(gym.Env):
             x0 = check_state('options["state"]', options["state"], self.system)
         else:
             x0 = self.system.sample_initial_states(1, self.np_random)[0]
-        self._state = torch.tensor(x0, dtype=torch.float64)[None]
+        self._state = x0.tolist()
         self._t, self._done = 0, False
         self._history.clear()
-        self._history.append(x0.copy())
+        self._history.append(self._state)
         return x0.copy(), {}
 
     def step(self, action):
-        """Hold ``action`` (clipped) for one decision period; returns (obs, reward, terminated, truncated, info)."""
+        """Hold ``action`` (clipped) for one decision period; returns (obs, reward, terminated, truncated, info).
+
+        One state steps on plain floats (``System.step_single``, the batched formula written
+        out for one state), which agrees with :func:`advance` on torch to rounding.
+        """
         if self._state is None or self._done:
             raise RuntimeError("call reset() before step() (and after an episode has ended)")
+        system = self.system
         u = np.array(action.detach().cpu() if isinstance(action, torch.Tensor) else action, dtype=np.float64)
         if u.shape != self.action_space.shape:
             raise ValueError(f"action must have shape {self.action_space.shape}, got {u.shape}")
-        if not np.all(np.isfinite(u)):
-            raise ValueError(f"action must be finite (clipped to [-{self.system.action_limit}, "
-                             f"{self.system.action_limit}]), got {u}")
-        u = np.clip(u, -self.system.action_limit, self.system.action_limit)
-        x, diverged = advance(self.system, self._state, torch.from_numpy(u)[None], self.substeps)
+        limit = system.action_limit
+        us = u.tolist()
+        if not all(map(math.isfinite, us)):
+            raise ValueError(f"action must be finite (clipped to [-{limit}, {limit}]), got {u}")
+        us = [min(max(v, -limit), limit) for v in us]            # np.clip, on floats
+        x = system.step_single(self._state, us, self.substeps, STATE_BOUND)
         self._t += 1
-        terminated = bool(diverged[0])
+        terminated = x is None
         truncated = self._t >= self.max_decisions and not terminated
-        reward = 0.0 if terminated else float(self.system.reward(x)[0])
+        if terminated:
+            x, reward = self._state, 0.0          # the last finite decision-rate state
+        else:
+            reward = system.reward_single(x)
         self._state = x
-        obs = x[0].numpy().copy()
-        self._history.append(obs.copy())
+        self._history.append(x)
         info = {}
         if terminated or truncated:
             self._done = True
-            info["success"] = truncated and bool(is_balanced(np.array(self._history), self.system))
-        return obs, reward, terminated, truncated, info
+            info["success"] = truncated and bool(is_balanced(np.array(self._history), system))
+        return np.array(x), reward, terminated, truncated, info
 
     @property
     def state(self) -> np.ndarray:
         """A copy of the current state (n,)."""
         if self._state is None:
             raise RuntimeError("call reset() first")
-        return self._state[0].numpy().copy()
+        return np.array(self._state)

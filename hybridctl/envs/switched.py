@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from ..systems import System, control
+from ..systems.compiled import LazyCompiled
 from .vector import TorchVectorEnv
 
 
@@ -29,6 +30,9 @@ class SwitchedVectorEnv(TorchVectorEnv):
             Replace it at any time with :meth:`set_gate` (SSAC refits it).
         K: LQR gain (m, n); default ``system.lqr()``.
         gate_on, gate_off: hysteresis thresholds (default: the spec's 0.9 / 0.5).
+        compile: ``"off"`` (default), ``"on"`` or ``"auto"``: run each decision (the gate, the
+            LQR and the dynamics of every substep) as one ``torch.compile``-d function
+            (:mod:`hybridctl.systems.compiled`; ~13x faster at batch 32, equal to ~1e-15).
 
     Extra ``infos`` per step: ``"lqr_fraction"`` (N,) share of this decision's
     control periods in which the LQR acted, ``"lqr_at_start"`` (N,) bool, the
@@ -63,31 +67,22 @@ class SwitchedVectorEnv(TorchVectorEnv):
         """u = -K (x - goal), angles wrapped (batched): :func:`hybridctl.systems.control.lqr_command`."""
         return control.lqr_command(self.system.state_error(x), self._K)
 
+    def _make_decision_fn(self, enabled: bool, strict: bool) -> LazyCompiled:
+        return LazyCompiled(switched_decision, enabled, strict=strict, name="the switched env's decision")
+
     def _restart(self, rows: torch.Tensor, x0=None) -> None:
         super()._restart(rows, x0)
         if hasattr(self, "_mode"):
             self._mode[rows] = False  # thesis: every episode starts in swing-up
 
     def _advance(self, u: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        system, limit = self.system, self.system.action_limit
-        x = x0 = self._state
         start_mode = self._mode.clone()
-        diverged = torch.zeros(self.num_envs, dtype=torch.bool, device=self.device)
-        lqr_steps = torch.zeros(self.num_envs, dtype=self.dtype, device=self.device)
-        mode = self._mode
         with torch.no_grad():
-            for k in range(self.substeps):
-                if k % self.gate_stride == 0:
-                    p = self.gate(x.to(self._gate_dtype())).reshape(-1).to(self.dtype)
-                    mode = control.hysteresis(p, mode, self.gate_on, self.gate_off)
-                    command = control.saturate(torch.where(mode[:, None], self.lqr(x), u), limit)
-                lqr_steps += mode.to(self.dtype)
-                x = system.step_unchecked(x, command)
-                diverged = diverged | control.is_diverged(x)
-                x = torch.where(diverged[:, None], x0, x)
-        self._mode = mode
+            x, diverged, self._mode, lqr_steps = self._decision_fn(
+                self.system, self.gate, self._state, u, self._mode, self._K, self.substeps, self.gate_stride,
+                self._gate_dtype(), self.gate_on, self.gate_off)
         self._infos = {"lqr_fraction": lqr_steps / self.substeps, "lqr_at_start": start_mode,
-                       "decision_start": x0.clone()}
+                       "decision_start": self._state.clone()}
         return x, diverged
 
     def _gate_dtype(self) -> torch.dtype:
@@ -102,3 +97,33 @@ class SwitchedVectorEnv(TorchVectorEnv):
     def mode(self) -> torch.Tensor:
         """Current gate modes (N,) bool: True where the LQR is in control (a copy)."""
         return self._mode.clone()
+
+
+def switched_decision(system: System, gate, x0: torch.Tensor, u: torch.Tensor, mode: torch.Tensor, K: torch.Tensor,
+                      substeps: int, gate_stride: int, gate_dtype: torch.dtype, gate_on: float, gate_off: float):
+    """One decision of the switched controller from states ``x0`` (B, n) with the held swing-up
+    action ``u`` (B, m) and gate modes ``mode`` (B,) bool (True: LQR).
+
+    Every ``gate_stride`` integration steps the gate classifies the state and the hysteresis
+    updates the mode; the command (LQR or ``u``, saturated) is held until the next gate
+    evaluation. A row that diverges (:func:`~hybridctl.systems.control.is_diverged`) is put back
+    to its start state. Returns ``(x, diverged, mode, lqr_steps)``: the states after the decision,
+    the diverged rows, the final modes and the number of integration steps the LQR acted.
+    A pure function (no env state), so ``torch.compile`` can fuse it whole.
+    """
+    limit = system.action_limit
+    x = x0
+    diverged = torch.zeros(x0.shape[0], dtype=torch.bool, device=x0.device)
+    lqr_steps = torch.zeros(x0.shape[0], dtype=x0.dtype, device=x0.device)
+    command = u
+    for k in range(substeps):
+        if k % gate_stride == 0:
+            p = gate(x.to(gate_dtype)).reshape(-1).to(x0.dtype)
+            mode = control.hysteresis(p, mode, gate_on, gate_off)
+            lqr = control.lqr_command(system.state_error(x), K)
+            command = control.saturate(torch.where(mode[:, None], lqr, u), limit)
+        lqr_steps = lqr_steps + mode.to(x0.dtype)
+        x = system.step_unchecked(x, command)
+        diverged = diverged | control.is_diverged(x)
+        x = torch.where(diverged[:, None], x0, x)
+    return x, diverged, mode, lqr_steps

@@ -17,6 +17,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from ..systems import System
+from ..systems.compiled import LazyCompiled, check_compile_mode
 from ..systems.success import is_balanced
 from .single import STATE_BOUND, advance, check_state, decision_schedule, resolve_system
 
@@ -45,6 +46,9 @@ class TorchVectorEnv(VectorEnv):
         seed: seeds the env's numpy generator (``reset(seed=...)`` re-seeds it).
         autoreset_mode: ``"same_step"`` (default) or ``"next_step"`` (or the
             ``gymnasium.vector.AutoresetMode`` members).
+        compile: ``"off"`` (default: eager torch), ``"on"`` (each decision's integration steps
+            as one ``torch.compile``-d function; a failure to compile raises) or ``"auto"``
+            (compiled, falling back to eager with a warning): :mod:`hybridctl.systems.compiled`.
 
     Each sub-environment behaves as :class:`SwingupEnv`: actions (num_envs, m) are
     clipped to the limit (NaN/Inf or a wrong shape raise ValueError); truncated
@@ -71,7 +75,8 @@ class TorchVectorEnv(VectorEnv):
 
     def __init__(self, system: str | System, num_envs: int, decision_period: float | None = None,
                  device: str | torch.device = "cpu", dtype: torch.dtype = torch.float64,
-                 seed: int | None = None, autoreset_mode: str | AutoresetMode = "same_step"):
+                 seed: int | None = None, autoreset_mode: str | AutoresetMode = "same_step",
+                 compile: str = "off"):
         if not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
             raise ValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
         if dtype not in (torch.float32, torch.float64):
@@ -80,6 +85,7 @@ class TorchVectorEnv(VectorEnv):
         self.decision_period, self.substeps, self.max_decisions = decision_schedule(self.system, decision_period)
         self.num_envs, self.device, self.dtype = int(num_envs), torch.device(device), dtype
         self.autoreset_mode = _autoreset_mode(autoreset_mode)
+        self.set_compile(compile)
         self.metadata = {**self.metadata, "autoreset_mode": self.autoreset_mode}
         n, m, limit = self.system.n_states, self.system.n_actions, self.system.action_limit
         np_dtype = np.float64 if dtype == torch.float64 else np.float32
@@ -122,10 +128,23 @@ class TorchVectorEnv(VectorEnv):
             raise ValueError(f"actions must be finite (clipped to [-{limit}, {limit}]); got NaN or Inf")
         return u.clamp(-self.system.action_limit, self.system.action_limit)
 
+    def set_compile(self, mode: str) -> None:
+        """Run the decisions eagerly (``"off"``) or ``torch.compile``-d from the next step on (``"on"``:
+        a failure to compile raises; ``"auto"``: it falls back to eager with a warning)."""
+        check_compile_mode(mode)
+        if getattr(self, "compile", None) == mode:
+            return
+        self.compile = mode
+        self._decision_fn = self._make_decision_fn(mode != "off", mode == "on")
+
+    def _make_decision_fn(self, enabled: bool, strict: bool) -> LazyCompiled:
+        """The function :meth:`_advance` calls (subclasses wrap their own decision)."""
+        return LazyCompiled(advance, enabled, strict=strict, name="the env's decision")
+
     def _advance(self, u: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Dynamics of one decision from the current states: (x_next, diverged). Subclasses
         (e.g. the switched env) override this to put controllers inside the decision."""
-        return advance(self.system, self._state, u, self.substeps)
+        return self._decision_fn(self.system, self._state, u, self.substeps)
 
     def _step_infos(self) -> dict[str, torch.Tensor]:
         """Extra per-step infos of subclasses (computed before autoreset)."""

@@ -36,6 +36,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
@@ -49,6 +50,8 @@ from ..analysis.postprocess import KINDS as POSTPROCESS_KINDS
 from ..analysis.postprocess import MIN_POINTS, TRANSIENT_STEPS, PostProcessor
 from ..analysis.variation import madogram, variogram
 from ..envs import env_id
+from ..envs.mujoco_batch import MujocoBatchEnv
+from ..envs.mujoco_batch import supports as batch_supports
 from ..parallel import BACKENDS, cached_env, make_backend
 from ..systems import known_systems
 from ..systems import load as load_system
@@ -82,6 +85,11 @@ class ARSConfig:
     #                                  (checked after each epoch), so a kill loses minutes at most (0: by epochs only)
     eval_episodes: int = 5           # thesis Ch. 4: 5 rollouts per seed for the metrics
     torch_threads: int = 1           # hybridctl: torch threads of the learner's own process (torch policies)
+    engine: str = "auto"             # hybridctl: "auto" steps an epoch's rollouts together on the batched MuJoCo
+    #                                  stepper (envs.mujoco_batch: Hopper/Walker2d/HalfCheetah v5, linear or fixed
+    #                                  policies; bit-identical results) on `workers` threads when the backend is
+    #                                  local (serial or processes), else on `backend`;
+    #                                  "backend": always one rollout per task on `backend`
 
     def validate(self) -> None:
         """Raise ValueError naming the first invalid field."""
@@ -98,6 +106,8 @@ class ARSConfig:
             raise ValueError(f"ARSConfig.episode_steps must be None or an integer >= 1, got {self.episode_steps!r}")
         if self.postprocess not in POSTPROCESS_KINDS:
             raise ValueError(f"ARSConfig.postprocess must be one of {POSTPROCESS_KINDS}, got {self.postprocess!r}")
+        if self.engine not in ENGINES:
+            raise ValueError(f"ARSConfig.engine must be one of {ENGINES}, got {self.engine!r}")
         if self.backend not in BACKENDS:
             raise ValueError(f"ARSConfig.backend must be one of {BACKENDS}, got {self.backend!r}")
         _parse_policy(self.policy)
@@ -106,6 +116,9 @@ class ARSConfig:
     def postprocessor(self) -> PostProcessor:
         """The reward post-processor these settings describe."""
         return PostProcessor(self.postprocess, transient_steps=self.transient_steps, form=self.postprocess_form)
+
+
+ENGINES = ("auto", "backend")
 
 
 def _parse_policy(text: str) -> tuple[int, ...] | None:
@@ -195,6 +208,22 @@ class FrozenPolicy:
             self._actor = self.spec.actor(self.theta)
         return self._actor((np.asarray(obs, dtype=np.float64) - self.obs_mean) / self.obs_std)
 
+    def many(self, obs: np.ndarray) -> np.ndarray:
+        """Actions (n, act_dim) for observations (n, obs_dim), equal bit for bit to calling the
+        policy on each row (the normalisation and the clip are elementwise and run batched; the
+        linear map runs row by row, the same matrix-vector product as one call)."""
+        z = (np.asarray(obs, dtype=np.float64) - self.obs_mean) / self.obs_std
+        if z.ndim != 2 or z.shape[1] != self.spec.obs_dim:
+            raise ValueError(f"obs must have shape (n, {self.spec.obs_dim}), got {np.shape(obs)}")
+        if self.spec.module is not None or self.spec.function is not None:
+            return np.array([self(o) for o in obs], dtype=np.float64).reshape(len(z), self.spec.act_dim)
+        matrix = self.theta.reshape(self.spec.act_dim, self.spec.obs_dim)
+        z = np.ascontiguousarray(z)
+        out = np.empty((z.shape[0], self.spec.act_dim))
+        for i in range(z.shape[0]):
+            out[i] = matrix @ z[i]
+        return np.clip(out, self.spec.low, self.spec.high)
+
 
 # ----------------------------------------------------------------------------- one rollout (runs in workers)
 
@@ -263,7 +292,12 @@ def run_episode(task: RolloutTask) -> dict:
         states.append(np.asarray(obs, dtype=np.float64))
         if terminated or truncated:
             break
-    x = np.stack(states)
+    return _episode_result(task, np.stack(states), raw_return, shifted, steps, bool(terminated))
+
+
+def _episode_result(task: RolloutTask, x: np.ndarray, raw_return: float, shifted: float, steps: int,
+                    terminated: bool) -> dict:
+    """What :func:`run_episode` returns for an episode of observations ``x`` (steps + 1 rows)."""
     if not np.all(np.isfinite(x)) or not math.isfinite(raw_return):
         return {"finite": False, "steps": steps}
     processed, info = task.postprocessor(x, shifted)
@@ -275,6 +309,93 @@ def run_episode(task: RolloutTask) -> dict:
     if task.measure:
         out["dimensions"] = measure_dimensions(x, task.postprocessor.transient_steps)
     return out
+
+
+def batchable(tasks: list[RolloutTask]) -> bool:
+    """Whether :func:`run_episodes_batched` can run ``tasks``: one MuJoCo locomotion env id (and kwargs
+    and step limit) that :class:`~hybridctl.envs.mujoco_batch.MujocoBatchEnv` reproduces, and a linear
+    or fixed (function) policy (a torch policy's module holds one parameter vector at a time)."""
+    if not tasks:
+        return False
+    first = tasks[0]
+    return (batch_supports(first.env, first.env_kwargs)
+            and all(t.env == first.env and t.env_kwargs == first.env_kwargs and t.max_steps == first.max_steps
+                    and t.policy.module is None for t in tasks))
+
+
+def run_episodes_batched(tasks: list[RolloutTask], nthread: int = 1) -> list[dict]:
+    """:func:`run_episode` of every task, all episodes stepped together on MuJoCo threads.
+
+    The results equal :func:`run_episode`'s bit for bit (tested): the same reset states (drawn
+    by the gymnasium env from each task's seed), the same per-episode noise draws in the same
+    order, the policy's matrix-vector product row by row, and the env's semantics from
+    :class:`~hybridctl.envs.mujoco_batch.MujocoBatchEnv`. Needs :func:`batchable` tasks.
+    """
+    if not batchable(tasks):
+        raise ValueError("run_episodes_batched needs tasks on one Hopper/Walker2d/HalfCheetah v5 env (same kwargs and "
+                         "step limit) with linear or fixed policies; use run_episode on a backend otherwise")
+    first, n = tasks[0], len(tasks)
+    env = cached_env(("mujoco-batch", first.env, repr(first.env_kwargs), n, nthread),
+                     lambda: MujocoBatchEnv(first.env, num_envs=n, nthread=nthread, env_kwargs=first.env_kwargs))
+    limit = first.max_steps or env.max_episode_steps
+    if limit is None:
+        raise ValueError(f"{first.env} has no time limit: give max_steps")
+    obs = env.reset([t.seed for t in tasks])
+    act_dim, obs_dim = env.nu, obs.shape[1]
+    states = np.empty((n, limit + 1, obs_dim))
+    states[:, 0] = obs
+    rngs = [np.random.default_rng(t.seed) for t in tasks]
+    actors = [t.policy.actor(t.theta) if t.policy.function is not None else None for t in tasks]
+    matrices = [t.theta.reshape(act_dim, obs_dim) if t.policy.function is None else None for t in tasks]
+    mean = np.stack([t.obs_mean for t in tasks])
+    std = np.stack([t.obs_std for t in tasks])
+    low, high = first.policy.low, first.policy.high
+    obs_noise = np.array([t.obs_noise for t in tasks])
+    action_noise = np.array([t.action_noise for t in tasks])
+    shift = np.array([t.reward_shift for t in tasks], dtype=np.float64)
+    raw, shifted = np.zeros(n), np.zeros(n)
+    steps, terminated = np.zeros(n, dtype=np.int64), np.zeros(n, dtype=bool)
+    alive = np.ones(n, dtype=bool)
+    ids = np.arange(n)
+    for k in range(limit):
+        idx = ids[alive]
+        if idx.size == 0:
+            break
+        seen = states[idx, k].copy()
+        for j, i in enumerate(idx):      # the noise draws of run_episode, in its order, per episode
+            if obs_noise[i]:
+                seen[j] = seen[j] + obs_noise[i] * rngs[i].normal(size=obs_dim)
+        z = (seen - mean[idx]) / std[idx]
+        actions = np.empty((idx.size, act_dim))
+        for j, i in enumerate(idx):
+            actions[j] = actors[i](z[j]) if actors[i] is not None else matrices[i] @ z[j]
+        actions = np.clip(actions, low, high)
+        push = None
+        for j, i in enumerate(idx):
+            if action_noise[i]:
+                actions[j] = np.clip(actions[j] + action_noise[i] * rngs[i].normal(size=act_dim), low, high)
+            if tasks[i].push is not None and rngs[i].random() < tasks[i].push[0]:
+                push = np.zeros((idx.size, 3)) if push is None else push
+                push[j] = tasks[i].push[1] * _unit_xz(rngs[i])
+        obs, reward, term, _ = env.step(actions, ids=idx, push=push)
+        steps[idx] += 1
+        raw[idx] += reward
+        shifted[idx] += reward - shift[idx]
+        states[idx, k + 1] = obs
+        terminated[idx] = term
+        alive[idx[term]] = False
+    return [_episode_result(t, states[i, :steps[i] + 1], float(raw[i]), float(shifted[i]), int(steps[i]),
+                            bool(terminated[i])) for i, t in enumerate(tasks)]
+
+
+def rollouts(tasks: list[RolloutTask], backend, engine: str = "auto", nthread: int | None = None) -> list[dict]:
+    """:func:`run_episode` of every task: batched on this machine's MuJoCo threads (``engine="auto"``,
+    :func:`batchable` tasks and a local backend; ``nthread`` threads, default every core) or on
+    ``backend`` (always on a Ray backend, which may reach a cluster's CPUs)."""
+    if engine == "auto" and getattr(backend, "name", "serial") != "ray" and batchable(tasks):
+        threads = nthread or (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count())
+        return run_episodes_batched(tasks, max(1, int(threads or 1)))
+    return backend.map(run_episode, tasks)
 
 
 def measure_dimensions(states: np.ndarray, transient_steps: int = TRANSIENT_STEPS) -> dict:
@@ -409,7 +530,7 @@ class ARS(Learner):
         cfg = self.config
         directions, seeds = self._epoch_draws(self.epoch)
         thetas = [self.theta + sign * cfg.noise * d for d in directions for sign in (1.0, -1.0)]
-        results = backend.map(run_episode, self._tasks(thetas, [s for s in seeds for _ in (0, 1)]))
+        results = rollouts(self._tasks(thetas, [s for s in seeds for _ in (0, 1)]), backend, cfg.engine, cfg.workers)
         bad = [i for i, r in enumerate(results) if not r["finite"]]
         if bad:
             raise FloatingPointError(f"ARS epoch {self.epoch}: {len(bad)} rollouts produced NaN/inf states or "
@@ -495,7 +616,7 @@ class ARS(Learner):
         pp = PostProcessor(postprocess, transient_steps=self.config.transient_steps)
         tasks = self._tasks([self.theta] * n, seeds, max_steps=episode_steps, reward_shift=0.0, postprocessor=pp,
                             keep_states=keep_states, measure=measure, **noise)
-        results = (backend or make_backend("serial")).map(run_episode, tasks)
+        results = rollouts(tasks, backend or make_backend("serial"), self.config.engine, self.config.workers)
         finite = [r for r in results if r["finite"]]
         returns = np.array([r["raw_return"] for r in finite])
         out = EvalResult.from_returns(  # success_rate None: a gym env has no thesis success test

@@ -44,6 +44,8 @@ from torch.func import functional_call, vmap
 from ..analysis.postprocess import FORMS as POSTPROCESS_FORMS
 from ..analysis.postprocess import KINDS as POSTPROCESS_KINDS
 from ..analysis.postprocess import PostProcessor
+from ..envs.mujoco_batch import MujocoBatchEnv
+from ..envs.mujoco_batch import supports as batch_supports
 from ..parallel import BACKENDS, cached_env, make_backend
 from ..systems import known_systems
 from ..systems import load as load_system
@@ -344,6 +346,8 @@ def run_chunk(task: ChunkTask) -> list[dict]:
     torch.set_num_threads(1)
     if task.system is not None:
         return _run_system_chunk(task)
+    if batch_supports(task.env, task.env_kwargs):
+        return _run_mujoco_chunk(task)
     n = len(task.seeds)
     envs = cached_env(("finetune", repr(task.env), repr(task.env_kwargs), task.max_steps, n),
                       lambda: [_make_env(task.env, task.env_kwargs, task.max_steps) for _ in range(n)])
@@ -368,15 +372,56 @@ def run_chunk(task: ChunkTask) -> list[dict]:
                 if "success" in info:
                     success[i] = bool(info["success"])
         returns[stepped] += rewards[stepped]
-        steps[stepped] += 1
-        bad = stepped[~(np.isfinite(obs[stepped]).all(axis=1) & np.isfinite(returns[stepped]))]
-        finite[bad], active[bad] = False, False
-        active &= steps < limit
-        z = _normalise(task.normalizer, obs)
-        history.append(z.copy())
-    states = np.stack(history)    # (T + 1, n, obs); member i's episode is states[: steps[i] + 1, i]
+        z = _after_step(task, obs, returns, steps, stepped, finite, active, limit, history)
+    return _chunk_results(task, history, returns, steps, terminated, finite, success)
+
+
+def _after_step(task: ChunkTask, obs, returns, steps, stepped, finite, active, limit, history) -> np.ndarray:
+    """Book-keeping after the ``stepped`` episodes took a step (their rewards already in ``returns``):
+    count the step, stop non-finite and over-long episodes, record and return the normalised observations."""
+    steps[stepped] += 1
+    bad = stepped[~(np.isfinite(obs[stepped]).all(axis=1) & np.isfinite(returns[stepped]))]
+    finite[bad], active[bad] = False, False
+    active &= steps < limit
+    z = _normalise(task.normalizer, obs)
+    history.append(z.copy())
+    return z
+
+
+def _chunk_results(task: ChunkTask, history, returns, steps, terminated, finite, success) -> list[dict]:
+    """One result per episode of a chunk; member i's episode is states[: steps[i] + 1, i]."""
+    states = np.stack(history)    # (T + 1, n, obs)
     return [_episode_result(task, states[: steps[i] + 1, i], returns[i], int(steps[i]), bool(terminated[i]),
-                            bool(finite[i]), success[i]) for i in range(n)]
+                            bool(finite[i]), None if success is None else success[i]) for i in range(len(steps))]
+
+
+def _run_mujoco_chunk(task: ChunkTask) -> list[dict]:
+    """:func:`run_chunk` on a Hopper/Walker2d/HalfCheetah v5 env: the chunk's episodes stepped together
+    on :class:`~hybridctl.envs.mujoco_batch.MujocoBatchEnv` (one thread; the backend's workers run the
+    chunks side by side). Bit-identical to the gymnasium loop of :func:`run_chunk` (tested)."""
+    n = len(task.seeds)
+    env = cached_env(("finetune-batch", task.env, repr(task.env_kwargs), n),
+                     lambda: MujocoBatchEnv(task.env, num_envs=n, nthread=1, env_kwargs=task.env_kwargs))
+    dtype = next(task.module.parameters()).dtype
+    params = _unflatten(task.module, task.names, torch.as_tensor(task.thetas, dtype=torch.float64))
+    space = env.action_space
+    obs = env.reset(task.seeds)
+    z = _normalise(task.normalizer, obs)
+    history = [z.copy()]
+    returns, steps = np.zeros(n), np.zeros(n, dtype=int)
+    active, terminated, finite = np.ones(n, bool), np.zeros(n, bool), np.ones(n, bool)
+    limit = task.max_steps or env.max_episode_steps or math.inf
+    while active.any():
+        actions = batched_actions(task.module, params, torch.as_tensor(z, dtype=dtype)).numpy()
+        actions = actions.astype(space.dtype, copy=False).reshape((n, *space.shape))
+        stepped = np.flatnonzero(active)
+        o, r, term, _ = env.step(actions[stepped], ids=stepped)
+        obs[stepped] = o
+        terminated[stepped] = term
+        active[stepped[term]] = False
+        returns[stepped] += r
+        z = _after_step(task, obs, returns, steps, stepped, finite, active, limit, history)
+    return _chunk_results(task, history, returns, steps, terminated, finite, None)
 
 
 def _run_system_chunk(task: ChunkTask) -> list[dict]:

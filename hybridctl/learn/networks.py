@@ -89,14 +89,21 @@ class Actor(nn.Module):
         log action_scale term (as in CleanRL) only shifts the entropy by a constant.
         """
         mu, log_std = self(obs)
-        u = mu + log_std.exp() * eps
-        logp = (-0.5 * eps.pow(2) - log_std - 0.5 * _LOG_2PI).sum(-1)
-        logp = logp - (self.action_scale.log() + 2 * (math.log(2) - u - F.softplus(-2 * u))).sum(-1)
-        return self.action_scale * torch.tanh(u), logp
+        return squashed_sample(mu, log_std, eps, self.action_scale)
 
     def deterministic(self, obs: torch.Tensor) -> torch.Tensor:
         """``action_scale * tanh(mu)`` (thesis Sec. 3.4.2: eps set to zero)."""
         return self.action_scale * torch.tanh(self(obs)[0])
+
+
+def squashed_sample(mu: torch.Tensor, log_std: torch.Tensor, eps: torch.Tensor,
+                    action_scale: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``action_scale * tanh(mu + sigma eps)`` and its log density (B,): :meth:`Actor.sample`'s formula,
+    on the actor's outputs (also for a functional call of the actor with other weights)."""
+    u = mu + log_std.exp() * eps
+    logp = (-0.5 * eps.pow(2) - log_std - 0.5 * _LOG_2PI).sum(-1)
+    logp = logp - (action_scale.log() + 2 * (math.log(2) - u - F.softplus(-2 * u))).sum(-1)
+    return action_scale * torch.tanh(u), logp
 
 
 class QNetwork(nn.Module):

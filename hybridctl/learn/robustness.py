@@ -17,7 +17,7 @@ from typing import Callable
 
 import numpy as np
 
-from .ars import ARS, PolicySpec, RolloutTask, make_env, run_episode
+from .ars import ARS, PolicySpec, RolloutTask, make_env, rollouts
 from ..parallel import make_backend
 from ..analysis.postprocess import PostProcessor
 
@@ -37,7 +37,7 @@ def wilson_interval(failures: int, n: int, z: float = 1.96) -> tuple[float, floa
 
 def failure_rates(policy: ARS | Callable[[np.ndarray], np.ndarray], env=None, conditions: dict | None = None,
                   episodes: int = 50, episode_steps: int = 10_000, seed: int = 0, backend: str = "processes",
-                  workers: int | None = None) -> dict:
+                  workers: int | None = None, engine: str | None = None) -> dict:
     """Fraction of episodes that terminate early under each disturbance condition.
 
     ``policy``: an :class:`ARS` agent (its env, normalisation and parameters are used), or a
@@ -45,6 +45,11 @@ def failure_rates(policy: ARS | Callable[[np.ndarray], np.ndarray], env=None, co
     ``conditions``: name -> dict with any of ``action_noise``, ``obs_noise`` (std) and
     ``push`` ((rate, magnitude)). The same ``episodes`` env seeds are used for every
     condition. Returns, per condition, failures, fraction, 95 % Wilson interval, mean return.
+
+    ``engine``: ``"auto"`` (the default, or the agent's ``config.engine``) runs a condition's
+    episodes together on the batched MuJoCo stepper where it applies (Hopper/Walker2d/HalfCheetah
+    v5, linear or plain-callable policies; the same numbers bit for bit) on ``workers`` threads;
+    ``"backend"``: one episode per task on ``backend``.
     """
     conditions = conditions or {"none": {}}
     if episodes < 1 or episode_steps < 1:
@@ -64,6 +69,10 @@ def failure_rates(policy: ARS | Callable[[np.ndarray], np.ndarray], env=None, co
         spec = PolicySpec(obs_dim, act_dim, probe.action_space.low, probe.action_space.high, function=policy)
         probe.close()
         theta, mean, std, env_kwargs = np.zeros(0), np.zeros(obs_dim), np.ones(obs_dim), None
+    if engine is None:
+        engine = policy.config.engine if isinstance(policy, ARS) else "auto"
+    if engine not in ("auto", "backend"):
+        raise ValueError(f"engine must be 'auto' or 'backend', got {engine!r}")
     seeds = [int(s) for s in np.random.default_rng(seed).integers(0, 2 ** 31 - 1, size=episodes)]
     identity = PostProcessor("identity")
     report = {}
@@ -72,7 +81,7 @@ def failure_rates(policy: ARS | Callable[[np.ndarray], np.ndarray], env=None, co
             tasks = [RolloutTask(env, env_kwargs, spec, theta, mean, std, s, episode_steps, 0.0, identity,
                                  action_noise=cond.get("action_noise", 0.0), obs_noise=cond.get("obs_noise", 0.0),
                                  push=cond.get("push")) for s in seeds]
-            results = pool.map(run_episode, tasks)
+            results = rollouts(tasks, pool, engine, workers)
             failed = sum(1 for r in results if not r["finite"] or r["terminated"])
             returns = [r["raw_return"] for r in results if r["finite"]]
             report[name] = {"condition": cond, "episodes": episodes, "failures": failed,

@@ -68,9 +68,12 @@ from pathlib import Path
 
 import torch
 import torch.nn.functional as F
+from torch.func import functional_call, grad_and_value
 
 from . import checkpoint as ckpt
-from .networks import OBS_TRANSFORMS, Actor, DeterministicPolicy, ObsTransform, QNetwork
+from ..systems import System
+from ..systems.compiled import COMPILE_MODES, LazyCompiled, wants_compile
+from .networks import OBS_TRANSFORMS, Actor, DeterministicPolicy, ObsTransform, QNetwork, squashed_sample
 from .replay import REPLAY_FIELDS, EpisodeStaging, ReplayBuffer, sample_mixed
 from .config_check import check_types
 from .run import Saved, check_fields, check_finite, seeded
@@ -118,6 +121,10 @@ class SACConfig:
     # --- runtime ---------------------------------------------------------------------
     seed: int = 0                       # seeds network init, the agent's torch generator and the env
     device: str = "cpu"                 # networks, replay and env (CPU: tiny networks)
+    compile: str = "auto"               # hybridctl: "on" = torch.compile the losses' forward and backward (one
+    #                                     fused graph each, gradients by torch.func) and the env's decision;
+    #                                     "off" = eager autograd; "auto" = "on" when a learn() call has >= 2e5
+    #                                     env steps to go (compiling costs 15-70 s), with an eager fallback
     torch_threads: int = 1              # hybridctl measurement (2 cores): 2 threads give no speed-up on these
     #                                     tiny ops (~2.4 ms per gradient step either way); 1 leaves a core free
     checkpoint_every: int = 100_000     # env steps between checkpoints in log_dir/checkpoint (0: none)
@@ -149,6 +156,8 @@ class SACConfig:
             raise ValueError(f"SACConfig.alpha must be a number >= 0 or 'auto', got {self.alpha!r}")
         if not self.log_std_min < self.log_std_max:
             raise ValueError(f"SACConfig needs log_std_min < log_std_max, got {self.log_std_min}, {self.log_std_max}")
+        if self.compile not in COMPILE_MODES:
+            raise ValueError(f"SACConfig.compile must be one of {COMPILE_MODES}, got {self.compile!r}")
         if self.obs_transform not in OBS_TRANSFORMS:
             raise ValueError(f"SACConfig.obs_transform must be one of {OBS_TRANSFORMS}, got {self.obs_transform!r}")
         try:
@@ -179,6 +188,17 @@ def set_lr(optimizer: torch.optim.Optimizer, lr: float) -> None:
     """Set every parameter group's learning rate."""
     for group in optimizer.param_groups:
         group["lr"] = lr
+
+
+def _call(module: torch.nn.Module, params: dict | None, *args):
+    """``module(*args)``, with ``params`` (name -> tensor) in place of its own parameters when given."""
+    return module(*args) if params is None else functional_call(module, params, args)
+
+
+def _set_grads(params: list[torch.Tensor], grads: list[torch.Tensor]) -> None:
+    """Hand gradients computed by torch.func to the optimizer (in the parameters' order)."""
+    for p, g in zip(params, grads, strict=True):
+        p.grad = g
 
 
 def _next_multiple(value: int, every: int) -> float:
@@ -256,6 +276,8 @@ class SAC(VectorEnvAgent):
         self.num_gradient_steps = self.num_updates = self.num_rounds = self.num_needle_episodes = 0
         self._episode_return = torch.zeros(cfg.num_envs, dtype=torch.float64, device=self.device)
         self._loss_sums = {"q_loss": 0.0, "pi_loss": 0.0, "n": 0}
+        self._grads = self._compiled_grads = None  # eager autograd until learn() asks for compiled ones
+        self._owns_env = isinstance(env_or_system, (str, System))
 
     def _transform(self) -> ObsTransform:
         return ObsTransform(self.config.obs_transform, self.obs_dim, getattr(self.system, "angle_indices", []))
@@ -268,31 +290,65 @@ class SAC(VectorEnvAgent):
         return self.log_alpha.detach().exp()
 
     # ================================================================ the SAC update
+    def critic_loss(self, q_params, obs, act, rew, next_obs, done, eps, alpha) -> torch.Tensor:
+        """Twin soft-Q loss on one minibatch: ``sum_i mse(Q_i(s, a), r + gamma (1 - d) (min Q_targ(s', a') -
+        alpha log pi(a'|s')))`` with a' drawn with noise ``eps`` (no bootstrap past a termination).
+
+        ``q_params``: ``(params of q1, params of q2)`` as name -> tensor dicts (a functional call,
+        for ``torch.func`` gradients), or None for the networks' own parameters.
+        """
+        with torch.no_grad():  # the soft Bellman target, from the target networks
+            next_act, next_logp = self.actor.sample(next_obs, eps)
+            q_next = torch.min(self.q1_target(next_obs, next_act), self.q2_target(next_obs, next_act))
+            target = rew + self.config.gamma * (1.0 - done) * (q_next - alpha * next_logp)
+        p1, p2 = (None, None) if q_params is None else q_params
+        return F.mse_loss(_call(self.q1, p1, obs, act), target) + F.mse_loss(_call(self.q2, p2, obs, act), target)
+
+    def actor_loss(self, actor_params, q_params, obs, eps, alpha) -> tuple[torch.Tensor, torch.Tensor]:
+        """Policy loss ``mean(alpha log pi - min(Q1, Q2))`` at reparameterised actions (noise ``eps``)
+        and the log densities (B,). Parameters as in :meth:`critic_loss` (None: the networks' own)."""
+        mu, log_std = _call(self.actor, actor_params, obs)
+        new_act, logp = squashed_sample(mu, log_std, eps, self.actor.action_scale)
+        p1, p2 = (None, None) if q_params is None else q_params
+        q_new = torch.min(_call(self.q1, p1, obs, new_act), _call(self.q2, p2, obs, new_act))
+        return (alpha * logp - q_new).mean(), logp
+
     def gradient_step(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """One Adam step on the Q losses, the policy loss and (auto) alpha, on one minibatch.
 
-        Raises FloatingPointError (before any weight changes) if a loss is NaN/Inf.
+        Eager: autograd through the networks. Compiled (``config.compile``): each loss's forward and
+        backward is one ``torch.compile``-d ``torch.func.grad_and_value`` graph; the gradients are
+        the same up to rounding. Raises FloatingPointError (before any weight changes) if a loss
+        is NaN/Inf.
         """
-        cfg, gen = self.config, self.generator
         obs, act, rew, next_obs, done = (batch[f] for f in REPLAY_FIELDS)
-        alpha = self.alpha
-        # soft Bellman target from the target networks (no bootstrap past a termination)
-        with torch.no_grad():
-            next_act, next_logp = self.actor.sample(next_obs, torch.randn(act.shape, generator=gen, device=act.device))
-            q_next = torch.min(self.q1_target(next_obs, next_act), self.q2_target(next_obs, next_act))
-            target = rew + cfg.gamma * (1.0 - done) * (q_next - alpha * next_logp)
-        q_loss = F.mse_loss(self.q1(obs, act), target) + F.mse_loss(self.q2(obs, act), target)
-        self._check_finite("q_loss", q_loss)
-        self.q_opt.zero_grad(set_to_none=True)
-        q_loss.backward()
+        alpha, gen = self.alpha, self.generator
+        eps_next = torch.randn(act.shape, generator=gen, device=act.device)
+        if self._grads is None:
+            q_loss = self.critic_loss(None, obs, act, rew, next_obs, done, eps_next, alpha)
+            self._check_finite("q_loss", q_loss)
+            self.q_opt.zero_grad(set_to_none=True)
+            q_loss.backward()
+        else:
+            q_grads, q_loss = self._grads["critic"](self._q_param_dicts(), obs, act, rew, next_obs, done,
+                                                    eps_next, alpha)
+            self._check_finite("q_loss", q_loss)
+            _set_grads(self._q_params, [g for grads in q_grads for g in grads.values()])
         self.q_opt.step()
 
-        # policy: minimise alpha log pi - min(Q1, Q2) at reparameterised actions
-        new_act, logp = self.actor.sample(obs, torch.randn(act.shape, generator=gen, device=act.device))
-        pi_loss = (alpha * logp - torch.min(self.q1(obs, new_act), self.q2(obs, new_act))).mean()
-        self._check_finite("pi_loss", pi_loss)
-        self.actor_opt.zero_grad(set_to_none=True)
-        pi_loss.backward()
+        # policy: minimise alpha log pi - min(Q1, Q2) at reparameterised actions (the critics just updated)
+        eps_new = torch.randn(act.shape, generator=gen, device=act.device)
+        if self._grads is None:
+            pi_loss, logp = self.actor_loss(None, None, obs, eps_new, alpha)
+            self._check_finite("pi_loss", pi_loss)
+            self.actor_opt.zero_grad(set_to_none=True)
+            pi_loss.backward()
+        else:
+            actor_params = {k: v.detach() for k, v in self._named_params[0]}
+            a_grads, (pi_loss, logp) = self._grads["actor"](actor_params, self._q_param_dicts(), obs, eps_new,
+                                                            alpha)
+            self._check_finite("pi_loss", pi_loss)
+            _set_grads(self._actor_params, list(a_grads.values()))
         self.actor_opt.step()
 
         out = {"q_loss": q_loss.detach(), "pi_loss": pi_loss.detach()}
@@ -305,6 +361,30 @@ class SAC(VectorEnvAgent):
             out["alpha_loss"] = alpha_loss.detach()
         self.num_gradient_steps += 1
         return out
+
+    def _q_param_dicts(self) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+        """The critics' parameters, detached (torch.func differentiates with respect to them)."""
+        return tuple({k: v.detach() for k, v in named} for named in self._named_params[1:])
+
+    def use_compile(self, remaining_steps: int | None) -> bool:
+        """Set up eager or compiled gradients (and the agent-built env's decision) for a run of
+        ``remaining_steps`` more env steps, as ``config.compile`` says; returns whether compiled.
+        ``learn`` calls it; the compiled functions are kept across calls."""
+        cfg = self.config
+        enabled = wants_compile(cfg.compile, remaining_steps)
+        if enabled:  # parameters are updated in place (optimizers, load_state_dict): list them once
+            self._named_params = [list(net.named_parameters()) for net in (self.actor, self.q1, self.q2)]
+            self._actor_params = [p for _, p in self._named_params[0]]
+        if enabled and self._compiled_grads is None:
+            strict = cfg.compile == "on"
+            self._compiled_grads = {
+                "critic": LazyCompiled(grad_and_value(self.critic_loss), True, strict, "SAC's critic loss"),
+                "actor": LazyCompiled(grad_and_value(self.actor_loss, has_aux=True), True, strict,
+                                      "SAC's actor loss")}
+        self._grads = self._compiled_grads if enabled else None
+        if self._owns_env and hasattr(self.env, "set_compile"):
+            self.env.set_compile(cfg.compile if enabled else "off")
+        return enabled
 
     def update(self) -> None:
         """One thesis "update": a replay batch, one gradient step per minibatch, one Polyak step."""
@@ -388,6 +468,7 @@ class SAC(VectorEnvAgent):
         cfg = self.config
         total = int(cfg.total_steps if total_steps is None else total_steps)
         with self.run(log_dir, resume, progress, callback, total, force=force) as run:
+            self.use_compile(total - self.num_timesteps)
             if self._obs is None:
                 obs, _ = self.env.reset(seed=self._env_seed)
                 self._env_seed = None

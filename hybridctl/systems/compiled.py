@@ -1,0 +1,83 @@
+"""``torch.compile`` for the hot loops of training (the switched env's decision, SAC's losses).
+
+Tiny tensors (batch 32 states, 32-unit layers) make eager torch pay a few microseconds of
+dispatch per operation; one decision of the switched acrobot env is ~300 of them. Compiled
+by inductor into a few C++ kernels, the same decision ran 13x faster here (0.8 ms against
+11 ms, batch 32, one thread) and agreed with eager to 2e-15. Compiling takes 15-70 s once
+per process (inductor caches kernels on disk for the next one), so short runs stay eager.
+
+``COMPILE_MODES``: ``"off"`` (eager), ``"on"`` (compile; a failure to compile raises) and
+``"auto"`` (compile runs of at least :data:`AUTO_COMPILE_MIN_STEPS` env steps; a failure to
+compile falls back to eager with a warning, e.g. on a machine without a C++ compiler).
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import Callable
+
+import torch
+
+COMPILE_MODES = ("auto", "on", "off")
+
+AUTO_COMPILE_MIN_STEPS = 200_000
+"""``"auto"`` compiles runs of at least this many env steps: compiling (~15-70 s on 2 cores) pays
+back after ~2e5 steps of the switched acrobot (each vector decision of 32 steps saves ~10 ms)."""
+
+
+def check_compile_mode(mode: str, name: str = "compile") -> str:
+    """``mode`` if it is one of :data:`COMPILE_MODES`, else ValueError naming ``name``."""
+    if mode not in COMPILE_MODES:
+        raise ValueError(f"{name} must be one of {COMPILE_MODES}, got {mode!r}")
+    return mode
+
+
+def wants_compile(mode: str, total_steps: int | None = None) -> bool:
+    """Whether ``mode`` compiles a run of ``total_steps`` env steps (``"auto"``: long runs only)."""
+    check_compile_mode(mode)
+    if mode == "auto":
+        return total_steps is not None and total_steps >= AUTO_COMPILE_MIN_STEPS
+    return mode == "on"
+
+
+class LazyCompiled:
+    """``fn`` compiled with ``torch.compile`` on its first call, or ``fn`` itself when disabled.
+
+    Args:
+        fn: a function of tensors (and modules / plain values that do not change between calls).
+        enabled: compile (True) or call ``fn`` eagerly (False).
+        strict: when compiling fails, raise (True) or warn and run ``fn`` eagerly from then on
+            (False). A call whose eager run raises too is a real error and is raised as such.
+        name: what the warning calls it.
+
+    The compiled function has fixed shapes (``dynamic=False``): a new batch size compiles again.
+    """
+
+    def __init__(self, fn: Callable, enabled: bool, strict: bool = False, name: str | None = None):
+        self.fn, self.enabled, self.strict = fn, bool(enabled), bool(strict)
+        self.name = name or getattr(fn, "__qualname__", repr(fn))
+        self._compiled: Callable | None = None
+
+    def __call__(self, *args, **kwargs):
+        if not self.enabled:
+            return self.fn(*args, **kwargs)
+        if self._compiled is None:
+            self._compiled = torch.compile(self.fn, dynamic=False)
+        try:
+            return self._compiled(*args, **kwargs)
+        except Exception as error:  # noqa: BLE001 - compile failures come in many types
+            if self.strict:
+                raise RuntimeError(f"torch.compile of {self.name} failed ({type(error).__name__}: "
+                                   f"{str(error).splitlines()[0] if str(error) else ''}); use compile='off' "
+                                   f"(or 'auto', which falls back to eager)") from error
+            result = self.fn(*args, **kwargs)  # raises if the function itself is at fault
+            warnings.warn(f"torch.compile of {self.name} failed ({type(error).__name__}); running it eagerly",
+                          RuntimeWarning, stacklevel=2)
+            self.enabled = False
+            return result
+
+
+def env_compile_mode(mode: str, total_steps: int | None = None) -> str:
+    """The ``compile`` argument for a learner's env: ``"off"`` unless :func:`wants_compile`, else
+    ``mode`` (``"on"`` raises on a failure to compile, ``"auto"`` falls back to eager)."""
+    return mode if wants_compile(mode, total_steps) else "off"

@@ -1,0 +1,127 @@
+"""torch.compile in training (issue 15): the compiled env decision and SAC gradient step equal the
+eager ones to rounding; LazyCompiled falls back to eager or raises as asked; the modes validate."""
+
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+from hybridctl.envs import SwitchedVectorEnv, TorchVectorEnv
+from hybridctl.learn import SAC, SACConfig
+from hybridctl.learn.gate import GateNet
+from hybridctl.systems import compiled, load
+
+
+def _double(x):
+    return 2 * x
+
+
+def test_lazy_compiled_off_calls_the_function_itself(monkeypatch):
+    monkeypatch.setattr(torch, "compile", lambda *a, **k: pytest.fail("compile must not be called"))
+    fn = compiled.LazyCompiled(_double, enabled=False)
+    assert fn(torch.tensor(3.0)).item() == 6.0
+
+
+def _broken_compile(fn, **kwargs):
+    def run(*args):
+        raise RuntimeError("no C++ compiler")
+    return run
+
+
+def test_lazy_compiled_falls_back_to_eager_with_a_warning(monkeypatch):
+    monkeypatch.setattr(torch, "compile", _broken_compile)
+    fn = compiled.LazyCompiled(_double, enabled=True, name="the doubler")
+    with pytest.warns(RuntimeWarning, match="the doubler"):
+        assert fn(torch.tensor(2.0)).item() == 4.0
+    assert not fn.enabled
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert fn(torch.tensor(5.0)).item() == 10.0   # eager from then on, no second warning
+
+
+def test_lazy_compiled_strict_raises_naming_the_way_out(monkeypatch):
+    monkeypatch.setattr(torch, "compile", _broken_compile)
+    fn = compiled.LazyCompiled(_double, enabled=True, strict=True, name="the doubler")
+    with pytest.raises(RuntimeError, match="the doubler.*compile='off'"):
+        fn(torch.tensor(2.0))
+
+
+def test_a_fault_of_the_function_itself_is_raised_not_hidden(monkeypatch):
+    monkeypatch.setattr(torch, "compile", _broken_compile)
+
+    def faulty(x):
+        raise ValueError("bad input")
+    with pytest.raises(ValueError, match="bad input"):
+        compiled.LazyCompiled(faulty, enabled=True)(torch.tensor(1.0))
+
+
+def test_auto_compiles_long_runs_only():
+    assert compiled.wants_compile("auto", compiled.AUTO_COMPILE_MIN_STEPS)
+    assert not compiled.wants_compile("auto", compiled.AUTO_COMPILE_MIN_STEPS - 1)
+    assert compiled.wants_compile("on", 10) and not compiled.wants_compile("off", 10**9)
+    with pytest.raises(ValueError, match="compile must be one of"):
+        compiled.wants_compile("yes", 10)
+
+
+def test_bad_compile_modes_are_refused():
+    with pytest.raises(ValueError, match="SACConfig.compile"):
+        SACConfig(compile="fast").validate()
+    with pytest.raises(ValueError, match="compile must be one of"):
+        TorchVectorEnv("acrobot", 2, compile=True)
+
+
+def test_short_learn_runs_stay_eager(one_torch_thread):
+    agent = SAC("acrobot", seed=0, num_envs=4, exploration_steps=64, steps_per_update=64, replay_batch_size=8,
+                minibatch_size=8)
+    agent.learn(total_steps=128, progress=False)
+    assert agent._grads is None and agent.env.compile == "off"
+
+
+def test_compiled_switched_env_equals_eager(one_torch_thread):
+    """Same actions, same starts: the compiled decision (gate, hysteresis, LQR, saturation, dynamics)
+    matches the eager one to rounding, modes and hand-overs included."""
+    system = load("acrobot")
+    gate = GateNet(system)
+    envs = [SwitchedVectorEnv(system, 8, gate=gate, seed=3, decision_period=0.02, compile=mode)
+            for mode in ("off", "on")]
+    start = system.goal + np.random.default_rng(0).uniform(-0.05, 0.05, (8, system.n_states))
+    start[:4] = system.sample_initial_states(4, np.random.default_rng(1))
+    for env in envs:
+        env.reset(options={"state": start})
+    # a gate that hands over near the goal, so both branches of the switch run
+    with torch.no_grad():
+        gate.net[-1].bias.fill_(3.0)
+    actions = torch.as_tensor(np.random.default_rng(2).uniform(-25, 25, (6, 8, 1)))
+    for u in actions:
+        eager, fast = (env.step(u) for env in envs)
+        np.testing.assert_allclose(fast[0].numpy(), eager[0].numpy(), rtol=0, atol=1e-10)
+        np.testing.assert_allclose(fast[1].numpy(), eager[1].numpy(), rtol=0, atol=1e-10)
+        assert torch.equal(envs[0].mode, envs[1].mode)
+        np.testing.assert_allclose(fast[4]["lqr_fraction"].numpy(), eager[4]["lqr_fraction"].numpy())
+    assert bool(envs[0].mode.any())
+
+
+def test_compiled_sac_gradient_step_equals_eager(one_torch_thread):
+    """One replay batch of 4 gradient steps, eager autograd vs compiled torch.func: same weights to
+    float32 rounding, same losses."""
+    agents = []
+    for mode in ("off", "on"):
+        agent = SAC("acrobot", seed=0, num_envs=8, exploration_steps=0, replay_batch_size=64, minibatch_size=16,
+                    obs_transform="angle_sincos", compile=mode)
+        agent.use_compile(10**6)
+        obs, _ = agent.env.reset(seed=0)
+        agent._obs = obs.float()
+        for _ in range(10):
+            agent.collect()
+        agents.append(agent)
+    eager, fast = agents
+    assert eager._grads is None and fast._grads is not None
+    for agent in agents:
+        agent.update()
+    for net in ("actor", "q1", "q2", "q1_target", "q2_target"):
+        for (name, a), b in zip(getattr(eager, net).named_parameters(), getattr(fast, net).parameters()):
+            torch.testing.assert_close(b, a, rtol=1e-4, atol=1e-5, msg=f"{net}.{name}")
+    assert eager.num_gradient_steps == fast.num_gradient_steps == 4
+    assert eager._loss_sums["n"] == fast._loss_sums["n"] == 4
+    assert abs(eager._loss_sums["q_loss"] - fast._loss_sums["q_loss"]) <= 1e-4 * abs(eager._loss_sums["q_loss"])
