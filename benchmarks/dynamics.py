@@ -218,12 +218,58 @@ def step_limits(systems_by_name: dict, steps: list, machine: dict) -> dict:
     return out
 
 
-def bench_drake() -> dict:
-    """Real-time factor (simulated s / wall s) of the default acrobot hybrid diagram, 10 s from hanging down."""
+# The shipped learned controllers that run in Drake (ppo-pendulum and ars-hopper are gymnasium agents) and the
+# hand-designed energy swing-ups, each timed on the default loop and on the pre-issue-15 Python loop.
+DRAKE_CONTROLLERS = (("acrobot", "energy"), ("acrobot", "ssac:models/policies/ssac-acrobot"),
+                     ("cartpole", "papg:models/policies/papg-cartpole"), ("cartpole", "energy"))
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _time_simulation(drake, diagram, x0, repeats: int, cpu: list | None = None) -> list[float]:
+    """Wall seconds of ``repeats`` 10 s runs after one warm-up run (their CPU seconds appended to ``cpu``)."""
+    drake.simulate(diagram, x0, DRAKE_DURATION)
+    walls = []
+    for _ in range(repeats):
+        start, cpu_start = time.perf_counter(), time.thread_time()
+        drake.simulate(diagram, x0, DRAKE_DURATION)
+        walls.append(time.perf_counter() - start)
+        if cpu is not None:
+            cpu.append(time.thread_time() - cpu_start)
+    return walls
+
+
+def bench_drake_controller(drake, name: str, controller: str, repeats: int) -> dict:
+    """Real-time factor of one named controller's diagram, on the default loop (C++ switch, LQR and saturation;
+    Python only in periodic updates) and on ``switch="python"`` (the Python ModeSwitch evaluated at every
+    derivative evaluation and the LQR in a Python block, as before issue 15), timed alternately in this run."""
+    from hybridctl.experiments.controllers import build_named_diagram
+
+    system = systems.load(name)
+    x0 = system.nudged_nominal_state()
+    diagrams = {"drake": build_named_diagram(system, controller),
+                "python": build_named_diagram(system, controller, switch="python")}
+    walls, cpus = {"drake": [], "python": []}, {"drake": [], "python": []}
+    for _ in range(repeats):
+        for key, diagram in diagrams.items():
+            walls[key] += _time_simulation(drake, diagram, x0, 1, cpus[key])
+    traj = drake.simulate(diagrams["drake"], x0, DRAKE_DURATION)
+    fast, slow = statistics.median(walls["drake"]), statistics.median(walls["python"])
+    return {"system": name, "controller": controller, "realtime_factor": DRAKE_DURATION / fast,
+            "realtime_factor_python_switch": DRAKE_DURATION / slow, "speedup_vs_python_switch": slow / fast,
+            "realtime_factor_cpu": DRAKE_DURATION / statistics.median(cpus["drake"]),
+            "realtime_factor_python_switch_cpu": DRAKE_DURATION / statistics.median(cpus["python"]),
+            "wall_s": fast, "wall_s_min": min(walls["drake"]), "wall_s_max": max(walls["drake"]),
+            "wall_s_python_switch": slow, "repeats": repeats, "balanced": bool(traj.balanced)}
+
+
+def bench_drake(quick: bool = False) -> dict:
+    """Real-time factor (simulated s / wall s) of the default acrobot hybrid diagram, 10 s from hanging down,
+    and of every shipped learned controller's diagram (``controllers``)."""
     try:
         from hybridctl import drake
     except Exception as exc:  # the module may not exist yet, or fail to import: report, don't crash
         return {"skipped": f"import hybridctl.drake failed: {type(exc).__name__}: {exc}"}
+    repeats = 1 if quick else DRAKE_REPEATS
     try:
         system = systems.load("acrobot")
         # Hanging down, nudged 1e-3 rad as in `make demo`: the exact bottom is an
@@ -232,20 +278,24 @@ def bench_drake() -> dict:
         start = time.perf_counter()
         diagram = drake.build_hybrid_diagram(system)
         build = time.perf_counter() - start
-        walls, traj = [], None
-        for _ in range(DRAKE_REPEATS):
-            start = time.perf_counter()
-            traj = drake.simulate(diagram, x0, DRAKE_DURATION)
-            walls.append(time.perf_counter() - start)
+        walls = _time_simulation(drake, diagram, x0, repeats)
+        traj = drake.simulate(diagram, x0, DRAKE_DURATION)
+        controllers = []
+        for name, controller in DRAKE_CONTROLLERS:
+            kind, _, path = controller.partition(":")
+            if path and not (ROOT / path).exists():
+                controllers.append({"system": name, "controller": controller, "skipped": "checkpoint not found"})
+                continue
+            controllers.append(bench_drake_controller(drake, name, controller, repeats))
     except Exception as exc:  # the API is still moving: make the failure visible in the JSON
         return {"error": f"{type(exc).__name__}: {exc}"}
     wall = statistics.median(walls)
     return {"system": "acrobot", "diagram": "build_hybrid_diagram defaults (energy swing-up, cost-to-go gate, LQR)",
             "x0": x0.tolist(), "duration_s": DRAKE_DURATION, "build_s": build, "wall_s": wall,
-            "wall_s_min": min(walls), "wall_s_max": max(walls), "repeats": DRAKE_REPEATS,
+            "wall_s_min": min(walls), "wall_s_max": max(walls), "repeats": repeats,
             "realtime_factor": DRAKE_DURATION / wall,
             "steps_per_s": DRAKE_DURATION / system.dt / wall, "dt": system.dt,
-            "balanced": bool(getattr(traj, "balanced", False))}
+            "balanced": bool(getattr(traj, "balanced", False)), "controllers": controllers}
 
 
 def run(quick: bool = False, threads: int = 1) -> dict:
@@ -278,7 +328,7 @@ def run(quick: bool = False, threads: int = 1) -> dict:
                 steps.append(bench_step(systems.load(name), OTHER_BATCH, torch.float64, method, settings))
     loaded = {name: (acrobot if name == "acrobot" else systems.load(name)) for name in systems.known_systems()}
     flops = machine_flops(settings)
-    drake_result = bench_drake()
+    drake_result = bench_drake(quick)
 
     gym_rate = gym_result["steps_per_s"]
     for entry in steps:

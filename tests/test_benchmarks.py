@@ -78,6 +78,13 @@ def test_drake_entry_reports_or_skips(report):
         assert isinstance(drake["skipped"], str) and drake["skipped"]
     else:
         assert _positive_finite(drake["realtime_factor"]) and drake["duration_s"] == 10.0
+        # every shipped Drake controller, on the default loop and the pre-issue-15 Python loop (issue 15)
+        names = {entry["controller"] for entry in drake["controllers"]}
+        assert {"energy", "ssac:models/policies/ssac-acrobot", "papg:models/policies/papg-cartpole"} <= names
+        for entry in drake["controllers"]:
+            if "skipped" not in entry:
+                for key in ("realtime_factor", "realtime_factor_python_switch", "speedup_vs_python_switch"):
+                    assert _positive_finite(entry[key]), (entry["controller"], key)
 
 
 def test_ssac_baselines_script_runs_a_tiny_budget(tmp_path):

@@ -6,6 +6,7 @@ import argparse
 
 from .. import io
 from ..experiments import balance_map
+from ..experiments.balance_map import ENGINES
 from ..systems import load
 from ._common import add_system_argument, add_debug_flag, add_quiet_flag, cli_errors, positive
 from .simulate import controller_help
@@ -18,7 +19,10 @@ def add_parser(sub) -> None:
     p.add_argument("--controller", default="energy", help=controller_help())
     p.add_argument("--grid", type=positive(int), default=41, help="grid points per axis (default 41, thesis)")
     p.add_argument("--duration", type=positive(float), help="seconds per run (default: the spec's episode)")
-    p.add_argument("--workers", type=positive(int), help="processes (default: all cores)")
+    p.add_argument("--workers", type=positive(int), help="processes of the drake engine (default: all cores)")
+    p.add_argument("--engine", choices=ENGINES, default="drake",
+                   help="drake: the Drake diagram, one run per start in worker processes (default); torch: every "
+                        "start at once as one batch of the switched controller in torch (seconds)")
     p.add_argument("--out", default="runs/balance_map", help="output folder")
     add_quiet_flag(p)
     add_debug_flag(p)
@@ -31,10 +35,10 @@ def run_balance_map(args: argparse.Namespace) -> int:
     system = load(args.system)
     io.output_folder(args.out)  # a file at --out fails here, not after the simulations
     result = balance_map(system, args.controller, grid=args.grid, duration=args.duration,
-                         workers=args.workers, progress=not args.quiet)
+                         workers=args.workers, progress=not args.quiet, engine=args.engine)
     result.meta["command"] = args.command_line
     summary = result.save(args.out)
     print(f"balanced_fraction: {summary['balanced_fraction']:.4f} "
-          f"({summary['balanced_count']}/{args.grid * args.grid}), wall {result.wall_time:.1f} s")
+          f"({summary['balanced_count']}/{args.grid * args.grid}), wall {result.wall_time:.1f} s ({args.engine})")
     print(f"wrote {args.out}/balance_map.png, balance_map.json")
     return 0

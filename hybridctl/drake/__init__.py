@@ -8,7 +8,7 @@ hybrid systems by witness functions (Ch. 5).
 >>> traj.balanced, traj.episode_return
 """
 
-from .blocks import Gate, HeldController, ModeSwitch, RecurrentTorchPolicy, TorchPolicy
+from .blocks import Gate, HeldController, HeldLQR, ModeSwitch, RecurrentTorchPolicy, TorchPolicy
 from ..systems.control import CostToGoGate, lqr_basin_level
 from .controllers import (AcrobotEnergySwingup, CartpoleEnergySwingup, LQRController, PendulumEnergySwingup,
                           energy_swingup)
@@ -17,7 +17,7 @@ from .sections import DrakeCompassGaitMap, DrakeRimlessWheelMap, SectionObserver
 from .simulate import Trajectory, simulate
 
 __all__ = [
-    "Gate", "HeldController", "ModeSwitch", "TorchPolicy", "RecurrentTorchPolicy",
+    "Gate", "HeldController", "HeldLQR", "ModeSwitch", "TorchPolicy", "RecurrentTorchPolicy",
     "AcrobotEnergySwingup", "CartpoleEnergySwingup", "PendulumEnergySwingup", "CostToGoGate",
     "LQRController", "energy_swingup", "lqr_basin_level", "HybridDiagram",
     "build_hybrid_diagram", "Trajectory", "simulate", "DrakeRimlessWheelMap",

@@ -13,7 +13,10 @@ from typing import Callable
 
 import numpy as np
 import torch
-from pydrake.systems.framework import BasicVector, Context, DiscreteValues, LeafSystem
+from pydrake.common.value import AbstractValue
+from pydrake.systems.framework import (BasicVector, Context, Diagram, DiagramBuilder, DiscreteValues, InputPortIndex,
+                                       LeafSystem, State)
+from pydrake.systems.primitives import AffineSystem, MatrixGain, Saturation, WrapToSystem, ZeroOrderHold
 
 from ..systems import control
 
@@ -140,7 +143,19 @@ class RecurrentTorchPolicy(LeafSystem):
         self.set_name(name)
 
     def compute(self, x: np.ndarray, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(action, next h) for one state and recurrent state (the action clipped to ``limit``)."""
+        """(action, next h) for one state and recurrent state (the action clipped to ``limit``).
+
+        A module with ``numpy_forward(x, h)`` (``hybridctl.learn.apg.ClosedLoopPolicy``) runs in
+        numpy, without torch's per-call overhead; others through torch.
+        """
+        if hasattr(self.module, "numpy_forward"):
+            u, h_next = self.module.numpy_forward(np.asarray(x, dtype=float), np.asarray(h, dtype=float)[:self.hidden_dim])
+            u = np.asarray(u, dtype=float).reshape(-1)
+            if u.shape != (self.n_actions,):
+                raise ValueError(f"{self.get_name()}: the module returned shape {u.shape}, expected ({self.n_actions},)")
+            if self._limit is not None:
+                u = np.clip(u, -self._limit, self._limit)
+            return u, np.asarray(h_next, dtype=float).reshape(-1)
         with torch.no_grad():
             xt = torch.as_tensor(np.asarray(x, dtype=float), dtype=self._dtype).reshape(1, -1)
             ht = torch.as_tensor(np.asarray(h, dtype=float)[:self.hidden_dim], dtype=self._dtype).reshape(1, -1)
@@ -169,41 +184,111 @@ class Gate(LeafSystem):
     p < ``off``; in between it keeps its mode. Mode and p are discrete state, so a
     new Context starts in swing-up (thesis: reset to swing-up at episode start).
 
-    Ports: input ``state``; outputs ``mode`` (1) and ``probability`` (1).
+    Ports: input ``state``; outputs ``mode`` (1), ``probability`` (1) and ``selector``
+    (abstract ``InputPortIndex``: ``selector_ports[mode]``), which drives Drake's C++
+    ``PortSwitch`` (``build_hybrid_diagram``), so no Python runs between updates. The
+    selector is abstract state written by the same (unrestricted) periodic update.
     ``on`` and ``off`` have no defaults: a system's are ``system.gate.on`` / ``.off``
-    (``build_hybrid_diagram`` passes them).
+    (``build_hybrid_diagram`` passes them). ``selector_ports``: the switch's input port
+    indices of the swing-up and the balancing command (a ``PortSwitch`` numbers its
+    selector 0 and the declared inputs from 1).
     """
 
     def __init__(self, classifier, n_states: int, period: float, *, on: float, off: float,
-                 name: str = "gate"):
+                 name: str = "gate", selector_ports: tuple[int, int] = (1, 2)):
         super().__init__()
         if not 0.0 < off < on < 1.0:
             raise ValueError(f"gate thresholds need 0 < off < on < 1, got off={off}, on={on}")
+        if len(selector_ports) != 2 or min(selector_ports) < 0:
+            raise ValueError(f"selector_ports must be two input port indices >= 0, got {selector_ports!r}")
         self._classify = _as_numpy_fn(classifier, "classifier")
         self.on, self.off = float(on), float(off)
         self.period = _check_period(period)
-        self.DeclareVectorInputPort("state", n_states)
+        self.selector_ports = tuple(int(i) for i in selector_ports)
+        self._selectors = tuple(InputPortIndex(i) for i in self.selector_ports)
+        self._state_port = self.DeclareVectorInputPort("state", n_states)
         self._mode = self.DeclareDiscreteState(1)
         self._probability = self.DeclareDiscreteState(1)
-        self.DeclarePeriodicDiscreteUpdateEvent(self.period, 0.0, self._update)
+        self._selector = self.DeclareAbstractState(AbstractValue.Make(self._selectors[0]))
+        self.DeclarePeriodicUnrestrictedUpdateEvent(self.period, 0.0, self._update)
         self.DeclareStateOutputPort("mode", self._mode)
         self.DeclareStateOutputPort("probability", self._probability)
+        self.DeclareStateOutputPort("selector", self._selector)
         self.set_name(name)
 
     def next_mode(self, mode: float, probability: float) -> float:
         """Hysteresis (:func:`hybridctl.systems.control.hysteresis`): on above ``on``, off below ``off``."""
-        return float(control.hysteresis(float(probability), float(mode), self.on, self.off))
+        return control.hysteresis(float(probability), float(mode), self.on, self.off)
 
-    def _update(self, context: Context, discrete_state: DiscreteValues) -> None:
-        x = self.get_input_port(0).Eval(context)
-        p = float(self._classify(x)[0])
+    def _update(self, context: Context, state: State) -> None:
+        # Called at every control period: kept to the fewest Drake calls (the state handed in is a
+        # copy of the current one, so an unchanged mode and selector need no write).
+        p = float(self._classify(self._state_port.Eval(context))[0])
         mode = context.get_discrete_state(self._mode).GetAtIndex(0)
-        discrete_state.get_mutable_vector(self._mode).SetAtIndex(0, self.next_mode(mode, p))
-        discrete_state.get_mutable_vector(self._probability).SetAtIndex(0, p)
+        new_mode = self.next_mode(mode, p)
+        state.get_mutable_discrete_state(self._probability).SetAtIndex(0, p)
+        if new_mode != mode:
+            state.get_mutable_discrete_state(self._mode).SetAtIndex(0, new_mode)
+            state.get_mutable_abstract_state(self._selector).set_value(self._selectors[int(new_mode > 0.5)])
+
+
+class HeldLQR(Diagram):
+    """The saturated LQR u = clip(-K wrap(x - goal)), sampled every ``period`` and held, in C++ only.
+
+    Drake primitives: an ``AffineSystem`` (x - goal), ``WrapToSystem`` (the angle coordinates to
+    [-pi, pi), as :func:`hybridctl.systems.control.wrap_angles`), ``MatrixGain`` (-K), ``Saturation``
+    (+-``limit``) and a ``ZeroOrderHold`` (sampled at t = k * period, starting from 0, as
+    ``HeldController``). The law is :func:`hybridctl.systems.control.lqr_command`'s; it agrees with
+    ``HeldController(LQRController(system))`` to rounding (~1e-16: C++ sums the product in its own
+    order, and ``WrapToSystem`` returns an angle already in range unchanged). No Python runs in it.
+
+    Ports: input ``state`` (spec convention), output ``command``.
+    """
+
+    def __init__(self, system, K: np.ndarray, period: float, limit: float | None = None, name: str = "balance"):
+        super().__init__()
+        n, m = system.n_states, system.n_actions
+        K = np.atleast_2d(np.asarray(K, dtype=float))
+        if K.shape != (m, n):
+            raise ValueError(f"K must have shape ({m}, {n}), got {K.shape}")
+        self.K = K
+        self.period = _check_period(period)
+        self.limit = None if limit is None else float(limit)
+        builder = DiagramBuilder()
+        error = builder.AddSystem(AffineSystem(np.zeros((0, 0)), np.zeros((0, n)), np.zeros(0), np.zeros((n, 0)),
+                                               np.eye(n), -np.asarray(system.goal, dtype=float)))
+        error.set_name("error")
+        wrap = builder.AddSystem(WrapToSystem(n))
+        wrap.set_name("wrap")
+        for i in system.angle_indices:
+            wrap.set_interval(i, -np.pi, np.pi)
+        gain = builder.AddSystem(MatrixGain(-K))
+        gain.set_name("gain")
+        hold = builder.AddSystem(ZeroOrderHold(self.period, m))
+        hold.set_name("hold")
+        builder.Connect(error.get_output_port(), wrap.get_input_port())
+        builder.Connect(wrap.get_output_port(), gain.get_input_port())
+        last = gain.get_output_port()
+        if self.limit is not None:
+            saturation = builder.AddSystem(Saturation(np.full(m, -self.limit), np.full(m, self.limit)))
+            saturation.set_name("saturation")
+            builder.Connect(last, saturation.get_input_port())
+            last = saturation.get_output_port()
+        builder.Connect(last, hold.get_input_port())
+        builder.ExportInput(error.get_input_port(), "state")
+        builder.ExportOutput(hold.get_output_port(), "command")
+        builder.BuildInto(self)
+        self.set_name(name)
 
 
 class ModeSwitch(LeafSystem):
-    """Passes ``balance`` when ``mode`` > 0.5, else ``swingup`` (output ``command``)."""
+    """Passes ``balance`` when ``mode`` > 0.5, else ``swingup`` (output ``command``).
+
+    A Python feedthrough block: Drake evaluates it at every derivative evaluation.
+    ``build_hybrid_diagram`` uses Drake's C++ ``PortSwitch`` driven by the gate's
+    ``selector`` instead; this block is its ``switch="python"`` option (the loop before
+    issue 15, kept to measure against in ``benchmarks/dynamics.py``).
+    """
 
     def __init__(self, n_actions: int, name: str = "switch"):
         super().__init__()

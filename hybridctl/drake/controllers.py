@@ -1,7 +1,9 @@
 """Hand-designed controllers: LQR and energy-shaping swing-ups, as numpy callables for Drake blocks.
 
 Each is a plain callable ``numpy state (n,) -> numpy (k,)`` in the spec's state
-convention, so it runs inside a Drake ``HeldController`` block or on its own. The
+convention, so it runs inside a Drake ``HeldController`` block or on its own; the swing-ups
+also take batches (..., n) of numpy or torch states (the balance map's torch engine runs
+them on every grid start at once). The
 laws they share with the torch paths (LQR command, angle wrapping, saturation) and
 the cost-to-go gate live in :mod:`hybridctl.systems.control`. The swing-ups pump the energy of the underactuated system towards the
 upright energy through collocated partial feedback linearisation (PFL) of the
@@ -11,6 +13,7 @@ actuated coordinate (Spong 1995; Astrom & Furuta 2000).
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 from ..systems import System, control
 
@@ -26,6 +29,20 @@ class LQRController:
         return control.lqr_command(self.system.state_error(np.asarray(x, dtype=float)), self.K)
 
 
+def _as_states(x):
+    """Numpy float array or torch tensor, unchanged."""
+    return x if isinstance(x, torch.Tensor) else np.asarray(x, dtype=float)
+
+
+def _command(u):
+    """Per-state scalar commands (...) -> (..., 1), numpy or torch."""
+    return u.unsqueeze(-1) if isinstance(u, torch.Tensor) else np.asarray(u)[..., None]
+
+
+def _cos(x):
+    return torch.cos(x) if isinstance(x, torch.Tensor) else np.cos(x)
+
+
 def _collocated_pfl(M: np.ndarray, b: np.ndarray, actuated: int, accel: float) -> float:
     """Input that gives the actuated coordinate of a 2-DoF system acceleration ``accel``.
 
@@ -33,8 +50,8 @@ def _collocated_pfl(M: np.ndarray, b: np.ndarray, actuated: int, accel: float) -
     row then gives u.
     """
     p = 1 - actuated
-    qdd_p = -(M[p, actuated] * accel + b[p]) / M[p, p]
-    return M[actuated, actuated] * accel + M[actuated, p] * qdd_p + b[actuated]
+    qdd_p = -(M[..., p, actuated] * accel + b[..., p]) / M[..., p, p]
+    return M[..., actuated, actuated] * accel + M[..., actuated, p] * qdd_p + b[..., actuated]
 
 
 class _SpecGains:
@@ -72,11 +89,11 @@ class AcrobotEnergySwingup(_SpecGains):
         self._goal_energy = float(system.energy(system.goal))
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
-        x = np.asarray(x, dtype=float)
-        excess = float(self.system.energy(x)) - self._goal_energy
-        q2 = control.wrap_angle(x[1])
-        u = -self.k_energy * excess * x[3] - self.k_p * q2 - self.k_d * x[3]
-        return control.saturate(np.array([u]), self.system.action_limit)
+        x = _as_states(x)
+        excess = self.system.energy(x) - self._goal_energy
+        q2 = control.wrap_angle(x[..., 1])
+        u = -self.k_energy * excess * x[..., 3] - self.k_p * q2 - self.k_d * x[..., 3]
+        return control.saturate(_command(u), self.system.action_limit)
 
 
 class CartpoleEnergySwingup(_SpecGains):
@@ -99,16 +116,16 @@ class CartpoleEnergySwingup(_SpecGains):
 
     def pole_energy(self, x: np.ndarray) -> float:
         """Energy of the pole about its pivot, zero potential at the pivot height."""
-        return 0.5 * self._pole_inertia * x[3] ** 2 - self._pole_moment * np.cos(x[1])
+        return 0.5 * self._pole_inertia * x[..., 3] ** 2 - self._pole_moment * _cos(x[..., 1])
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
-        x = np.asarray(x, dtype=float)
+        x = _as_states(x)
         missing = self._pole_moment - self.pole_energy(x)
         # dE_pole/dt = -m lc xdd dtheta cos(theta): push the cart against that product.
-        accel = -self.k_energy * missing * x[3] * np.cos(x[1]) - self.k_p * x[0] - self.k_d * x[2]
-        M, b = self.system.dynamics.manipulator(x[:2], x[2:])
+        accel = -self.k_energy * missing * x[..., 3] * _cos(x[..., 1]) - self.k_p * x[..., 0] - self.k_d * x[..., 2]
+        M, b = self.system.dynamics.manipulator(x[..., :2], x[..., 2:])
         u = _collocated_pfl(M, b, 0, accel)
-        return control.saturate(np.array([u]), self.system.action_limit)
+        return control.saturate(_command(u), self.system.action_limit)
 
 
 class PendulumEnergySwingup(_SpecGains):
@@ -119,9 +136,9 @@ class PendulumEnergySwingup(_SpecGains):
         self._goal_energy = float(system.energy(system.goal))
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
-        x = np.asarray(x, dtype=float)
-        u = self.k_energy * (self._goal_energy - float(self.system.energy(x))) * x[1]
-        return control.saturate(np.array([u]), self.system.action_limit)
+        x = _as_states(x)
+        u = self.k_energy * (self._goal_energy - self.system.energy(x)) * x[..., 1]
+        return control.saturate(_command(u), self.system.action_limit)
 
 
 SWINGUPS = {

@@ -2,7 +2,12 @@
 
     plant --state--> [swing-up] --\\
           --state--> [LQR]     ----> [switch] -> [saturation] -> plant
-          --state--> [gate] --mode--/
+          --state--> [gate] --selector--/
+
+The swing-up and the gate are Python blocks updated periodically (zero-order holds,
+:mod:`.blocks`); the LQR (``HeldLQR``), the switch (Drake's ``PortSwitch``, driven by the gate's
+``selector`` state) and the saturation are C++ primitives, so between the periodic updates
+the loop runs without calling Python.
 
 Exported ports (by name): outputs ``state`` (spec convention), ``command``
 (saturated input applied to the plant), ``mode`` (0 swing-up, 1 LQR),
@@ -14,13 +19,13 @@ from __future__ import annotations
 import numpy as np
 import torch
 from pydrake.systems.framework import Diagram, DiagramBuilder
-from pydrake.systems.primitives import AffineSystem, LogVectorOutput, Saturation
+from pydrake.systems.primitives import AffineSystem, LogVectorOutput, PortSwitch, Saturation
 
 from ..systems import System
 from ..systems import plants as _plants
 from ..systems.control import CostToGoGate
 from ..viz.meshcat import add_meshcat
-from .blocks import Gate, HeldController, ModeSwitch, RecurrentTorchPolicy, TorchPolicy
+from .blocks import Gate, HeldController, HeldLQR, ModeSwitch, RecurrentTorchPolicy, TorchPolicy
 from .controllers import LQRController, energy_swingup
 
 
@@ -78,6 +83,9 @@ def _swingup_block(system: System, swingup, period: float | None):
                           limit=system.action_limit, name="swingup")
 
 
+SWITCHES = ("drake", "python")
+
+
 def _gate_block(system: System, gate, on: float | None, off: float | None):
     on = system.gate.on if on is None else float(on)
     off = system.gate.off if off is None else float(off)
@@ -92,7 +100,8 @@ def _gate_block(system: System, gate, on: float | None, off: float | None):
 
 def build_hybrid_diagram(system: System, swingup=None, gate=None, *, balance=None,
                          swingup_period: float | None = None, gate_on: float | None = None,
-                         gate_off: float | None = None, meshcat=None, log: bool = True) -> HybridDiagram:
+                         gate_off: float | None = None, meshcat=None, log: bool = True,
+                         switch: str = "drake") -> HybridDiagram:
     """Build plant + swing-up + LQR + gate + switch + saturation as a Drake Diagram.
 
     Args:
@@ -102,15 +111,23 @@ def build_hybrid_diagram(system: System, swingup=None, gate=None, *, balance=Non
             held for ``control.swingup_period``), a numpy callable, or a ready block.
         gate: None or "cost" (cost-to-go gate ``CostToGoGate``), a torch classifier
             returning a probability, a callable, or a ready ``Gate``.
-        balance: the balancing controller (default: Drake LQR from the spec's Q, R),
-            a callable or block; updated every ``control.period``.
+        balance: the balancing controller, updated every ``control.period``: None (the
+            LQR from the spec's Q, R) or a gain K (m, n) run as ``HeldLQR`` (C++ primitives), a
+            callable (run in a Python ``HeldController``) or a ready block.
         swingup_period: override the swing-up hold period.
         gate_on, gate_off: hysteresis thresholds (default: the spec's, 0.9 / 0.5).
         meshcat: a ``pydrake.geometry.Meshcat`` to draw the robot live, or None.
         log: add VectorLogSinks (one sample per integration step) for simulate().
+        switch: "drake" (default): Drake's C++ ``PortSwitch`` driven by the gate's
+            ``selector`` output and the LQR as ``HeldLQR``; "python": the loop before issue
+            15, kept to measure against: the Python feedthrough ``ModeSwitch`` (evaluated at
+            every derivative evaluation) driven by the gate's ``mode``, and the LQR in a
+            Python ``HeldController``. Both give the same run (to rounding in the LQR).
     """
     if not isinstance(system, System):
         raise TypeError(f"system must be a hybridctl.systems.System, got {type(system).__name__}")
+    if switch not in SWITCHES:
+        raise ValueError(f"switch must be one of {SWITCHES}, got {switch!r}")
     builder = DiagramBuilder()
     handle, scene_graph = _plants.add_plant(system, builder, with_geometry=meshcat is not None)
     if meshcat is not None:
@@ -131,24 +148,38 @@ def build_hybrid_diagram(system: System, swingup=None, gate=None, *, balance=Non
         state_port = convert.get_output_port()
 
     swing = builder.AddSystem(_swingup_block(system, swingup, swingup_period))
-    if balance is None or isinstance(balance, np.ndarray):
-        balance = LQRController(system, K=balance)
-    bal = balance if isinstance(balance, HeldController) else HeldController(
-        balance, system.n_states, system.n_actions, system.control_period, limit=system.action_limit,
-        name="balance")
+    if (balance is None or isinstance(balance, np.ndarray)) and switch == "drake":
+        bal = HeldLQR(system, system.lqr()[0] if balance is None else balance, system.control_period,
+                      limit=system.action_limit, name="balance")
+    else:
+        if balance is None or isinstance(balance, np.ndarray):
+            balance = LQRController(system, K=balance)
+        bal = balance if isinstance(balance, (HeldController, HeldLQR)) else HeldController(
+            balance, system.n_states, system.n_actions, system.control_period, limit=system.action_limit,
+            name="balance")
     bal = builder.AddSystem(bal)
     gate_block = builder.AddSystem(_gate_block(system, gate, gate_on, gate_off))
-    switch = builder.AddSystem(ModeSwitch(system.n_actions))
+    if switch == "python":
+        switch_block = builder.AddSystem(ModeSwitch(system.n_actions))
+        swing_in, balance_in = switch_block.GetInputPort("swingup"), switch_block.GetInputPort("balance")
+        builder.Connect(gate_block.GetOutputPort("mode"), switch_block.GetInputPort("mode"))
+    else:
+        switch_block = builder.AddSystem(PortSwitch(system.n_actions))
+        switch_block.set_name("switch")
+        swing_in, balance_in = switch_block.DeclareInputPort("swingup"), switch_block.DeclareInputPort("balance")
+        if (swing_in.get_index(), balance_in.get_index()) != gate_block.selector_ports:
+            raise ValueError(f"the gate selects input ports {gate_block.selector_ports}; the switch has swingup "
+                             f"{swing_in.get_index()} and balance {balance_in.get_index()}")
+        builder.Connect(gate_block.GetOutputPort("selector"), switch_block.get_port_selector_input_port())
     limit = np.full(system.n_actions, system.action_limit)
     saturation = builder.AddSystem(Saturation(-limit, limit))
     saturation.set_name("saturation")
 
     for block in (swing, bal, gate_block):
         builder.Connect(state_port, block.get_input_port(0))
-    builder.Connect(gate_block.GetOutputPort("mode"), switch.GetInputPort("mode"))
-    builder.Connect(swing.get_output_port(0), switch.GetInputPort("swingup"))
-    builder.Connect(bal.get_output_port(0), switch.GetInputPort("balance"))
-    builder.Connect(switch.get_output_port(0), saturation.get_input_port())
+    builder.Connect(swing.get_output_port(0), swing_in)
+    builder.Connect(bal.get_output_port(0), balance_in)
+    builder.Connect(switch_block.get_output_port(0), saturation.get_input_port())
     builder.Connect(saturation.get_output_port(), handle.actuation_input)
 
     outputs = {
@@ -166,6 +197,6 @@ def build_hybrid_diagram(system: System, swingup=None, gate=None, *, balance=Non
         for name in ("state", "command", "mode", "probability"):
             loggers[name] = LogVectorOutput(outputs[name], builder, system.dt)
             loggers[name].set_name(f"log_{name}")
-    parts = dict(plant=handle, swingup=swing, balance=bal, gate=gate_block, switch=switch,
+    parts = dict(plant=handle, swingup=swing, balance=bal, gate=gate_block, switch=switch_block,
                  loggers=loggers, scene_graph=scene_graph)
     return HybridDiagram(builder, system, parts)

@@ -9,7 +9,6 @@ from pathlib import Path
 
 import numpy as np
 from pydrake.systems.analysis import ResetIntegratorFromFlags, Simulator
-from pydrake.systems.framework import EventStatus
 
 from .. import io
 from ..systems import System
@@ -102,14 +101,65 @@ def _validate_x0(x0, n: int) -> np.ndarray:
     return x0
 
 
+CHECK_STEPS = 25
+"""simulate() checks for divergence every this many integration steps (not at every step: a
+Python monitor called by Drake after each step cost more than the rest of the loop)."""
+
+
+class _Runner:
+    """One Context and Simulator of a diagram, reset for every run (cached on the diagram).
+
+    Building them costs more than a short run; a reset restores the time, the state (the
+    plant's, the held commands, the gate's mode, recurrent policies' hidden states) and the
+    parameters from a pristine default Context and clears the loggers.
+    """
+
+    def __init__(self, diagram):
+        system = diagram.system
+        self.pristine = diagram.CreateDefaultContext()
+        self.context = self.pristine.Clone()
+        self.simulator = Simulator(diagram, self.context)
+        integrator = ResetIntegratorFromFlags(self.simulator, _DRAKE_INTEGRATOR[system.integrator], system.dt)
+        integrator.set_fixed_step_mode(True)
+        self.plant_context = diagram.plant.GetMyContextFromRoot(self.context)
+        self.logger_contexts = {name: logger.GetMyContextFromRoot(self.context)
+                                for name, logger in diagram.loggers.items()}
+
+    def reset(self, diagram, x0: np.ndarray, realtime_rate: float) -> None:
+        self.context.SetTimeStateAndParametersFrom(self.pristine)
+        for name, logger in diagram.loggers.items():
+            logger.GetMutableLog(self.logger_contexts[name]).Clear()
+        diagram.set_state(self.context, x0)
+        self.simulator.set_target_realtime_rate(realtime_rate)
+        self.simulator.Initialize()
+
+
+def _runner(diagram) -> _Runner:
+    runner = getattr(diagram, "_hybridctl_runner", None)
+    if runner is None:
+        runner = _Runner(diagram)
+        diagram._hybridctl_runner = runner
+    return runner
+
+
+def _first_diverged(x: np.ndarray) -> int | None:
+    """Index of the first row of ``x`` (T, n) that is non-finite or beyond DIVERGENCE_BOUND, or None."""
+    with np.errstate(invalid="ignore"):
+        bad = np.flatnonzero(~(np.abs(x) < DIVERGENCE_BOUND).all(axis=1))
+    return int(bad[0]) if len(bad) else None
+
+
 def simulate(diagram, x0, duration: float | None = None, realtime_rate: float = 0.0) -> Trajectory:
     """Simulate a hybrid diagram from ``x0`` (spec convention) for ``duration`` seconds.
 
     Uses the spec's integrator as a Drake fixed-step integrator of step ``dt``
     (explicit Euler for the acrobot, as the thesis), so a run equals the torch
     ``System.step`` loop. A run whose state becomes non-finite or exceeds
-    ``DIVERGENCE_BOUND`` stops early with ``diverged=True`` instead of raising.
-    ``realtime_rate`` > 0 paces the simulation (e.g. 1.0 to watch in meshcat).
+    ``DIVERGENCE_BOUND`` stops early with ``diverged=True`` instead of raising: the
+    trajectory ends at the first such state (checked every ``CHECK_STEPS`` steps, so the
+    simulation itself may run a few steps past it). ``realtime_rate`` > 0 paces the
+    simulation (e.g. 1.0 to watch in meshcat). One Context and Simulator per diagram are
+    kept and reset for every call, so repeated runs (balance maps) do not rebuild them.
     """
     system: System = getattr(diagram, "system", None)
     if system is None:
@@ -121,54 +171,56 @@ def simulate(diagram, x0, duration: float | None = None, realtime_rate: float = 
     if not np.isfinite(duration) or duration <= 0:
         raise ValueError(f"duration must be a finite number > 0, got {duration}")
 
-    context = diagram.CreateDefaultContext()
-    diagram.set_state(context, x0)
-    simulator = Simulator(diagram, context)
-    integrator = ResetIntegratorFromFlags(simulator, _DRAKE_INTEGRATOR[system.integrator], system.dt)
-    integrator.set_fixed_step_mode(True)
-    simulator.set_target_realtime_rate(realtime_rate)
-    plant_context = diagram.plant.GetMyContextFromRoot(context)
-
-    def monitor(root_context):
-        x = plant_context.get_continuous_state_vector().CopyToVector()
-        if not np.all(np.abs(x) < DIVERGENCE_BOUND):  # also catches NaN
-            return EventStatus.ReachedTermination(diagram, "state diverged")
-        return EventStatus.Succeeded()
-
-    simulator.set_monitor(monitor)
-    diverged = False
+    runner = _runner(diagram)
+    runner.reset(diagram, x0, realtime_rate)
+    simulator, context, plant_context = runner.simulator, runner.context, runner.plant_context
+    # Past the end: Drake logs the command held over [t_k-1, t_k) at t_k, so the input
+    # applied from the last sample on is logged at t_end + dt. A second extra step keeps
+    # that sample off the final time, where events are ordered differently. The checks
+    # fall on the dt grid (k * dt, as Drake's periodic event times), so they cut no step.
+    end = duration + 2 * system.dt
+    last = int(np.floor(end / system.dt + 1e-9))
+    checks = [k * system.dt for k in range(CHECK_STEPS, last, CHECK_STEPS)] + [end]
+    error = None
     start = time.perf_counter()
     try:
-        # Past the end: Drake logs the command held over [t_k-1, t_k) at t_k, so the
-        # input applied from the last sample on is logged at t_end + dt. A second extra
-        # step keeps that sample off the final time, where events are ordered differently.
-        simulator.AdvanceTo(duration + 2 * system.dt)
-        diverged = simulator.get_mutable_context().get_time() < duration + 1.5 * system.dt
+        for boundary in checks:
+            simulator.AdvanceTo(boundary)
+            x = plant_context.get_continuous_state_vector().CopyToVector()
+            if not np.all(np.abs(x) < DIVERGENCE_BOUND):  # also catches NaN
+                break
     except RuntimeError as exc:  # Drake raises on NaN derivatives in some integrators
-        diverged = True
-        diagram_meta = {"error": str(exc)}
-    else:
-        diagram_meta = {}
+        error = str(exc)
     wall = time.perf_counter() - start
 
-    logs = {name: logger.FindLog(context) for name, logger in diagram.loggers.items()}
+    logs = {name: logger.GetLog(runner.logger_contexts[name]) for name, logger in diagram.loggers.items()}
     t = logs["state"].sample_times()
+    states = logs["state"].data().T
+    n_samples = len(t)
+    bad = _first_diverged(states + system.drake_state_offset())   # the plant's own coordinates
+    diverged = bad is not None or error is not None
+    if bad is not None:
+        n_samples = bad + 1          # the run ends at the first diverged state
+        error = None                 # an error after the divergence is its consequence
+    elif error is None:
+        diverged = context.get_time() < duration + 1.5 * system.dt
+    t = t[:n_samples]
     keep = int(np.searchsorted(t, duration + 0.5 * system.dt))  # samples with t <= duration
 
     def applied(data: np.ndarray) -> np.ndarray:
         """Shift held values one sample back; repeat the last where the run stopped early."""
-        shifted = data[1:keep + 1]
+        shifted = data[1:min(keep + 1, n_samples)]
         return np.concatenate([shifted, shifted[-1:]]) if len(shifted) < keep and len(shifted) else shifted
 
     traj = Trajectory(
         system=system,
         t=t[:keep].copy(),
-        x=logs["state"].data().T[:keep].copy(),
+        x=states[:keep].copy(),
         u=applied(logs["command"].data().T).copy(),
         gate=applied(logs["mode"].data()[0]).copy(),
         probability=applied(logs["probability"].data()[0]).copy(),
         diverged=diverged,
         wall_time=wall,
-        meta=diagram_meta,
+        meta={} if error is None else {"error": error},
     )
     return traj

@@ -1,7 +1,16 @@
 """Balance maps (thesis Fig. 3.6): does the controller balance from each rest state of a grid?
 
-Each grid start is simulated in Drake by a named controller (:mod:`.controllers`) in local worker
-processes, each building its own diagram.
+Two engines simulate the same named controller (:mod:`.controllers`) from every grid start:
+
+- ``"drake"``: the Drake diagram, in local worker processes; each builds its diagram once
+  and resets one Simulator for every start.
+- ``"torch"``: every start at once as one batch of the switched controller in torch
+  (:func:`torch_rollouts`: the policy, the gate with hysteresis, the LQR and the saturation of
+  :class:`hybridctl.envs.SwitchedVectorEnv`, the dynamics of ``System.step_unchecked``).
+
+Both judge a start by the same test: :func:`hybridctl.systems.success.is_balanced` on the
+states at the swing-up decision times (thesis eq. 3.2), False for a diverged run.
+:func:`compare_engines` runs both on one grid and lists the cells where they disagree.
 """
 
 from __future__ import annotations
@@ -16,12 +25,18 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+import torch
+
 from .. import io
+from ..drake import energy_swingup, simulate
+from ..envs import SwitchedVectorEnv
 from ..parallel import require_main_guard
-from ..drake import simulate
-from ..systems import System, load
+from ..systems import System, control, load
+from ..systems.success import decision_indices, episode_return, is_balanced
 from ..viz import plot_balance_map
-from .controllers import build_named_diagram
+from .controllers import build_named_diagram, controller_parts
+
+ENGINES = ("drake", "torch")
 
 
 @dataclass
@@ -98,51 +113,171 @@ def grid_axes(system: System, axes: tuple[int, int] | None = None,
     return tuple(axes), tuple(tuple(map(float, r)) for r in ranges)
 
 
-def _simulate_chunk(args) -> list[tuple[int, bool, float, bool]]:
-    """Worker: build the system and diagram here (Drake objects do not pickle), run starts."""
-    import torch
+_WORKER_DIAGRAMS: dict = {}
 
+
+def _worker_diagram(spec_name: str, overrides: dict, controller: str):
+    """The diagram of (system, controller), built once per process and reused for every start."""
+    key = (spec_name, tuple(sorted(overrides.items())), controller)
+    if key not in _WORKER_DIAGRAMS:
+        _WORKER_DIAGRAMS.clear()     # one diagram per worker: a new map replaces the last one
+        _WORKER_DIAGRAMS[key] = build_named_diagram(load(spec_name, **overrides), controller)
+    return _WORKER_DIAGRAMS[key]
+
+
+def _simulate_chunk(args) -> tuple[list[tuple[int, bool, float, bool]], float]:
+    """Worker: simulate starts with this process' diagram (Drake objects do not pickle); returns the
+    results and the CPU seconds this process spent on them."""
+    cpu = time.process_time()
     torch.set_num_threads(1)
     spec_name, overrides, controller, duration, starts = args
-    system = load(spec_name, **overrides)
-    diagram = build_named_diagram(system, controller)
+    diagram = _worker_diagram(spec_name, overrides, controller)
     results = []
     for index, x0 in starts:
         traj = simulate(diagram, x0, duration)
         results.append((index, traj.balanced, traj.episode_return, traj.diverged))
-    return results
+    return results, time.process_time() - cpu
+
+
+def _grid_starts(system: System, grid: int, axes, ranges):
+    """(axis indices, values1, values2, starts (grid * grid, n)) of a rest-state grid, row-major."""
+    if grid < 2:
+        raise ValueError(f"grid must be >= 2, got {grid}")
+    (a1, a2), (r1, r2) = grid_axes(system, axes, ranges)
+    values1, values2 = np.linspace(*r1, grid), np.linspace(*r2, grid)
+    starts = np.repeat(system.initial_state.nominal[None], grid * grid, axis=0)
+    starts[:, a1] = np.repeat(values1, grid)
+    starts[:, a2] = np.tile(values2, grid)
+    return (a1, a2), values1, values2, starts
+
+
+class _ConstantGate(torch.nn.Module):
+    """A gate that always (1) or never (0) hands over, for batches."""
+
+    def __init__(self, value: float):
+        super().__init__()
+        self.value = float(value)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.full((*x.shape[:-1], 1), self.value, dtype=x.dtype)
+
+
+def _torch_swingup(system: System, swingup, period: float | None):
+    """(policy(x [N, n], h) -> (u [N, m], h), initial h(N), period) for a ControllerParts swing-up,
+    with the periods :func:`hybridctl.drake.build_hybrid_diagram` gives its blocks."""
+    if swingup is None:
+        law = energy_swingup(system)
+        return (lambda x, h: (law(x), h)), (lambda n: None), period or system.control_period
+    if isinstance(swingup, str) and swingup == "zero":
+        return ((lambda x, h: (torch.zeros(len(x), system.n_actions, dtype=x.dtype), h)), (lambda n: None),
+                period or system.control_period)
+    if isinstance(swingup, torch.nn.Module):
+        module = swingup.eval()
+        params = list(module.parameters())
+        dtype = params[0].dtype if params else torch.float64
+        if hasattr(module, "initial_state"):       # recurrent (APG's GRU), as RecurrentTorchPolicy
+            def recurrent(x, h):
+                u, h = module(x.to(dtype), h)
+                return u.to(x.dtype), h
+            return recurrent, (lambda n: module.initial_state(n)), period or system.swingup_period
+        return (lambda x, h: (module(x.to(dtype)).to(x.dtype), h)), (lambda n: None), period or system.swingup_period
+    raise ValueError(f"the torch engine cannot run the swing-up {swingup!r}")
+
+
+def torch_rollouts(system: System, controller: str, starts, duration: float | None = None) -> dict:
+    """Simulate a named controller from every row of ``starts`` (N, n) at once, in batched torch.
+
+    The swing-up acts every its period (the periods of the Drake blocks: a learned policy
+    ``swingup_period``, a hand-designed law ``control.period``), held in between; inside,
+    :class:`hybridctl.envs.SwitchedVectorEnv` runs the gate with hysteresis, the LQR and the
+    saturation every ``control.period`` and ``System.step_unchecked`` every ``dt``, in float64,
+    as the Drake diagram does. ``duration`` (default: the spec's episode) must be a whole
+    number of swing-up periods.
+
+    Returns a dict: ``states`` (N, D + 1, n) at the swing-up's decision times ``times`` (D + 1,)
+    from t = 0, ``diverged`` (N,) bool (a diverged row's states after its divergence are
+    meaningless), ``decision_states`` (N, K, n) at the spec's ``swingup_period`` (thesis'
+    decision rate, what the success test reads), ``balanced`` (N,) and ``returns`` (N,) (over
+    the decision states before a divergence), ``wall_time`` (s).
+    """
+    start_time = time.perf_counter()
+    duration = system.episode_duration if duration is None else float(duration)
+    starts = np.atleast_2d(np.asarray(starts, dtype=float))
+    n_runs = len(starts)
+    parts = controller_parts(system, controller)
+    policy, initial_state, period = _torch_swingup(system, parts.swingup, parts.swingup_period)
+    gate = parts.gate
+    if gate is None:
+        gate = control.CostToGoGate(system)
+    elif isinstance(gate, str):
+        gate = _ConstantGate(1.0 if gate == "always" else 0.0)
+    overrides = {**system.spec.overrides, "episode__duration": duration}
+    run_system = load(str(system.spec.path), **overrides)
+    env = SwitchedVectorEnv(run_system, n_runs, gate=gate, decision_period=period,
+                            gate_on=parts.gate_on, gate_off=parts.gate_off, dtype=torch.float64)
+    obs, _ = env.reset(options={"state": starts})
+    h = initial_state(n_runs)
+    states = [obs]
+    ended_at = torch.full((n_runs,), env.max_decisions + 1)   # index of the first state after a divergence
+    with torch.no_grad():
+        for j in range(1, env.max_decisions + 1):
+            u, h = policy(obs, h)
+            obs, _, terminated, _, info = env.step(u)
+            ended_at = torch.where(terminated & (ended_at > j), j, ended_at)
+            states.append(torch.where(info["_final_obs"][:, None], info["final_obs"], obs))
+    states = torch.stack(states, dim=1).numpy()
+    ended_at = ended_at.numpy()
+    diverged = ended_at <= env.max_decisions
+    stride = system.swingup_period / period
+    if abs(stride - round(stride)) > 1e-9:
+        raise ValueError(f"the swing-up period {period} s does not divide the spec's swingup_period "
+                         f"{system.swingup_period} s, at which the success test reads the states")
+    decisions = decision_indices(states.shape[1], period, system.swingup_period)
+    decision_states = states[:, decisions]
+    balanced = is_balanced(decision_states, system) & ~diverged
+    # a diverged run's return counts the decision states before the decision it diverged in
+    kept = np.searchsorted(decisions, ended_at, side="left")
+    returns = np.array([episode_return(decision_states[i, :kept[i]], system) for i in range(n_runs)])
+    return {"states": states, "times": np.arange(states.shape[1]) * period, "diverged": diverged,
+            "decision_states": decision_states, "balanced": balanced, "returns": returns,
+            "wall_time": time.perf_counter() - start_time}
 
 
 def balance_map(system: System | str, controller: str = "energy", grid: int = 41, duration: float | None = None,
                 axes: tuple[int, int] | None = None, ranges=None, workers: int | None = None,
-                progress: bool = True, overrides: dict | None = None) -> BalanceMap:
+                progress: bool = True, overrides: dict | None = None, engine: str = "drake") -> BalanceMap:
     """Simulate ``controller`` from every start of a ``grid`` x ``grid`` rest-state grid.
 
     Each start is the spec's nominal state with the two ``axes`` coordinates set
     from the grid (velocities at rest); success is the thesis test (eq. 3.2) on
     the decision-rate states of a ``duration``-second run (default: the spec's
-    episode). Runs in ``workers`` local processes (default: all cores, at most the
-    number of starts), each building its own Drake diagram.
+    episode). ``engine``: ``"drake"`` runs the Drake diagram in ``workers`` local
+    processes (default: all cores, at most the number of starts), each building its
+    diagram once; ``"torch"`` runs every start as one batch in this process
+    (:func:`torch_rollouts`; ``workers`` is ignored). The map's ``meta`` records the engine,
+    the workers and, for Drake, the workers' CPU seconds (``cpu_s``) and the load average
+    at the end: on a shared machine the wall time alone says little.
     """
+    if engine not in ENGINES:
+        raise ValueError(f"engine must be one of {ENGINES}, got {engine!r}")
     if isinstance(system, str):
         system = load(system, **dict(overrides or {}))
     elif overrides:
         raise ValueError("pass overrides only with a system name; a loaded System already carries its own")
     overrides = dict(system.spec.overrides)
-    if grid < 2:
-        raise ValueError(f"grid must be >= 2, got {grid}")
     duration = system.episode_duration if duration is None else float(duration)
     if duration <= 0:
         raise ValueError(f"duration must be > 0, got {duration}")
-    (a1, a2), (r1, r2) = grid_axes(system, axes, ranges)
+    (a1, a2), values1, values2, grid_states = _grid_starts(system, grid, axes, ranges)
+    names = (system.state_names[a1], system.state_names[a2])
+    start_time = time.perf_counter()
+    if engine == "torch":
+        result = torch_rollouts(system, controller, grid_states, duration)
+        return BalanceMap(system.name, controller, names, values1, values2, result["balanced"].reshape(grid, grid),
+                          result["returns"].reshape(grid, grid), result["diverged"].reshape(grid, grid), duration,
+                          time.perf_counter() - start_time, meta={"engine": "torch", "workers": 1})
     build_named_diagram(system, controller, log=False)  # bad names/checkpoints fail here, not in a worker
-    values1, values2 = np.linspace(*r1, grid), np.linspace(*r2, grid)
-    starts = []
-    for i, v1 in enumerate(values1):
-        for j, v2 in enumerate(values2):
-            x0 = system.initial_state.nominal.copy()
-            x0[a1], x0[a2] = v1, v2
-            starts.append((i * grid + j, x0))
+    starts = list(enumerate(grid_states))
     workers = max(1, min(os.cpu_count() or 1, len(starts)) if workers is None else int(workers))
     chunk = max(1, min(25, len(starts) // (4 * workers) or 1))
     jobs = [(str(system.spec.path), overrides, controller, duration, starts[k:k + chunk])
@@ -150,7 +285,6 @@ def balance_map(system: System | str, controller: str = "energy", grid: int = 41
     balanced = np.zeros(grid * grid, dtype=bool)
     returns = np.zeros(grid * grid)
     diverged = np.zeros(grid * grid, dtype=bool)
-    start_time = time.perf_counter()
     bar = tqdm(total=len(starts), desc=f"balance map {system.name}", disable=not progress, unit="run")
     if workers == 1:
         results_iter = map(_simulate_chunk, jobs)
@@ -160,8 +294,10 @@ def balance_map(system: System | str, controller: str = "energy", grid: int = 41
         require_main_guard()
         pool = mp.get_context("spawn").Pool(workers)
         results_iter = pool.imap_unordered(_simulate_chunk, jobs)
+    cpu = 0.0
     try:
-        for results in results_iter:
+        for results, seconds in results_iter:
+            cpu += seconds
             for index, ok, ret, div in results:
                 balanced[index], returns[index], diverged[index] = ok, ret, div
             bar.update(len(results))
@@ -169,7 +305,56 @@ def balance_map(system: System | str, controller: str = "energy", grid: int = 41
         bar.close()
         if pool is not None:
             pool.terminate()
-    names = (system.state_names[a1], system.state_names[a2])
     return BalanceMap(system.name, controller, names, values1, values2, balanced.reshape(grid, grid),
                       returns.reshape(grid, grid), diverged.reshape(grid, grid), duration,
-                      time.perf_counter() - start_time, meta={"workers": workers})
+                      time.perf_counter() - start_time,
+                      meta={"engine": "drake", "workers": workers, "cpu_s": cpu, "load_average": list(os.getloadavg())})
+
+
+def divergence_time(times, a, b, tol: float = 1e-3) -> float | None:
+    """First of the sample ``times`` (T,) at which two trajectories (T, n) differ by more than ``tol``
+    in some coordinate (or one is not finite), or None if they never do."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    n = min(len(a), len(b), len(times))
+    with np.errstate(invalid="ignore"):
+        apart = ~(np.abs(a[:n] - b[:n]) <= tol).all(axis=-1)
+    hits = np.flatnonzero(apart)
+    return float(times[hits[0]]) if len(hits) else None
+
+
+def compare_engines(system: System | str, controller: str = "energy", grid: int = 11, duration: float | None = None,
+                    axes=None, ranges=None, tol: float = 1e-3, drake_map: BalanceMap | None = None,
+                    progress: bool = False) -> dict:
+    """Balance maps of one controller by both engines on one grid, and where they disagree.
+
+    Returns a dict: ``drake`` and ``torch`` (the two :class:`BalanceMap`), ``agreement`` (share of
+    cells with the same verdict), ``disagreements``: for each cell whose verdicts differ, its grid
+    index, start, both verdicts and ``divergence_time``: the first swing-up decision time at which
+    the Drake and torch trajectories differ by more than ``tol`` in any coordinate (None if they
+    never do). ``drake_map``: a Drake map of this grid computed before (it is not recomputed).
+    """
+    if isinstance(system, str):
+        system = load(system)
+    duration = system.episode_duration if duration is None else float(duration)
+    (a1, a2), values1, values2, starts = _grid_starts(system, grid, axes, ranges)
+    torch_map = balance_map(system, controller, grid, duration, axes, ranges, engine="torch")
+    if drake_map is None:
+        drake_map = balance_map(system, controller, grid, duration, axes, ranges, workers=1, progress=progress)
+    same = drake_map.balanced == torch_map.balanced
+    rows = []
+    if not same.all():
+        cells = np.argwhere(~same)
+        flat = [i * grid + j for i, j in cells]
+        runs = torch_rollouts(system, controller, starts[flat], duration)
+        diagram = build_named_diagram(system, controller)
+        for k, ((i, j), index) in enumerate(zip(cells, flat)):
+            traj = simulate(diagram, starts[index], duration)
+            times = runs["times"]
+            stride = int(round((times[1] - times[0]) / system.dt)) if len(times) > 1 else 1
+            drake_states = traj.x[::stride]
+            rows.append({"cell": [int(i), int(j)], "x0": starts[index].tolist(),
+                         "drake_balanced": bool(drake_map.balanced[i, j]),
+                         "torch_balanced": bool(torch_map.balanced[i, j]),
+                         "divergence_time": divergence_time(times, drake_states, runs["states"][k], tol)})
+    return {"drake": drake_map, "torch": torch_map, "agreement": float(same.mean()), "cells": int(same.size),
+            "tolerance": tol, "disagreements": rows}

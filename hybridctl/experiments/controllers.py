@@ -3,6 +3,9 @@ and worker processes pass around, since Drake systems and closures do not pickle
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Any
+
 import numpy as np
 
 from ..drake import HybridDiagram, build_hybrid_diagram
@@ -37,20 +40,34 @@ CONTROLLERS = {
 }
 
 
-def build_named_diagram(system: System, controller: str = "energy", **kwargs) -> HybridDiagram:
-    """``build_hybrid_diagram`` for a controller given by name (see ``CONTROLLERS``).
+@dataclass
+class ControllerParts:
+    """What a named controller is made of, before it becomes Drake blocks (:func:`build_named_diagram`) or
+    a batched torch rollout (:func:`hybridctl.experiments.balance_map.torch_rollouts`).
 
-    Names are what the command line and worker processes pass around, since
-    Drake systems and closures do not pickle.
+    ``swingup``: None (the spec's energy swing-up), ``"zero"`` or a torch module (a recurrent one has
+    ``initial_state``); ``gate``: None (the spec's cost-to-go gate), ``"always"``, ``"never"`` or a
+    torch classifier; ``gate_on`` / ``gate_off`` (None: the spec's) and ``swingup_period`` (None: the
+    block's default) as for :func:`hybridctl.drake.build_hybrid_diagram`.
     """
+
+    swingup: Any = None
+    gate: Any = None
+    gate_on: float | None = None
+    gate_off: float | None = None
+    swingup_period: float | None = None
+
+
+def controller_parts(system: System, controller: str = "energy") -> ControllerParts:
+    """The parts of a controller given by name (see ``CONTROLLERS``); loads checkpoints."""
     if controller == "energy":
-        return build_hybrid_diagram(system, **kwargs)
+        return ControllerParts()
     if controller == "lqr":
-        return build_hybrid_diagram(system, swingup=_zero_command, gate=_always_balance, **kwargs)
+        return ControllerParts(swingup="zero", gate="always")
     if controller == "swingup":
-        return build_hybrid_diagram(system, gate=_never_balance, **kwargs)
+        return ControllerParts(gate="never")
     if controller == "zero":
-        return build_hybrid_diagram(system, swingup=_zero_command, gate=_never_balance, **kwargs)
+        return ControllerParts(swingup="zero", gate="never")
     kind, sep, path = controller.partition(":")
     if sep and kind in ("ssac", "sac"):
         if not path:
@@ -58,12 +75,9 @@ def build_named_diagram(system: System, controller: str = "energy", **kwargs) ->
         policy, gate, meta = load_controller(path, system)
         if kind == "ssac" and gate is None:
             raise ValueError(f"{path} is a {meta.get('algorithm')} checkpoint without a gate; use sac:{path}")
-        if kind == "sac":
-            gate = _never_balance
         gate_meta = meta.get("gate", {})
-        kwargs.setdefault("gate_on", gate_meta.get("gate_on"))
-        kwargs.setdefault("gate_off", gate_meta.get("gate_off"))
-        return build_hybrid_diagram(system, swingup=policy, gate=gate, **kwargs)
+        return ControllerParts(policy, "never" if kind == "sac" else gate, gate_meta.get("gate_on"),
+                               gate_meta.get("gate_off"))
     if sep and kind == "finetune":   # thesis Ch. 6: a fine-tuned sac/ssac swing-up (FineTune checkpoint)
         if not path:
             raise ValueError(f"controller {controller!r} needs a checkpoint path after 'finetune:'")
@@ -71,17 +85,34 @@ def build_named_diagram(system: System, controller: str = "energy", **kwargs) ->
         if tuner.tunable.system != system.name:
             raise ValueError(f"{path} fine-tunes {tuner.tunable.source} on {tuner.env_name}; a Drake diagram of "
                              f"{system.name} needs a sac:/ssac: source of that system")
-        for key, value in tuner.tunable.meta.get("gate", {}).items():
-            kwargs.setdefault(key, value)
-        gate = tuner.tunable.gate if tuner.tunable.gate is not None else _never_balance
-        return build_hybrid_diagram(system, swingup=tuner.tuned_module(), gate=gate, **kwargs)
+        gate_meta = tuner.tunable.meta.get("gate", {})
+        gate = tuner.tunable.gate if tuner.tunable.gate is not None else "never"
+        return ControllerParts(tuner.tuned_module(), gate, gate_meta.get("gate_on"), gate_meta.get("gate_off"))
     if sep and kind in APG_METHODS:   # thesis Ch. 7: the trained GRU with its hidden state in the Context
         if not path:
             raise ValueError(f"controller {controller!r} needs a checkpoint path after '{kind}:'")
         agent = APG.load(path)
         if agent.system.name != system.name:
             raise ValueError(f"{path} was trained on {agent.system.name}, not {system.name}")
-        kwargs.setdefault("swingup_period", agent.period)
-        return build_hybrid_diagram(system, swingup=agent.closed_loop_policy(), **kwargs)
+        return ControllerParts(agent.closed_loop_policy(), swingup_period=agent.period)
     raise ValueError(f"unknown controller {controller!r}; known: "
                      + ", ".join(f"{k} ({v})" for k, v in CONTROLLERS.items()))
+
+
+_DRAKE_STAND_INS = {"zero": _zero_command, "always": _always_balance, "never": _never_balance}
+
+
+def build_named_diagram(system: System, controller: str = "energy", **kwargs) -> HybridDiagram:
+    """``build_hybrid_diagram`` for a controller given by name (see ``CONTROLLERS``).
+
+    Names are what the command line and worker processes pass around, since
+    Drake systems and closures do not pickle. ``kwargs`` go to ``build_hybrid_diagram``
+    (and win over the checkpoint's gate thresholds and periods).
+    """
+    parts = controller_parts(system, controller)
+    for key in ("gate_on", "gate_off", "swingup_period"):
+        if getattr(parts, key) is not None:
+            kwargs.setdefault(key, getattr(parts, key))
+    swingup = _DRAKE_STAND_INS.get(parts.swingup, parts.swingup) if isinstance(parts.swingup, str) else parts.swingup
+    gate = _DRAKE_STAND_INS.get(parts.gate, parts.gate) if isinstance(parts.gate, str) else parts.gate
+    return build_hybrid_diagram(system, swingup=swingup, gate=gate, **kwargs)

@@ -265,7 +265,7 @@ def lr_schedule(config: APGConfig, epoch: int) -> float:
 
 
 def observe(system: System, x: torch.Tensor, kind: str = "trig") -> torch.Tensor:
-    """The policy's observation of states x (..., n): see ``APGConfig.observation``."""
+    """The policy's observation of states x (..., n): see ``APGConfig.observation`` (torch or numpy)."""
     err = system.state_error(x)
     if kind == "state":
         return err
@@ -273,7 +273,9 @@ def observe(system: System, x: torch.Tensor, kind: str = "trig") -> torch.Tensor
     angles = system.angle_indices
     linear = [i for i in range(n_q) if i not in angles]
     phi = err[..., angles]
-    return torch.cat([err[..., linear], torch.sin(phi), torch.cos(phi), err[..., n_q:]], dim=-1)
+    if isinstance(err, torch.Tensor):
+        return torch.cat([err[..., linear], torch.sin(phi), torch.cos(phi), err[..., n_q:]], dim=-1)
+    return np.concatenate([err[..., linear], np.sin(phi), np.cos(phi), err[..., n_q:]], axis=-1)
 
 
 def observation_size(system: System, kind: str = "trig") -> int:
@@ -477,6 +479,12 @@ class ClosedLoopPolicy(torch.nn.Module):
     def forward(self, x: torch.Tensor, state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Action and next recurrent state for raw states x."""
         return self.policy(observe(self.system, x.to(self.policy.population.dtype), self.observation), state)
+
+    def numpy_forward(self, x: np.ndarray, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`forward` in numpy (:meth:`Policy.numpy_forward`), for the Drake block on one state."""
+        dtype = np.float64 if self.policy.population.dtype == torch.float64 else np.float32
+        obs = observe(self.system, np.asarray(x, dtype=dtype), self.observation)
+        return self.policy.numpy_forward(obs, state)
 
 
 # ============================================================================ diagnostics (thesis Fig. 7.1)

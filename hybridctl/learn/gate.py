@@ -116,6 +116,46 @@ class GateNet(torch.nn.Module):
         """Probabilities (B, 1)."""
         return torch.sigmoid(self.logits(x))
 
+    def numpy_forward(self, x: np.ndarray) -> np.ndarray:
+        """The same probabilities for numpy states (..., n) -> (..., 1), in numpy at the net's dtype.
+
+        The Drake ``Gate`` calls it at every control period on one state, where torch's
+        per-call overhead was most of the loop's time. The same formulas as :meth:`forward`
+        (``wrap_angles``, ``cost_to_go``); in float32 the two differ by rounding (the
+        cost-to-go feature, a sum with cancellation, by up to ~1e-5 relative). The numpy
+        copies of the weights are refreshed whenever a parameter or buffer changed (a refit).
+        """
+        layers, goal, scale, S = self._numpy_copies()
+        err = wrap_angles(np.asarray(x, dtype=goal.dtype) - goal, self._angle_columns)
+        h = err / scale
+        if self.cost_feature:
+            h = np.concatenate([h, np.log1p(cost_to_go(err, S))[..., None]], axis=-1)
+        last = len(layers) - 1
+        for i, (w, b) in enumerate(layers):
+            h = h @ w + b
+            if i < last:
+                h = np.maximum(h, 0)
+        return 1.0 / (1.0 + np.exp(-h))
+
+    def _numpy_copies(self):
+        """(layers [(W^T, b)], goal, feature_scale, S_scaled) as numpy, cached while no parameter or
+        buffer changed in place (optimiser steps and ``load_state_dict`` do; a parameter replaced by a
+        new tensor object is not seen: call ``numpy_forward`` on a fresh GateNet then)."""
+        tensors = self.__dict__.get("_numpy_tensors")
+        if tensors is None or [t._version for t in tensors] != self._numpy_key:
+            if any(not isinstance(m, (torch.nn.Linear, torch.nn.ReLU)) for m in self.net):
+                raise TypeError("GateNet.numpy_forward needs the net built by GateNet (Linear and ReLU layers)")
+            tensors = [*self.parameters(), *self.buffers()]
+            layers = [(m.weight.detach().numpy().T.copy(), m.bias.detach().numpy().copy())
+                      for m in self.net if isinstance(m, torch.nn.Linear)]
+            buffers = [getattr(self, name).detach().numpy().copy() for name in ("goal", "feature_scale", "S_scaled")]
+            idx = list(self.angle_indices)
+            contiguous = bool(idx) and idx == list(range(idx[0], idx[-1] + 1))
+            self._angle_columns = slice(idx[0], idx[-1] + 1) if contiguous else idx
+            self._numpy = (layers, *buffers)
+            self._numpy_tensors, self._numpy_key = tensors, [t._version for t in tensors]
+        return self._numpy
+
 
 def warm_start_states(system: System, n: int, rng: np.random.Generator) -> np.ndarray:
     """Thesis Algorithm 2 samples: half goal + U(-warm_near, warm_near), half goal + U(-warm_far, warm_far)."""

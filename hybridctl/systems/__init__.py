@@ -88,7 +88,12 @@ class System:
         self.episode_duration = float(spec.get("episode.duration"))
         self.action_limit = float(spec.get("action.limit"))
         self.angle_indices: list[int] = list(spec.get("state.angles"))
-        self._angle_index = np.asarray(self.angle_indices, dtype=np.int64)
+        # A slice where the angles are contiguous (all our systems): indexing one state with it
+        # is several times cheaper than with an index array (the Drake blocks wrap one state at
+        # every control period), and it selects the same columns.
+        idx = self.angle_indices
+        contiguous = bool(idx) and idx == list(range(idx[0], idx[-1] + 1))
+        self._angle_index = slice(idx[0], idx[-1] + 1) if contiguous else np.asarray(idx, dtype=np.int64)
         self.Q = np.atleast_2d(spec.get("lqr.Q"))
         self.R = np.atleast_2d(spec.get("lqr.R"))
         sections = typed_sections(spec)

@@ -63,6 +63,8 @@ def hysteresis(probability, mode, on: float, off: float):
     Works elementwise on torch tensors, numpy arrays and plain floats (a Drake block's
     mode is 0.0 / 1.0 and comes back as such).
     """
+    if type(probability) is float and type(mode) is float:   # one Drake gate update: the common case first
+        return 1.0 if probability > on else (0.0 if probability < off else mode)
     if isinstance(probability, torch.Tensor):
         mode = torch.as_tensor(mode, device=probability.device)
         return torch.where(probability > on, True, torch.where(probability < off, False, mode.bool()))
