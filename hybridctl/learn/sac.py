@@ -73,7 +73,8 @@ from torch.func import functional_call, grad_and_value
 from . import checkpoint as ckpt
 from ..systems import System
 from ..systems.compiled import COMPILE_MODES, LazyCompiled, wants_compile
-from .networks import OBS_TRANSFORMS, Actor, DeterministicPolicy, ObsTransform, QNetwork, squashed_sample
+from .networks import (OBS_TRANSFORMS, Actor, DeterministicPolicy, ObsTransform, QNetwork, squashed_sample,
+                       twin_q_values)
 from .replay import REPLAY_FIELDS, EpisodeStaging, ReplayBuffer, sample_mixed
 from .config_check import check_types
 from .run import Saved, check_fields, check_finite, seeded
@@ -297,20 +298,30 @@ class SAC(VectorEnvAgent):
         ``q_params``: ``(params of q1, params of q2)`` as name -> tensor dicts (a functional call,
         for ``torch.func`` gradients), or None for the networks' own parameters.
         """
+        functional = q_params is not None
         with torch.no_grad():  # the soft Bellman target, from the target networks
             next_act, next_logp = self.actor.sample(next_obs, eps)
-            q_next = torch.min(self.q1_target(next_obs, next_act), self.q2_target(next_obs, next_act))
+            targets = (dict(self.q1_target.named_parameters()), dict(self.q2_target.named_parameters())) \
+                if functional else None
+            q_next = self._twin_q(targets, next_obs, next_act, target=True).min(0).values
             target = rew + self.config.gamma * (1.0 - done) * (q_next - alpha * next_logp)
-        p1, p2 = (None, None) if q_params is None else q_params
-        return F.mse_loss(_call(self.q1, p1, obs, act), target) + F.mse_loss(_call(self.q2, p2, obs, act), target)
+        q1, q2 = self._twin_q(q_params, obs, act)
+        return F.mse_loss(q1, target) + F.mse_loss(q2, target)
+
+    def _twin_q(self, q_params, obs, act, target: bool = False) -> torch.Tensor:
+        """(2, B) values of the critics (``target``: the target critics): the modules' own forward
+        (``q_params`` None, eager) or both at once with the given weights (:func:`twin_q_values`)."""
+        q1, q2 = (self.q1_target, self.q2_target) if target else (self.q1, self.q2)
+        if q_params is None:
+            return torch.stack([q1(obs, act), q2(obs, act)])
+        return twin_q_values(q1, q2, q_params[0], q_params[1], obs, act)
 
     def actor_loss(self, actor_params, q_params, obs, eps, alpha) -> tuple[torch.Tensor, torch.Tensor]:
         """Policy loss ``mean(alpha log pi - min(Q1, Q2))`` at reparameterised actions (noise ``eps``)
         and the log densities (B,). Parameters as in :meth:`critic_loss` (None: the networks' own)."""
         mu, log_std = _call(self.actor, actor_params, obs)
         new_act, logp = squashed_sample(mu, log_std, eps, self.actor.action_scale)
-        p1, p2 = (None, None) if q_params is None else q_params
-        q_new = torch.min(_call(self.q1, p1, obs, new_act), _call(self.q2, p2, obs, new_act))
+        q_new = self._twin_q(q_params, obs, new_act).min(0).values
         return (alpha * logp - q_new).mean(), logp
 
     def gradient_step(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
@@ -377,10 +388,17 @@ class SAC(VectorEnvAgent):
             self._actor_params = [p for _, p in self._named_params[0]]
         if enabled and self._compiled_grads is None:
             strict = cfg.compile == "on"
-            self._compiled_grads = {
-                "critic": LazyCompiled(grad_and_value(self.critic_loss), True, strict, "SAC's critic loss"),
-                "actor": LazyCompiled(grad_and_value(self.actor_loss, has_aux=True), True, strict,
-                                      "SAC's actor loss")}
+            critic_grad, actor_grad = grad_and_value(self.critic_loss), grad_and_value(self.actor_loss, has_aux=True)
+
+            # one function each: torch.compile keeps its graphs per code object, and grad_and_value's
+            # wrappers share one, so both losses compiled through it would re-check each other's guards
+            def critic_grads(*args):
+                return critic_grad(*args)
+
+            def actor_grads(*args):
+                return actor_grad(*args)
+            self._compiled_grads = {"critic": LazyCompiled(critic_grads, True, strict, "SAC's critic loss"),
+                                    "actor": LazyCompiled(actor_grads, True, strict, "SAC's actor loss")}
         self._grads = self._compiled_grads if enabled else None
         if self._owns_env and hasattr(self.env, "set_compile"):
             self.env.set_compile(cfg.compile if enabled else "off")

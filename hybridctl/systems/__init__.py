@@ -121,6 +121,9 @@ class System:
             self._has_scalar = False
         if self.integrator in ("euler", "runge_kutta2"):  # generated now: not inside a torch.compile trace
             self.dynamics.generate_torch_step(self.dt, self.integrator)
+            for dtype in (torch.float64, torch.float32):    # one step fills the constant caches too (a trace
+                self._step_torch(torch.zeros(2, self.n_states, dtype=dtype),   # that filled them would
+                                 torch.zeros(2, self.n_actions, dtype=dtype))  # compile twice)
         self._lqr_cache: dict = {}
 
     def __repr__(self) -> str:
