@@ -142,3 +142,27 @@ def test_compiled_sac_gradients_equal_eager(one_torch_thread):
     agent.update()
     assert agent.num_gradient_steps == 4 and agent._loss_sums["n"] == 4
     assert any(not torch.equal(a, b) for a, b in zip(before, agent.q1.parameters()))
+
+
+def test_fused_adam_step_is_the_optimizers_step_bit_for_bit(one_torch_thread):
+    from hybridctl.learn.sac import FusedAdamStep, _adam
+
+    torch.manual_seed(0)
+    nets = [torch.nn.Sequential(torch.nn.Linear(3, 5), torch.nn.ReLU(), torch.nn.Linear(5, 1)) for _ in range(2)]
+    nets[1].load_state_dict(nets[0].state_dict())
+    opts = [_adam(net.parameters(), 1e-3) for net in nets]
+    lean = FusedAdamStep(opts[1])
+    assert lean.lean
+    for step in range(4):
+        x = torch.randn(8, 3)
+        for net, opt in zip(nets, opts):
+            opt.zero_grad()
+            net(x).pow(2).mean().backward()
+        opts[0].step()
+        lean()                     # the first call creates the state through opts[1].step()
+        for a, b in zip(nets[0].parameters(), nets[1].parameters()):
+            assert torch.equal(a, b), step
+    for a, b in zip(opts[0].state.values(), opts[1].state.values()):
+        assert all(torch.equal(a[k], b[k]) for k in ("step", "exp_avg", "exp_avg_sq"))
+    opts[1].param_groups[0]["weight_decay"] = 0.1   # another setting: the optimizer's own step
+    assert not FusedAdamStep(opts[1]).lean
