@@ -138,9 +138,25 @@ def test_compiled_sac_gradients_equal_eager(one_torch_thread):
     for fast, slow in zip(grads.values(), eager, strict=True):
         close(fast, slow)
 
+    # one real compiled step on this minibatch and noise: the optimizer sees the eager gradients
+    # (Adam's first moment after one step is (1 - beta1) g; a gradient handed over transposed and
+    # read in the wrong order by the fused kernel made training diverge)
+    loss = agent.critic_loss(None, *batch, eps, alpha)
+    eager = torch.autograd.grad(loss, agent._q_params)
+    state = agent.generator.get_state()
+    eps_step = torch.randn(eps.shape, generator=agent.generator)
+    agent.generator.set_state(state)
+    if not torch.equal(eps_step, eps):
+        loss = agent.critic_loss(None, *batch, eps_step, alpha)
+        eager = torch.autograd.grad(loss, agent._q_params)
+    agent.gradient_step(dict(zip(("obs", "actions", "rewards", "next_obs", "dones"), batch)))
+    beta1 = agent.q_opt.param_groups[0]["betas"][0]
+    for p, g in zip(agent._q_params, eager, strict=True):
+        close(agent.q_opt.state[p]["exp_avg"], (1 - beta1) * g)
+
     before = [p.clone() for p in agent.q1.parameters()]
     agent.update()
-    assert agent.num_gradient_steps == 4 and agent._loss_sums["n"] == 4
+    assert agent.num_gradient_steps == 5 and agent._loss_sums["n"] == 4
     assert any(not torch.equal(a, b) for a, b in zip(before, agent.q1.parameters()))
 
 

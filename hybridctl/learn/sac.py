@@ -231,9 +231,12 @@ def _call(module: torch.nn.Module, params: dict | None, *args):
 
 
 def _set_grads(params: list[torch.Tensor], grads: list[torch.Tensor]) -> None:
-    """Hand gradients computed by torch.func to the optimizer (in the parameters' order)."""
+    """Hand gradients computed by torch.func to the optimizer (in the parameters' order), laid out
+    as the parameters: torch's fused CPU Adam reads a transposed (non-contiguous) gradient in the
+    wrong order (torch 2.13, seen here: the compiled weight gradients come back transposed, and
+    training diverged), so each one is made contiguous."""
     for p, g in zip(params, grads, strict=True):
-        p.grad = g
+        p.grad = g.contiguous()
 
 
 def _next_multiple(value: int, every: int) -> float:
