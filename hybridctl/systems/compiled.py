@@ -76,8 +76,3 @@ class LazyCompiled:
             self.enabled = False
             return result
 
-
-def env_compile_mode(mode: str, total_steps: int | None = None) -> str:
-    """The ``compile`` argument for a learner's env: ``"off"`` unless :func:`wants_compile`, else
-    ``mode`` (``"on"`` raises on a failure to compile, ``"auto"`` falls back to eager)."""
-    return mode if wants_compile(mode, total_steps) else "off"
