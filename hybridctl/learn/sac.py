@@ -379,7 +379,7 @@ class SAC(VectorEnvAgent):
             self.q_opt.zero_grad(set_to_none=True)
             q_loss.backward()
         else:
-            q_grads, q_loss = self._grads["critic"](self._q_param_dicts(), obs, act, rew, next_obs, done,
+            q_grads, q_loss = self._grads["critic"](self._detached["critics"], obs, act, rew, next_obs, done,
                                                     eps_next, alpha)
             self._check_finite("q_loss", q_loss)
             _set_grads(self._q_params, [g for grads in q_grads for g in grads.values()])
@@ -393,9 +393,8 @@ class SAC(VectorEnvAgent):
             self.actor_opt.zero_grad(set_to_none=True)
             pi_loss.backward()
         else:
-            actor_params = {k: v.detach() for k, v in self._named_params[0]}
-            a_grads, (pi_loss, logp) = self._grads["actor"](actor_params, self._q_param_dicts(), obs, eps_new,
-                                                            alpha)
+            a_grads, (pi_loss, logp) = self._grads["actor"](self._detached["actor"], self._detached["critics"], obs,
+                                                            eps_new, alpha)
             self._check_finite("pi_loss", pi_loss)
             _set_grads(self._actor_params, list(a_grads.values()))
         self._actor_step()
@@ -413,7 +412,7 @@ class SAC(VectorEnvAgent):
 
     def _q_param_dicts(self) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
         """The critics' parameters, detached (torch.func differentiates with respect to them)."""
-        return tuple({k: v.detach() for k, v in named} for named in self._named_params[1:])
+        return tuple({k: v.detach() for k, v in q.named_parameters()} for q in (self.q1, self.q2))
 
     def use_compile(self, remaining_steps: int | None) -> bool:
         """Set up eager or compiled gradients (and the agent-built env's decision) for a run of
@@ -421,9 +420,11 @@ class SAC(VectorEnvAgent):
         ``learn`` calls it; the compiled functions are kept across calls."""
         cfg = self.config
         enabled = wants_compile(cfg.compile, remaining_steps)
-        if enabled:  # parameters are updated in place (optimizers, load_state_dict): list them once
-            self._named_params = [list(net.named_parameters()) for net in (self.actor, self.q1, self.q2)]
-            self._actor_params = [p for _, p in self._named_params[0]]
+        if enabled:  # parameters are updated in place (optimizers, load_state_dict): list them once, and
+            # their detached views (which share the storage, so they follow every update) too
+            self._actor_params = list(self.actor.parameters())
+            self._detached = {"actor": {k: v.detach() for k, v in self.actor.named_parameters()},
+                              "critics": self._q_param_dicts()}
         if enabled and self._compiled_grads is None:
             strict = cfg.compile == "on"
             critic_grad, actor_grad = grad_and_value(self.critic_loss), grad_and_value(self.actor_loss, has_aux=True)
