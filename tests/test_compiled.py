@@ -1,6 +1,7 @@
 """torch.compile in training (issue 15): the compiled env decision and SAC gradient step equal the
 eager ones to rounding; LazyCompiled falls back to eager or raises as asked; the modes validate."""
 
+import copy
 import warnings
 
 import numpy as np
@@ -180,5 +181,64 @@ def test_fused_adam_step_is_the_optimizers_step_bit_for_bit(one_torch_thread):
             assert torch.equal(a, b), step
     for a, b in zip(opts[0].state.values(), opts[1].state.values()):
         assert all(torch.equal(a[k], b[k]) for k in ("step", "exp_avg", "exp_avg_sq"))
+    # the shared step counters: each parameter's own 0-d tensor still, through optimizer.step(),
+    # a state_dict round trip (counters replaced from outside) and more lean steps
+    steps = [s["step"] for s in opts[1].state.values()]
+    assert len({s.data_ptr() for s in steps}) == len(steps) and all(s.dim() == 0 for s in steps)
+    saved = copy.deepcopy(opts[1].state_dict())
+    for step in range(6):
+        x = torch.randn(8, 3)
+        for net, opt in zip(nets, opts):
+            opt.zero_grad()
+            net(x).pow(2).mean().backward()
+        opts[0].step()
+        if step == 1:
+            opts[1].step()          # the optimizer's own step on the shared counters: +1 each, once
+        elif step == 3:
+            opts[1].load_state_dict(opts[1].state_dict())   # new counter tensors: gathered again
+            lean()
+        else:
+            lean()
+        for a, b in zip(nets[0].parameters(), nets[1].parameters()):
+            assert torch.equal(a, b), step
+    for a, b in zip(opts[0].state.values(), opts[1].state.values()):
+        assert all(torch.equal(a[k], b[k]) for k in ("step", "exp_avg", "exp_avg_sq"))
+    assert float(next(iter(opts[1].state.values()))["step"]) == 10
+    assert float(next(iter(saved["state"].values()))["step"]) == 4   # a saved state is a copy
     opts[1].param_groups[0]["weight_decay"] = 0.1   # another setting: the optimizer's own step
     assert not FusedAdamStep(opts[1]).lean
+
+
+def test_compiled_gate_fit_follows_the_eager_fit(one_torch_thread):
+    """fit_gate(compiled=True): the same minibatches, losses and weights as the eager fit (to float32
+    rounding), a fused Adam step, and a refit of the same gate reuses its compiled step."""
+    from hybridctl.learn.gate import fit_gate, warm_start_states
+    from hybridctl.learn.optim import adam
+
+    system = load("acrobot")
+    rng = np.random.default_rng(0)
+    states = warm_start_states(system, 3000, rng)
+    labels = rng.random(3000) < 0.2
+    gates, losses = [], []
+    for compiled_fit in (False, True):
+        torch.manual_seed(0)
+        gate = GateNet(system)
+        opt = adam(gate.parameters(), 3e-3)
+        gen = torch.Generator().manual_seed(1)
+        losses.append(fit_gate(gate, states, labels, 30, 3e-3, 0.01, 512, gen, opt, compiled=compiled_fit)
+                      + fit_gate(gate, states, labels, 20, 3e-3, 0.01, 512, gen, opt, class_weight=2.0,
+                                 compiled=compiled_fit))
+        gates.append(gate)
+    assert np.allclose(losses[0], losses[1], rtol=1e-4, atol=1e-6)
+    assert losses[0][0] != losses[0][-1]          # the fit moved
+    for a, b in zip(gates[0].parameters(), gates[1].parameters()):
+        assert torch.allclose(a, b, rtol=1e-4, atol=1e-5)
+    assert not gates[1].training
+    # more gates of the same layout use the same compiled graph: no recompiles, no eager fallback
+    from hybridctl.learn.gate import COMPILED_GATE_GRADS
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for seed in range(10):
+            torch.manual_seed(seed)
+            fit_gate(GateNet(system), states, labels, 2, batch_size=512, compiled=True)
+    assert COMPILED_GATE_GRADS.enabled

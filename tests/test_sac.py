@@ -296,6 +296,24 @@ def test_needle_rows_are_drawn_with_the_configured_probability(p):
     assert torch.equal(batch["obs"][:, 0].bool(), from_needle)
 
 
+def test_mixed_batch_rows_are_the_drawn_rows_in_order():
+    """sample_mixed gathers main rows only where no needle row replaces them: the batch equals
+    gathering every drawn main row and then overwriting the needle rows (the same RNG draws)."""
+    main, needle = ReplayBuffer(500, 3, 2), ReplayBuffer(80, 3, 2)
+    for buf, n in ((main, 500), (needle, 80)):
+        buf.add(torch.randn(n, 3), torch.randn(n, 2), torch.randn(n), torch.randn(n, 3), torch.rand(n).round())
+    batch, from_needle = sample_mixed(main, needle, 256, 0.4, torch.Generator().manual_seed(3))
+    gen = torch.Generator().manual_seed(3)
+    idx = torch.randint(main.size, (256,), generator=gen)
+    expected = {f: v[idx].clone() for f, v in main.data.items()}
+    mask = torch.rand(256, generator=gen) < 0.4
+    nidx = torch.randint(needle.size, (int(mask.sum()),), generator=gen)
+    for f, v in needle.data.items():
+        expected[f][mask] = v[nidx]
+    assert torch.equal(from_needle, mask) and 0 < int(mask.sum()) < 256
+    assert all(torch.equal(batch[f], expected[f]) for f in expected)
+
+
 def test_needle_sampling_falls_back_to_main():
     main, needle = fake_buffers(needle_rows=0)
     batch, from_needle = sample_mixed(main, needle, 1000, 0.5)

@@ -24,9 +24,13 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 import torch
 
+from torch.func import functional_call, grad_and_value
+
 from ..systems import System
+from ..systems.compiled import LazyCompiled
 from ..systems.control import cost_to_go, lqr_rollouts_balanced, wrap_angles
 from .config_check import check_types
+from .optim import FusedAdamStep, adam, set_grads
 from .run import check_fields, check_finite, seeded
 
 
@@ -197,30 +201,75 @@ def gate_loss(gate: GateNet, states: torch.Tensor, labels: torch.Tensor, c_w: fl
 
 def fit_gate(gate: GateNet, states, labels, steps: int, lr: float = 1e-3, positive_weight: float = 0.01,
              batch_size: int = 4096, generator: torch.Generator | None = None,
-             optimizer: torch.optim.Optimizer | None = None, class_weight: float | None = None) -> list[float]:
+             optimizer: torch.optim.Optimizer | None = None, class_weight: float | None = None,
+             compiled: bool = False) -> list[float]:
     """Adam on minibatches drawn from the whole gate data set (the thesis refits on all of it).
 
     The class weight c_w is ``class_weight`` if given, else eq. 3.3 on the whole data
-    set's class balance. Returns the losses.
+    set's class balance. ``compiled``: each step's loss and gradient is one ``torch.compile``-d
+    graph (the same numbers up to float32 rounding; the minibatches are the same draws), with
+    a fused Adam step; SSAC refits this way when it trains compiled. Returns the losses.
     """
     x = torch.as_tensor(np.asarray(states), dtype=torch.float32)
     y = torch.as_tensor(np.asarray(labels), dtype=torch.bool)
     if x.shape[0] != y.shape[0] or x.shape[0] == 0:
         raise ValueError(f"states and labels must be non-empty and of equal length, got {x.shape[0]} and {y.shape[0]}")
     c_w = positive_class_weight(y, positive_weight) if class_weight is None else class_weight
-    optimizer = optimizer or torch.optim.Adam(gate.parameters(), lr=lr)
+    optimizer = optimizer or (adam(gate.parameters(), lr) if compiled else torch.optim.Adam(gate.parameters(), lr=lr))
+    step = _CompiledGateStep(gate, optimizer, c_w) if compiled else None
     losses = []
     gate.train()
-    for step in range(steps):
+    for i in range(steps):
         rows = torch.randint(len(y), (min(batch_size, len(y)),), generator=generator)
-        loss = gate_loss(gate, x[rows], y[rows], c_w)
-        check_finite("gate loss", loss, f"at fit step {step}")
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
+        xb, yb = x.index_select(0, rows), y.index_select(0, rows)  # = x[rows], y[rows], 2.5x faster
+        if step is not None:
+            loss = step(xb, yb)
+        else:
+            loss = gate_loss(gate, xb, yb, c_w)
+            check_finite("gate loss", loss, f"at fit step {i}")
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
         losses.append(loss.item())
     gate.eval()
     return losses
+
+
+def _gate_grads(params: dict, gate: GateNet, x: torch.Tensor, y: torch.Tensor, c_w: torch.Tensor):
+    """Gradient and value of :func:`gate_loss` with respect to ``params`` (the gate's parameters,
+    all in ``gate.net``; the features use buffers only)."""
+    def loss_of(params):
+        net_params = {name.removeprefix("net."): value for name, value in params.items()}
+        logits = functional_call(gate.net, net_params, (gate.features(x),)).squeeze(-1)
+        return torch.nn.functional.binary_cross_entropy_with_logits(logits, y.float(), pos_weight=c_w)
+    return grad_and_value(loss_of)(params)
+
+
+COMPILED_GATE_GRADS = LazyCompiled(_gate_grads, True, strict=False, name="the gate's fit step")
+"""The compiled gradient of :func:`gate_loss` (a failed compile falls back to eager with a warning)."""
+
+
+class _CompiledGateStep:
+    """One compiled gate fit step: BCE loss and its gradient in one graph, then a fused Adam step.
+
+    One compiled function serves every gate (torch.compile guards on the gate's layout, not on
+    the object, so refits and new gates of the same layout reuse it); c_w is passed as a tensor
+    (a new class weight does not compile again)."""
+
+    def __init__(self, gate: GateNet, optimizer: torch.optim.Optimizer, c_w: float):
+        self.gate, self.optimizer = gate, optimizer
+        self.params = list(gate.parameters())
+        self.detached = {k: v.detach() for k, v in gate.named_parameters()}
+        self.c_w = torch.tensor(float(c_w), dtype=torch.float32)
+        self.grads = COMPILED_GATE_GRADS
+        self.adam_step = FusedAdamStep(optimizer)
+
+    def __call__(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        grads, loss = self.grads(self.detached, self.gate, x, y, self.c_w)
+        check_finite("gate loss", loss, "in a compiled fit step")
+        set_grads(self.params, [grads[k] for k in self.detached])
+        self.adam_step()
+        return loss
 
 
 def gate_metrics(gate: torch.nn.Module, states, labels, on: float | None = None) -> dict:

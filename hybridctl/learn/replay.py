@@ -45,8 +45,8 @@ class ReplayBuffer:
         self.size = min(self.size + k, self.capacity)
 
     def get(self, idx: torch.Tensor) -> dict[str, torch.Tensor]:
-        """Rows ``idx`` of every field."""
-        return {f: v[idx] for f, v in self.data.items()}
+        """Rows ``idx`` of every field (``index_select``: the same rows as ``v[idx]``, 2.5x faster here)."""
+        return {f: v.index_select(0, idx) for f, v in self.data.items()}
 
     def state_dict(self) -> dict[str, Any]:
         """The filled rows, oldest first (what replay.pt stores)."""
@@ -73,15 +73,25 @@ def sample_mixed(main: ReplayBuffer, needle: ReplayBuffer, batch_size: int, need
         raise RuntimeError("cannot sample from an empty replay buffer")
     dev = main.device
     idx = torch.randint(main.size, (batch_size,), generator=generator, device=dev)
-    batch = main.get(idx)
     if needle_prob <= 0 or needle.size == 0:
-        return batch, torch.zeros(batch_size, dtype=torch.bool, device=dev)
+        return main.get(idx), torch.zeros(batch_size, dtype=torch.bool, device=dev)
     from_needle = torch.rand(batch_size, generator=generator, device=dev) < needle_prob
     k = int(from_needle.sum())
-    if k:
-        nidx = torch.randint(needle.size, (k,), generator=generator, device=dev)
-        for f, v in needle.get(nidx).items():
-            batch[f][from_needle] = v
+    if not k:
+        return main.get(idx), from_needle
+    nidx = torch.randint(needle.size, (k,), generator=generator, device=dev)
+    # the same draws as gathering all rows from main and overwriting the needle rows, without
+    # gathering the rows that would be overwritten (random reads from 1e6-row buffers dominate)
+    needle_pos = from_needle.nonzero().squeeze(1)
+    main_pos = (~from_needle).nonzero().squeeze(1)
+    from_main = main.get(idx.index_select(0, main_pos))
+    from_needle_rows = needle.get(nidx)
+    batch = {}
+    for f, v in from_main.items():
+        out = v.new_empty((batch_size, *v.shape[1:]))
+        out.index_copy_(0, main_pos, v)
+        out.index_copy_(0, needle_pos, from_needle_rows[f])
+        batch[f] = out
     return batch, from_needle
 
 

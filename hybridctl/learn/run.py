@@ -101,8 +101,8 @@ def check_finite(name: str, value, where: str) -> None:
     Learners call it before applying a step, so the bad step never reaches the weights,
     and the run context writes no checkpoint after the error: the last good one stays.
     """
-    if isinstance(value, torch.Tensor):
-        finite = bool(torch.isfinite(value).all())
+    if isinstance(value, torch.Tensor):  # a scalar loss: one item() (~1 us) instead of two kernels (~10 us)
+        finite = math.isfinite(value.item()) if value.numel() == 1 else bool(torch.isfinite(value).all())
     elif isinstance(value, (np.ndarray, float, int, np.generic)):
         finite = bool(np.all(np.isfinite(value)))
     elif isinstance(value, Iterable):

@@ -77,6 +77,7 @@ from .networks import (OBS_TRANSFORMS, Actor, DeterministicPolicy, ObsTransform,
                        twin_q_values)
 from .replay import REPLAY_FIELDS, EpisodeStaging, ReplayBuffer, sample_mixed
 from .config_check import check_types
+from .optim import FusedAdamStep, adam as _adam, set_grads as _set_grads
 from .run import Saved, check_fields, check_finite, seeded
 from .vector_agent import VectorEnvAgent, progress_entry
 
@@ -176,49 +177,6 @@ class SACConfig:
 # ============================================================================= agent
 
 
-def _adam(params, lr: float) -> torch.optim.Adam:
-    """Adam; the fused CPU kernel where available (measured ~25% faster gradient steps here)."""
-    params = list(params)
-    try:
-        return torch.optim.Adam(params, lr=lr, fused=True)
-    except (RuntimeError, TypeError, ValueError):
-        return torch.optim.Adam(params, lr=lr)
-
-
-class FusedAdamStep:
-    """``optimizer.step()`` of a fused CPU ``torch.optim.Adam`` as the two kernel calls it makes
-    (step counters +1, ``torch._fused_adam_``), without its per-call Python book-keeping (~0.2 ms
-    a call here: two calls in each of SAC's ~5e5 gradient steps). The same state tensors and
-    the same numbers, bit for bit (tested); ``optimizer.step()`` itself runs for anything else
-    (other settings, the first step that creates the state, a missing kernel)."""
-
-    def __init__(self, optimizer: torch.optim.Optimizer):
-        self.optimizer = optimizer
-        groups = optimizer.param_groups
-        group = groups[0]
-        params = group["params"]
-        self.lean = (len(groups) == 1 and bool(group.get("fused")) and not group["amsgrad"]
-                     and group["weight_decay"] == 0 and not group["maximize"] and not group.get("capturable")
-                     and not group.get("decoupled_weight_decay") and not isinstance(group["lr"], torch.Tensor)
-                     and hasattr(torch, "_fused_adam_")
-                     and all(p.device.type == "cpu" and p.dtype == params[0].dtype for p in params))
-
-    def __call__(self) -> None:
-        group = self.optimizer.param_groups[0]
-        params, state = group["params"], self.optimizer.state
-        if not self.lean or any(not state.get(p) for p in params) or any(p.grad is None for p in params):
-            self.optimizer.step()
-            return
-        states = [state[p] for p in params]
-        steps = [s["step"] for s in states]
-        torch._foreach_add_(steps, 1)
-        beta1, beta2 = group["betas"]
-        torch._fused_adam_(params, [p.grad for p in params], [s["exp_avg"] for s in states],
-                           [s["exp_avg_sq"] for s in states], [], steps, amsgrad=False, lr=group["lr"],
-                           beta1=beta1, beta2=beta2, weight_decay=0.0, eps=group["eps"], maximize=False,
-                           grad_scale=None, found_inf=None)
-
-
 def set_lr(optimizer: torch.optim.Optimizer, lr: float) -> None:
     """Set every parameter group's learning rate."""
     for group in optimizer.param_groups:
@@ -228,15 +186,6 @@ def set_lr(optimizer: torch.optim.Optimizer, lr: float) -> None:
 def _call(module: torch.nn.Module, params: dict | None, *args):
     """``module(*args)``, with ``params`` (name -> tensor) in place of its own parameters when given."""
     return module(*args) if params is None else functional_call(module, params, args)
-
-
-def _set_grads(params: list[torch.Tensor], grads: list[torch.Tensor]) -> None:
-    """Hand gradients computed by torch.func to the optimizer (in the parameters' order), laid out
-    as the parameters: torch's fused CPU Adam reads a transposed (non-contiguous) gradient in the
-    wrong order (torch 2.13, seen here: the compiled weight gradients come back transposed, and
-    training diverged), so each one is made contiguous."""
-    for p, g in zip(params, grads, strict=True):
-        p.grad = g.contiguous()
 
 
 def _next_multiple(value: int, every: int) -> float:
@@ -450,8 +399,9 @@ class SAC(VectorEnvAgent):
         """One thesis "update": a replay batch, one gradient step per minibatch, one Polyak step."""
         cfg = self.config
         batch, _ = sample_mixed(self.replay, self.needle, cfg.replay_batch_size, cfg.needle_prob, self.generator)
-        for start in range(0, cfg.replay_batch_size, cfg.minibatch_size):
-            losses = self.gradient_step({f: v[start:start + cfg.minibatch_size] for f, v in batch.items()})
+        minibatches = zip(*(v.split(cfg.minibatch_size) for v in batch.values()))  # views, in order
+        for parts in minibatches:
+            losses = self.gradient_step(dict(zip(batch.keys(), parts)))
             self._loss_sums["q_loss"] += float(losses["q_loss"])
             self._loss_sums["pi_loss"] += float(losses["pi_loss"])
             self._loss_sums["n"] += 1

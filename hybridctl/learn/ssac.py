@@ -49,6 +49,7 @@ from ..systems import load as load_system
 from ..systems.control import cost_to_go, hysteresis, saturate
 from ..systems.spec import REWARD_KINDS
 from .gate import GateConfig, GateNet, fit_gate, label_states, warm_start_gate
+from .optim import adam
 from .run import Saved, check_fields
 from .sac import SAC, SACConfig, set_lr
 
@@ -224,7 +225,7 @@ class SSAC(SAC):
         if self.config.reward is None:  # record the reward trained on (config.json; older readers need a kind)
             self.config = dataclasses.replace(self.config, reward=self.system.reward_kind)
         self.gate = self.env.gate
-        self.gate_opt = torch.optim.Adam(self.gate.parameters(), lr=cfg.gate_lr)
+        self.gate_opt = adam(self.gate.parameters(), cfg.gate_lr)
         self.gate_generator = torch.Generator().manual_seed(cfg.seed + 7919)
         self.gate_data = GateDataset(self.obs_dim, cfg.gate_data_max)
         if self._init_gate_data is not None:
@@ -317,7 +318,7 @@ class SSAC(SAC):
         losses = fit_gate(self.gate, self.gate_data.states, self.gate_data.labels,
                           cfg.gate_refit_steps if steps is None else steps, cfg.gate_lr,
                           cfg.gate_positive_weight, cfg.gate_batch_size, self.gate_generator, self.gate_opt,
-                          class_weight=self._class_weight())
+                          class_weight=self._class_weight(), compiled=self._grads is not None)
         self.num_gate_refits += 1
         episode = slice(self.gate_data.n_warm, None)
         info = {"loss": losses[-1], "data": len(self.gate_data), **relabelled, "episode_rows": len(self.gate_data) - self.gate_data.n_warm,

@@ -40,6 +40,13 @@ def wants_compile(mode: str, total_steps: int | None = None) -> bool:
     return mode == "on"
 
 
+INDUCTOR_OPTIONS = {"cpp_wrapper": True}
+"""Options handed to ``torch.compile``. The C++ wrapper launches a graph's kernels from C++: a SAC
+gradient step (two graphs of ~50 small kernels each) took 1.18 ms against 1.67 ms with inductor's
+default Python wrapper here (2-core AMD EPYC, one thread, torch 2.13). Measured alternatives:
+``mode="max-autotune-no-cudagraphs"`` gave 1.70 ms (1.32 ms with the C++ wrapper)."""
+
+
 class LazyCompiled:
     """``fn`` compiled with ``torch.compile`` on its first call, or ``fn`` itself when disabled.
 
@@ -51,6 +58,8 @@ class LazyCompiled:
         name: what the warning calls it.
 
     The compiled function has fixed shapes (``dynamic=False``): a new batch size compiles again.
+    Inductor's C++ wrapper (:data:`INDUCTOR_OPTIONS`) calls the graph's ~50 kernels from C++
+    instead of Python.
     """
 
     def __init__(self, fn: Callable, enabled: bool, strict: bool = False, name: str | None = None):
@@ -62,7 +71,7 @@ class LazyCompiled:
         if not self.enabled:
             return self.fn(*args, **kwargs)
         if self._compiled is None:
-            self._compiled = torch.compile(self.fn, dynamic=False)
+            self._compiled = torch.compile(self.fn, dynamic=False, options=dict(INDUCTOR_OPTIONS))
         try:
             return self._compiled(*args, **kwargs)
         except Exception as error:  # noqa: BLE001 - compile failures come in many types
