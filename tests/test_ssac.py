@@ -282,3 +282,35 @@ def test_the_shipped_checkpoint_evaluates_as_before():
     # there); float reductions differ in the last digits across CPUs / torch builds (91.98467998121106 was
     # measured elsewhere), hence 1e-6
     assert result["mean_return"] == pytest.approx(91.98468007287164, abs=1e-6)
+
+
+@pytest.mark.parametrize("compile_mode", ["off", pytest.param("on", marks=pytest.mark.slow)])
+def test_overlapped_gate_refit_gives_the_one_thread_numbers(warm, compile_mode):
+    """gate_refit_overlap runs each due refit on a second thread during the round's gradient steps:
+    the networks, the gate, D_g and the counters equal those of refitting after the steps."""
+    agents = []
+    for overlap in (False, True):
+        agent = tiny_ssac(warm, gate_refit_overlap=overlap, updates_per_round=3, gate_refit_steps=60,
+                          gate_relabel_per_refit=64, compile=compile_mode)
+        agent.learn(2400, progress=False)
+        agents.append(agent)
+    one, two = agents
+    assert one.num_gate_refits == two.num_gate_refits >= 2 and two._pending_refit is None
+    assert one.num_gate_relabelled == two.num_gate_relabelled > 0
+    for name in ("actor", "q1", "q2", "q1_target", "gate"):
+        for a, b in zip(getattr(one, name).state_dict().values(), getattr(two, name).state_dict().values()):
+            assert torch.equal(a, b), name
+    assert torch.equal(one.gate_data.states, two.gate_data.states)
+    assert one.gate_info["last_refit"] == two.gate_info["last_refit"]
+    assert two.env.gate is two.gate
+
+
+def test_a_failed_overlapped_refit_raises_in_training(warm, monkeypatch):
+    agent = tiny_ssac(warm, gate_refit_steps=5)
+
+    def broken(*args, **kwargs):
+        raise FloatingPointError("gate loss is NaN (test)")
+    monkeypatch.setattr(agent, "_fit_gate_on_data", broken)
+    with pytest.raises(FloatingPointError, match="gate loss"):
+        agent.learn(2400, progress=False)
+    assert agent._pending_refit is None

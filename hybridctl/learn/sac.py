@@ -47,6 +47,7 @@ about gates or LQR). Overridable methods, each documented below:
 * :meth:`SAC.is_needle_episode` -- which ended episodes go to the needle buffer;
 * :meth:`SAC.on_episodes_end` -- called with ``(ended_mask, infos)`` after each step
   in which episodes ended (statistics and needle copies already done);
+* :meth:`SAC.before_update_round` -- called at the start of every round (before its updates);
 * :meth:`SAC.on_update_round` -- called after every round (after its updates);
 * ``saved`` -- the checkpoint entries (:class:`~hybridctl.learn.run.Saved`): a
   subclass appends its own (e.g. a gate's state dict); :meth:`SAC.checkpoint_meta`
@@ -444,6 +445,10 @@ class SAC(VectorEnvAgent):
         (returns/success already recorded, needle copies done). ``self.staging.take(ended)``
         still returns those episodes' transitions here (cleared right after). Default: nothing."""
 
+    def before_update_round(self) -> None:
+        """Hook: called at the start of every update round, before its updates (``num_timesteps``
+        is what :meth:`on_update_round` will see). Default: nothing."""
+
     def on_update_round(self) -> None:
         """Hook: called after every update round (``steps_per_update`` env steps; during
         exploration the round has no updates). Default: nothing."""
@@ -496,6 +501,7 @@ class SAC(VectorEnvAgent):
                 while self.num_timesteps - round_anchor >= cfg.steps_per_update and not run.stopped:
                     round_anchor += cfg.steps_per_update
                     self.num_rounds += 1
+                    self.before_update_round()
                     if self.num_timesteps >= cfg.exploration_steps:
                         for _ in range(cfg.updates_per_round):
                             self.update()

@@ -36,6 +36,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -99,6 +100,9 @@ class SSACConfig(SACConfig):
     #                                      only (D_g grows from LQR-active decisions alone, which never teaches
     #                                      the gate states the LQR has not yet been handed)
     gate_relabel_cost: float = 1.0       # hybridctl: candidate states have LQR cost-to-go V < this * gate.cost_scale
+    gate_refit_overlap: bool = True      # hybridctl: a due refit runs on a second thread while the round's gradient
+    #                                      steps run (neither reads what the other writes, so the numbers are those
+    #                                      of refitting after them, tested); False: after them, on one thread
     variant_name: str = "hybridctl"      # which preset the config started from (informational)
 
     def validate(self) -> None:
@@ -237,6 +241,7 @@ class SSAC(SAC):
         self.num_gate_episodes = 0
         self.num_gate_relabelled = 0
         self._next_refit = cfg.gate_refit_every
+        self._pending_refit: _Background | bool | None = None  # a refit started before the round's updates
         # swing-up decision states near the goal, waiting to be labelled by LQR rollouts
         S = self.system.lqr()[1] / self.system.gate.cost_scale
         self._cost_matrix = torch.as_tensor(S, dtype=torch.float32, device=self.device)
@@ -303,14 +308,48 @@ class SSAC(SAC):
             self.num_gate_episodes += int(mask.any(-1).sum())
         self._lqr_at_start[ended] = False
 
+    def before_update_round(self) -> None:
+        """Alg. 4 lines 18-19: refit the gate on all of D_g every ``gate_refit_every`` env steps.
+
+        A due refit starts here, before the round's gradient steps, and is finished (the env
+        switches with the new gate) in :meth:`on_update_round`. With ``gate_refit_overlap`` it runs
+        on a second thread meanwhile: the refit reads D_g, the gate, its optimizer and its own
+        generator, the gradient steps read the replay and the SAC networks with the agent's
+        generator, and the env is not stepped until both are done, so the numbers are those of
+        the one-thread order (tested)."""
+        if self.num_timesteps < self._next_refit:
+            return
+        self._next_refit = (self.num_timesteps // self.config.gate_refit_every + 1) * self.config.gate_refit_every
+        self._pending_refit = _Background(self._fit_gate_on_data) if self.config.gate_refit_overlap else True
+
     def on_update_round(self) -> None:
-        """Alg. 4 lines 18-19: refit the gate on all of D_g every ``gate_refit_every`` env steps."""
-        if self.num_timesteps >= self._next_refit:
-            self._next_refit = (self.num_timesteps // self.config.gate_refit_every + 1) * self.config.gate_refit_every
-            self.refit_gate()
+        """Finish the refit started by :meth:`before_update_round` (or run it now, without overlap)."""
+        pending, self._pending_refit = self._pending_refit, None
+        if pending is None:
+            return
+        info = pending.result() if isinstance(pending, _Background) else self._fit_gate_on_data()
+        if info:
+            self.env.set_gate(self.gate)
+
+    def learn(self, *args, **kwargs) -> "SSAC":
+        """:meth:`SAC.learn`; a refit still running when training stops on an error is waited for."""
+        try:
+            return super().learn(*args, **kwargs)
+        finally:
+            pending, self._pending_refit = self._pending_refit, None
+            if isinstance(pending, _Background):
+                pending.wait()
 
     def refit_gate(self, steps: int | None = None) -> dict:
-        """Refit the gate on minibatches from the whole gate data set; returns the metrics."""
+        """Refit the gate on minibatches from the whole gate data set (after relabelling pooled
+        swing-up states) and switch the env to it; returns the metrics ({} without positive data)."""
+        info = self._fit_gate_on_data(steps)
+        if info:
+            self.env.set_gate(self.gate)
+        return info
+
+    def _fit_gate_on_data(self, steps: int | None = None) -> dict:
+        """:meth:`refit_gate` without touching the env (what the refit thread runs)."""
         cfg = self.config
         relabelled = self._relabel_visited_states()
         if len(self.gate_data) == 0 or not bool(self.gate_data.labels.any()):
@@ -325,7 +364,6 @@ class SSAC(SAC):
                 "episode_positive_fraction": float(self.gate_data.labels[episode].float().mean())
                 if len(self.gate_data) > self.gate_data.n_warm else math.nan}
         self.gate_info["last_refit"] = info
-        self.env.set_gate(self.gate)
         return info
 
     def _class_weight(self) -> float | None:
@@ -408,6 +446,37 @@ class SSAC(SAC):
         row["lqr_share"] = self._lqr_share_sum / max(self._lqr_share_n, 1)
         self._lqr_share_sum, self._lqr_share_n = 0.0, 0
         return row
+
+
+class _Background:
+    """``fn()`` on a daemon thread; :meth:`result` waits and returns its value or raises its
+    exception. torch releases the GIL inside its kernels, so the thread's work runs on another core
+    while the caller's torch work goes on. The thread uses the caller's number of torch threads
+    (OpenMP keeps that setting per thread; a new thread would start from the core count)."""
+
+    def __init__(self, fn):
+        self._value, self._error = None, None
+        self._thread = threading.Thread(target=self._run, args=(fn, torch.get_num_threads()),
+                                        name="ssac-gate-refit", daemon=True)
+        self._thread.start()
+
+    def _run(self, fn, torch_threads: int) -> None:
+        try:
+            torch.set_num_threads(torch_threads)
+            self._value = fn()
+        except BaseException as error:  # noqa: BLE001 - handed to the caller by result()
+            self._error = error
+
+    def wait(self) -> None:
+        """Block until the thread is done (its result or error is kept)."""
+        self._thread.join()
+
+    def result(self):
+        """The function's return value (raises its exception)."""
+        self.wait()
+        if self._error is not None:
+            raise self._error
+        return self._value
 
 
 def _check_reward(system: System, config: SSACConfig) -> None:
