@@ -170,11 +170,14 @@ def test_fused_adam_step_is_the_optimizers_step_bit_for_bit(one_torch_thread):
     opts = [_adam(net.parameters(), 1e-3) for net in nets]
     lean = FusedAdamStep(opts[1])
     assert lean.lean
-    for step in range(4):
+    def backward_both():        # the same gradients on both nets
         x = torch.randn(8, 3)
         for net, opt in zip(nets, opts):
             opt.zero_grad()
             net(x).pow(2).mean().backward()
+
+    for step in range(4):
+        backward_both()
         opts[0].step()
         lean()                     # the first call creates the state through opts[1].step()
         for a, b in zip(nets[0].parameters(), nets[1].parameters()):
@@ -187,10 +190,7 @@ def test_fused_adam_step_is_the_optimizers_step_bit_for_bit(one_torch_thread):
     assert len({s.data_ptr() for s in steps}) == len(steps) and all(s.dim() == 0 for s in steps)
     saved = copy.deepcopy(opts[1].state_dict())
     for step in range(6):
-        x = torch.randn(8, 3)
-        for net, opt in zip(nets, opts):
-            opt.zero_grad()
-            net(x).pow(2).mean().backward()
+        backward_both()
         opts[0].step()
         if step == 1:
             opts[1].step()          # the optimizer's own step on the shared counters: +1 each, once

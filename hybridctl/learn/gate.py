@@ -195,8 +195,12 @@ def positive_class_weight(labels, positive_weight: float) -> float:
 
 def gate_loss(gate: GateNet, states: torch.Tensor, labels: torch.Tensor, c_w: float) -> torch.Tensor:
     """Thesis eq. 3.3: BCE on the gate's logits with the positive class weighted by ``c_w``."""
-    return torch.nn.functional.binary_cross_entropy_with_logits(
-        gate.logits(states).squeeze(-1), labels.float(), pos_weight=torch.tensor(c_w))
+    return _weighted_bce(gate.logits(states), labels, torch.tensor(c_w))
+
+
+def _weighted_bce(logits: torch.Tensor, labels: torch.Tensor, c_w: torch.Tensor) -> torch.Tensor:
+    """Eq. 3.3's loss on logits (B, 1) and bool labels (B,), shared by the eager and compiled fits."""
+    return torch.nn.functional.binary_cross_entropy_with_logits(logits.squeeze(-1), labels.float(), pos_weight=c_w)
 
 
 def fit_gate(gate: GateNet, states, labels, steps: int, lr: float = 1e-3, positive_weight: float = 0.01,
@@ -240,8 +244,7 @@ def _gate_grads(params: dict, gate: GateNet, x: torch.Tensor, y: torch.Tensor, c
     all in ``gate.net``; the features use buffers only)."""
     def loss_of(params):
         net_params = {name.removeprefix("net."): value for name, value in params.items()}
-        logits = functional_call(gate.net, net_params, (gate.features(x),)).squeeze(-1)
-        return torch.nn.functional.binary_cross_entropy_with_logits(logits, y.float(), pos_weight=c_w)
+        return _weighted_bce(functional_call(gate.net, net_params, (gate.features(x),)), y, c_w)
     return grad_and_value(loss_of)(params)
 
 
@@ -257,7 +260,7 @@ class _CompiledGateStep:
     (a new class weight does not compile again)."""
 
     def __init__(self, gate: GateNet, optimizer: torch.optim.Optimizer, c_w: float):
-        self.gate, self.optimizer = gate, optimizer
+        self.gate = gate
         self.params = list(gate.parameters())
         self.detached = {k: v.detach() for k, v in gate.named_parameters()}
         self.c_w = torch.tensor(float(c_w), dtype=torch.float32)
