@@ -303,6 +303,35 @@ def test_train_sac_set_flags_resume_in_process(tmp_path, capsys):
     assert result["env_steps"] == 800 and result["episodes"] == 3 and "--resume" in result["command"]
 
 
+def test_train_spec_overrides_are_recorded_and_checked_on_resume(tmp_path, capsys):
+    """--spec KEY=VALUE trains on an overridden plant spec; the checkpoint loads with it, and a resume
+    given other spec values refuses naming the key."""
+    from hybridctl.cli import main
+
+    out = tmp_path / "sac"
+    tiny = ["--num-envs", "8", "--exploration-steps", "400", "--steps-per-update", "200", "--updates-per-round", "1",
+            "--replay-batch-size", "128", "--minibatch-size", "64", "--buffer-size", "20000",
+            "--needle-buffer-size", "5000", "--log-every", "400", "--checkpoint-every", "400", "--no-tensorboard",
+            "--eval-episodes", "2", "--quiet", "--out", str(out)]
+    spec = ["--spec", "reward.kind=upright_centered", "--spec", "initial_state.low=[-1, -3, 0, 0]"]
+    assert main(["train", "sac", "cartpole", *spec, "--steps", "400", *tiny]) == 0
+    system = json.loads((out / "final" / "config.json").read_text())["system"]
+    assert system["overrides"] == {"reward.kind": "upright_centered", "initial_state.low": [-1, -3, 0, 0]}
+    from hybridctl import systems
+    from hybridctl.learn import CheckpointError, load_controller
+    load_controller(out, systems.load("cartpole"))   # deployed: the reward and start distribution do not matter
+    with pytest.raises(CheckpointError, match="cart_mass"):
+        load_controller(out, systems.load("cartpole", cart_mass=5.0))   # the plant still does
+    code, _, err = run_in_process(capsys, "train", "sac", "cartpole", "--spec", "reward.kind=tip_height", "--steps",
+                                  "800", "--resume", *tiny)
+    assert code == 2 and "reward.kind 'upright_centered' (given 'tip_height')" in err and "Traceback" not in err
+    assert main(["train", "sac", "cartpole", "--steps", "800", "--resume", *tiny]) == 0   # the recorded spec
+    assert json.loads((out / "eval.json").read_text())["env_steps"] == 800
+    code, _, err = run_in_process(capsys, "train", "sac", "cartpole", "--spec", "reward.kind", "--out",
+                                  str(tmp_path / "x"))
+    assert code == 2 and "--spec expects section.key=value" in err
+
+
 def test_workflows_run_from_python_as_from_the_cli(tmp_path):
     """The experiments functions behind simulate, demo and mesh, called as a notebook would."""
     from hybridctl import experiments, systems

@@ -12,6 +12,7 @@ from hybridctl.cli import main as cli_main
 from hybridctl.envs import SwitchedVectorEnv
 from hybridctl.learn import (SAC, SSAC, CheckpointError, GateConfig, GateDataset, GateNet, SSACConfig,
                              load_controller, warm_start_gate)
+from hybridctl.learn.gate import label_states
 
 TINY = dict(num_envs=8, exploration_steps=400, steps_per_update=200, updates_per_round=1, replay_batch_size=128,
             minibatch_size=64, buffer_size=20_000, needle_buffer_size=5_000, log_every=400, checkpoint_every=800,
@@ -135,6 +136,27 @@ def test_failed_lqr_episodes_give_negative_gate_labels(warm):
     agent.learn(total_steps=8 * 10, progress=False)
     assert agent.success_rate == 0.0 and agent.needle.size == 0
     assert len(agent.gate_data) > 4 and not bool(agent.gate_data.labels[4:].any())
+
+
+def test_rollout_labels_put_lqr_active_states_in_the_relabel_pool_not_in_gate_data():
+    """gate_lqr_labels="rollout": the failed LQR episodes' states are not labelled 0 by the episode;
+    they wait in the relabel pool and are labelled by LQR rollouts at the refit."""
+    system = systems.load("acrobot", duration=2.0)  # random starts far from the top: the LQR fails
+    env = SwitchedVectorEnv(system, 8, gate=always_lqr_gate(system), seed=0)
+    agent = SSAC(env, gate_data=(np.zeros((4, 4)), [0, 0, 0, 1]), gate_lqr_labels="rollout",
+                 gate_relabel_per_refit=50, **{**TINY, "gate_refit_every": 10_000})
+    agent.learn(total_steps=8 * 10, progress=False)
+    assert agent.success_rate == 0.0 and len(agent.gate_data) == 4          # nothing labelled by the episodes
+    pooled = len(agent._relabel_pool)
+    assert pooled >= 8 * 9                                                   # 9 LQR-active decisions per episode
+    info = agent.refit_gate(steps=2)
+    assert info["relabelled"] == 50 and len(agent.gate_data) == 4 + 50
+    expected = label_states(system, agent.gate_data.states[4:].double().numpy(), agent.config.gate_config())
+    assert np.array_equal(agent.gate_data.labels[4:].numpy(), expected)
+    with pytest.raises(ValueError, match="gate_lqr_labels"):
+        SSACConfig(gate_lqr_labels="outcome").validate()
+    with pytest.raises(ValueError, match="gate_relabel_per_refit"):
+        SSACConfig(gate_lqr_labels="rollout", gate_relabel_per_refit=0).validate()
 
 
 def test_gate_is_refit_on_schedule_and_env_uses_it(warm):

@@ -259,6 +259,26 @@ def test_tip_height_centered_penalises_only_the_cart():
     torch.testing.assert_close(acrobot.reward(xa), systems.load("acrobot").reward(xa))   # no cart: unchanged
 
 
+def test_upright_centered_is_upright_times_gaussians_of_cart_distance_and_speed():
+    """upright_centered = (1 + h / L) / 2 * exp(-x^2 / (2 s_p^2) - v^2 / (2 s_v^2)); no cart: upright alone."""
+    import torch
+    cartpole = systems.load("cartpole", **{"reward.kind": "upright_centered", "reward.position_scale": 2.0,
+                                           "reward.speed_scale": 0.5})
+    x = np.array([[0.0, np.pi, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0], [1.0, np.pi, 0.5, 3.0], [0.3, np.pi / 2, 0.0, 0.0]])
+    expected = [1.0, 0.0, np.exp(-1 / 8 - 0.5), 0.5 * np.exp(-0.09 / 8)]
+    np.testing.assert_allclose(cartpole.reward(x), expected, atol=1e-12)
+    torch.testing.assert_close(cartpole.reward(torch.tensor(x)), torch.tensor(expected, dtype=torch.float64))
+    assert cartpole.reward_single(x[2]) == pytest.approx(expected[2], abs=1e-12)
+    double = systems.load("double_cartpole", **{"reward.kind": "upright_centered"})
+    assert float(double.reward(double.goal[None])[0]) == pytest.approx(1.0)
+    acrobot = systems.load("acrobot", **{"reward.kind": "upright_centered"})
+    xa = np.array([[1.0, 0.3, 2.0, -1.0]])
+    total = float(np.sum(acrobot.chain.link_length))
+    np.testing.assert_allclose(acrobot.reward(xa), 0.5 * (1 + systems.load("acrobot").reward(xa) / total))
+    with pytest.raises(systems.SpecError, match="reward.speed_scale"):
+        systems.load("cartpole", **{"reward.speed_scale": 0.0})
+
+
 def test_finite_check_is_not_fooled_by_an_overflowing_sum():
     """Validation sums the batch once; finite entries whose sum overflows are still accepted."""
     system = systems.load("acrobot")

@@ -248,6 +248,21 @@ def parse_set_pairs(pairs: list[str] | None, config_class: type) -> dict:
     return out
 
 
+def parse_spec_pairs(pairs: list[str] | None) -> dict:
+    """``--spec key=value`` pairs -> system spec overrides (values parsed as JSON, else kept as text)."""
+    out = {}
+    for pair in pairs or []:
+        key, sep, text = pair.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise ValueError(f"--spec expects section.key=value (e.g. reward.kind=upright_centered), got {pair!r}")
+        try:
+            out[key] = json.loads(text)
+        except json.JSONDecodeError:
+            out[key] = text
+    return out
+
+
 def config_settings(args: argparse.Namespace) -> dict:
     """The config fields the command line set: ``--set`` pairs, then the field flags (which win)."""
     settings = parse_set_pairs(args.set, ALGORITHMS[args.algorithm].config_class)
@@ -290,6 +305,12 @@ def add_common_flags(parser: argparse.ArgumentParser, algorithm: str) -> set[str
         run.add_argument("--set", action="append", metavar="KEY=VALUE",
                          help="override a config field, e.g. --set polyak=0.9 (repeatable; value read as JSON)"),
     ]
+    if algorithm in ("sac", "ssac"):
+        actions.append(run.add_argument(
+            "--spec", action="append", metavar="KEY=VALUE",
+            help="override a system spec value for this run, e.g. --spec reward.kind=upright_centered or "
+                 "--spec 'initial_state.low=[-1, -3.14159, 0, 0]' (repeatable; value read as JSON; recorded in "
+                 "the checkpoint, which later loads with it)"))
     if algorithm == "ssac":
         actions.append(run.add_argument(
             "--variant", choices=SSAC_VARIANTS, default=None,
@@ -359,7 +380,7 @@ def run_train(args: argparse.Namespace) -> int:
                              resume=args.resume,
                              init=getattr(args, "init", None), eval_episodes=args.eval_episodes,
                              progress=not args.quiet, command=args.command_line, force=args.force,
-                             overwrite=args.overwrite)
+                             overwrite=args.overwrite, spec=parse_spec_pairs(getattr(args, "spec", None)))
     result, out = run.evaluation, run.out
     if args.algorithm in APG_METHODS:
         print(f"return of the {result['which']} policy over {result['episodes']} held-out starts: "

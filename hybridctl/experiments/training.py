@@ -25,7 +25,7 @@ from ..learn import APG, ARS, SAC, SSAC, ARSConfig, SACConfig, SSACConfig
 from ..learn.apg import METHODS as APG_METHODS
 from ..learn.apg import PRESETS as APG_PRESETS
 from ..learn.apg import APGConfig
-from ..learn.checkpoint import CheckpointError, newest_checkpoint, read_json
+from ..learn.checkpoint import CheckpointError, newest_checkpoint, read_json, system_record
 from ..learn.run import checkpoint_minutes, describe_refused, resume_changes
 from ..systems import load
 
@@ -195,7 +195,7 @@ def train_and_evaluate(algorithm: str, system: str, out: str | Path | None = Non
                        variant: str | None = None, resume: bool = False, init: str | Path | None = None,
                        eval_episodes: int | None = None, progress: bool = True, command: str | None = None,
                        report: Callable[[str], None] | None = print, force: bool = False,
-                       overwrite: bool = False) -> TrainingRun:
+                       overwrite: bool = False, spec: dict | None = None) -> TrainingRun:
     """Train ``algorithm`` on ``system``, checkpointing into ``out``; evaluate; write ``out/eval.json``.
 
     Args:
@@ -224,6 +224,10 @@ def train_and_evaluate(algorithm: str, system: str, out: str | Path | None = Non
         force: resume despite another algorithm or plant, changed math settings, or a missing
             replay / gate data file (each said in a warning or a report line).
         overwrite: replace the run the folder holds (its run outputs are removed first).
+        spec: SAC/SSAC only: system spec overrides for a new run (``{"reward.kind":
+            "upright_centered"}``; keys as :func:`hybridctl.systems.load` takes them). The
+            checkpoint records them; on resume, values other than the recorded ones refuse
+            (``force``: the checkpoint's are kept).
 
     Raises:
         ValueError: a bad setting, an unknown system, a folder holding another run
@@ -242,7 +246,9 @@ def train_and_evaluate(algorithm: str, system: str, out: str | Path | None = Non
                           command, report, force, overwrite)
     if init is not None:
         raise ValueError("--init applies to ars only")
+    spec = dict(spec or {})
     system_name = load(system).name  # a clear error for an unknown system name, before any work
+    plant = load(system, **spec) if spec else system  # a bad override fails here, naming the key
     config = make_config(algorithm, variant or "hybridctl", **settings)
     out = Path(out) if out is not None else default_run_dir(algorithm, system, settings.get("seed", 0))
     prepare_run_folder(out, resume, overwrite)
@@ -254,6 +260,7 @@ def train_and_evaluate(algorithm: str, system: str, out: str | Path | None = Non
         if trained_on != system_name and not force:
             raise CheckpointError(f"cannot resume: checkpoint {found} was trained on system {trained_on!r}, not "
                                   f"{system_name!r} (--force resumes it on its own system {trained_on!r})")
+        _check_spec_on_resume(found, recorded, plant, spec, force, report)
         given = dict(settings)
         if variant is not None and algorithm == "ssac":
             run_variant = recorded.get("config", {}).get("variant_name", "hybridctl")
@@ -271,7 +278,7 @@ def train_and_evaluate(algorithm: str, system: str, out: str | Path | None = Non
             report(f"--resume: no checkpoint under {out}; starting a new run")
         report(f"{algo.algorithm_name} on {system}: {config.total_steps} env steps, seed {config.seed}"
                + (" (warm-starting the gate first)" if algorithm == "ssac" else ""))
-        agent = algo(system, config=config)
+        agent = algo(plant, config=config)
     agent.learn(progress=progress, log_dir=out, resume=resume, force=force)
     record = _as_record(agent.evaluate(episodes=eval_episodes or DEFAULT_EVAL_EPISODES[algorithm]))
     if command is not None:
@@ -282,6 +289,23 @@ def train_and_evaluate(algorithm: str, system: str, out: str | Path | None = Non
                    "train_success_rate_last100": agent.success_rate})
     io.write_json(out / "eval.json", record)
     return TrainingRun(agent, out, record)
+
+
+def _check_spec_on_resume(found: Path, recorded: dict, plant, spec: dict, force: bool,
+                          report: Callable[[str], None]) -> None:
+    """On resume, spec overrides given again must resolve to the checkpoint's plant values."""
+    if not spec:
+        return
+    saved = (recorded.get("system") or {}).get("spec_values")
+    now = system_record(plant)["spec_values"]
+    differing = sorted(k for k in set(saved or {}) | set(now) if (saved or {}).get(k) != now.get(k))
+    if saved is None or not differing:
+        return
+    text = f"checkpoint {found} was trained with other spec values: " + ", ".join(
+        f"{k} {saved.get(k)!r} (given {now.get(k)!r})" for k in differing[:4])
+    if not force:
+        raise CheckpointError(f"cannot resume: {text}; --force keeps the checkpoint's")
+    report(f"--force: {text}; keeping the checkpoint's")
 
 
 def _train_ars(env: str, out, settings: dict, variant: str, resume: bool, init, eval_episodes, progress: bool,

@@ -167,12 +167,20 @@ def _shown(value) -> str:
     return json.dumps(to_jsonable(value))
 
 
-def plant_differences(found: Path, recorded: dict | None, system) -> tuple[list[str], bool]:
+TRAINING_ONLY_SECTIONS = ("reward.", "initial_state.")
+"""Spec keys that shape training but not the plant or its controllers: the reward and the
+distribution episodes start from. A deployed policy (:func:`hybridctl.learn.load_controller`)
+ignores them; resuming a run does not."""
+
+
+def plant_differences(found: Path, recorded: dict | None, system,
+                      ignore: tuple[str, ...] = ()) -> tuple[list[str], bool]:
     """How the system a checkpoint at ``found`` recorded (config.json ``system``) differs from ``system``.
 
     Returns (one line per difference, whether the whole spec could be compared). A
     checkpoint without ``spec_hash`` (written before it was recorded) is compared by system
-    name and spec overrides only.
+    name and spec overrides only. Keys starting with a prefix in ``ignore`` (e.g.
+    :data:`TRAINING_ONLY_SECTIONS`) are not compared.
     """
     recorded = recorded or {}
     name = recorded.get("name")
@@ -192,6 +200,8 @@ def plant_differences(found: Path, recorded: dict | None, system) -> tuple[list[
         saved_values = recorded.get("spec_values") or {}
     lines = []
     for key in sorted(set(saved_values) | set(current["spec_values"])):
+        if key.startswith(ignore) if ignore else False:
+            continue
         # a key the other side lacks holds its optional default (a spec key added after the checkpoint)
         absent = OPTIONAL_DEFAULTS.get(key, "(absent)")
         old, new = saved_values.get(key, absent), current["spec_values"].get(key, absent)
@@ -222,11 +232,13 @@ def config_from_meta(config_class: type, meta: dict, overrides: dict | None = No
     return config_class(**{**{k: v for k, v in meta["config"].items() if k in names}, **(overrides or {})})
 
 
-def check_plant(found: Path, recorded: dict | None, system, force: bool = False) -> None:
+def check_plant(found: Path, recorded: dict | None, system, force: bool = False,
+                ignore: tuple[str, ...] = ()) -> None:
     """Raise :class:`CheckpointError` naming what differs when the checkpoint at ``found`` was trained
     on another plant than ``system`` (``force``: warn instead). An old checkpoint without a spec
-    hash is checked by name and overrides, with a warning that nothing more can be checked."""
-    lines, complete = plant_differences(found, recorded, system)
+    hash is checked by name and overrides, with a warning that nothing more can be checked.
+    Keys starting with a prefix in ``ignore`` are not compared."""
+    lines, complete = plant_differences(found, recorded, system, ignore)
     if lines:
         message = "; ".join(lines)
         if not force:

@@ -25,7 +25,9 @@ def load_controller(path: str | Path, system, force: bool = False) -> tuple[Dete
         system: the ``System`` it must have been trained on: the same system name and
             resolved spec values (:func:`~hybridctl.learn.checkpoint.check_plant`; a
             checkpoint written before the spec hash was recorded is checked by name and
-            spec overrides, with a warning).
+            spec overrides, with a warning). The reward and the initial-state distribution
+            (:data:`~hybridctl.learn.checkpoint.TRAINING_ONLY_SECTIONS`) may differ: a deployed
+            policy does not see them.
         force: load a checkpoint trained on another plant anyway (with a warning).
 
     Returns (policy, gate or None for SAC, the checkpoint's config.json dict).
@@ -42,7 +44,7 @@ def load_controller(path: str | Path, system, force: bool = False) -> tuple[Dete
     if meta.get("algorithm") not in ("SAC", "SSAC"):
         raise ckpt.CheckpointError(f"checkpoint {found} was written by {meta.get('algorithm')}, not SAC or SSAC: "
                                    f"it holds no swing-up policy and gate")
-    ckpt.check_plant(found, meta.get("system"), system, force)
+    ckpt.check_plant(found, meta.get("system"), system, force, ignore=ckpt.TRAINING_ONLY_SECTIONS)
     cfg = meta.get("config", {})
     try:
         obs_dim, action_dim = int(meta["obs_dim"]), int(meta["action_dim"])

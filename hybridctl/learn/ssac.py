@@ -100,6 +100,13 @@ class SSACConfig(SACConfig):
     #                                      only (D_g grows from LQR-active decisions alone, which never teaches
     #                                      the gate states the LQR has not yet been handed)
     gate_relabel_cost: float = 1.0       # hybridctl: candidate states have LQR cost-to-go V < this * gate.cost_scale
+    gate_lqr_labels: str = "episode"      # thesis Alg. 4 line 8: LQR-active decision states are labelled T(s), the
+    #                                      episode's success; "rollout" (hybridctl, cart-pole): they join the
+    #                                      relabel pool and are labelled by LQR rollouts, what the gate predicts. An
+    #                                      episode can fail after the LQR held the pole (a cart still 0.1 m out
+    #                                      at 10 s; a hand-back): cart-pole pilot, 4.5e5 steps, 45 % of episode
+    #                                      labels near the goal were 0 while LQR rollouts from the same region
+    #                                      balanced 4000 of 4000, and the gate's p(goal) fell from 1.0 to 0.22
     gate_refit_overlap: bool = True      # hybridctl: a due refit runs on a second thread while the round's gradient
     #                                      steps run (neither reads what the other writes, so the numbers are those
     #                                      of refitting after them, tested); False: after them, on one thread
@@ -114,6 +121,11 @@ class SSACConfig(SACConfig):
                      positive=("gate_relabel_cost", "gate_lr", "gate_positive_weight"))
         if self.gate_warm_samples < 2:
             raise ValueError(f"SSACConfig.gate_warm_samples must be >= 2, got {self.gate_warm_samples}")
+        if self.gate_lqr_labels not in ("episode", "rollout"):
+            raise ValueError(f"SSACConfig.gate_lqr_labels must be 'episode' or 'rollout', got {self.gate_lqr_labels!r}")
+        if self.gate_lqr_labels == "rollout" and self.gate_relabel_per_refit == 0:
+            raise ValueError("SSACConfig.gate_lqr_labels='rollout' needs gate_relabel_per_refit >= 1 (the states "
+                             "are labelled by that many LQR rollouts per refit)")
         if self.gate_class_weight_from not in ("warm", "all"):
             raise ValueError(f"SSACConfig.gate_class_weight_from must be 'warm' or 'all', "
                              f"got {self.gate_class_weight_from!r}")
@@ -301,6 +313,14 @@ class SSAC(SAC):
         steps = torch.arange(self.staging.horizon, device=self.device)
         in_episode = steps[None, :] < self.staging.length[rows][:, None]
         mask = in_episode & self._lqr_at_start[rows]
+        if self.config.gate_lqr_labels == "rollout":  # labelled by LQR rollouts at the next refit
+            states = self.staging.data["obs"][rows][mask]
+            if states.numel():
+                pool = torch.cat([self._relabel_pool, states.float().cpu()])
+                self._relabel_pool = pool[-max(50_000, self.config.gate_relabel_per_refit):]
+                self.num_gate_episodes += int(mask.any(-1).sum())
+            self._lqr_at_start[ended] = False
+            return
         success = torch.as_tensor(infos["success"], device=self.device)[rows].bool()
         labels = success[:, None].expand_as(mask)[mask]
         if labels.numel():

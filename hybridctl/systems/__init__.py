@@ -112,6 +112,10 @@ class System:
                                                       OPTIONAL_DEFAULTS["reward.velocity_penalty"]))
         self.reward_position_weight = float(spec.get("reward.position_weight",
                                                      OPTIONAL_DEFAULTS["reward.position_weight"]))
+        # upright_centered settings (optional keys): Gaussian widths of the cart's distance and speed
+        self.reward_position_scale = float(spec.get("reward.position_scale",
+                                                    OPTIONAL_DEFAULTS["reward.position_scale"]))
+        self.reward_speed_scale = float(spec.get("reward.speed_scale", OPTIONAL_DEFAULTS["reward.speed_scale"]))
         self.chain = self._chain_params()
         self.dynamics = ChainDynamics(self.chain)
         try:                                  # the plain-float path of one state (step_single)
@@ -317,11 +321,14 @@ class System:
         that are not angles (a cart's position): on a cart-pole, tip height alone pays as much
         for a pole held up over a cart driving away as over one at the goal. It equals tip
         height on systems whose positions are all angles (acrobot, pendulum).
+        ``upright_centered`` (hybridctl): see :meth:`upright_centered_reward`.
         """
         if self.reward_kind == "tip_height":
             return self.dynamics.tip_height(x)
         if self.reward_kind in CH7_REWARD_KINDS:
             return self.ch7_reward(x)
+        if self.reward_kind == "upright_centered":
+            return self.upright_centered_reward(x)
         err = self.state_error(x)[..., : self.n_states // 2]
         if self.reward_kind == "tip_height_centered":
             linear = [i for i in range(self.n_states // 2) if i not in self.angle_indices]
@@ -329,6 +336,29 @@ class System:
                 return self.dynamics.tip_height(x)
             return self.dynamics.tip_height(x) - 0.1 * (err[..., linear] ** 2).sum(-1)
         return -0.1 * (err * err).sum(-1)
+
+    def upright_centered_reward(self, x):
+        """``upright_centered`` (hybridctl): upright * exp(-|p|^2 / (2 s_p^2) - |v|^2 / (2 s_v^2)).
+
+        upright = (1 + h / L) / 2 in [0, 1] (h the tip height above the base pivot, L the
+        chain's length: 1 only with every link up); p the non-angle positions (a cart's x,
+        measured from the goal) and v their velocities; s_p = ``reward.position_scale``,
+        s_v = ``reward.speed_scale``. A product, as the DeepMind Control Suite's cart-pole
+        swing-up reward (Tassa et al. 2018): a pole held up over a cart that drives away
+        earns little, and every reward is >= 0. On systems without a cart it is the
+        upright term alone (an affine map of the tip height).
+        """
+        total_length = float(np.sum(self.chain.link_length))
+        upright = 0.5 * (1.0 + self.dynamics.tip_height(x) / total_length)
+        half = self.n_states // 2
+        linear = [i for i in range(half) if i not in self.angle_indices]
+        if not linear:
+            return upright
+        position = self.state_error(x)[..., linear]
+        speed = x[..., [half + i for i in linear]]
+        exponent = (position * position).sum(-1) / (2.0 * self.reward_position_scale ** 2) \
+            + (speed * speed).sum(-1) / (2.0 * self.reward_speed_scale ** 2)
+        return upright * (torch.exp(-exponent) if isinstance(exponent, torch.Tensor) else np.exp(-exponent))
 
     def ch7_reward(self, x):
         """The thesis' Ch. 7 rewards (analytic policy gradients), from the spec's ``reward.kind``.

@@ -29,7 +29,10 @@ USER_SPEC_ENV = "HYBRIDCTL_SYSTEMS"
 """Environment variable: folders (separated by ``os.pathsep``) with more ``NAME.toml`` specs."""
 
 INTEGRATORS = ("euler", "runge_kutta2")
-REWARD_KINDS = ("tip_height", "quadratic", "tip_height_centered")
+REWARD_KINDS = ("tip_height", "quadratic", "tip_height_centered", "upright_centered")
+# upright_centered (hybridctl, see System.reward) has the optional settings reward.position_scale and
+# reward.speed_scale (> 0; default 1 m and 1 m/s)
+CENTERED_REWARD_SETTINGS = ("reward.position_scale", "reward.speed_scale")
 # thesis Ch. 7 (analytic policy gradients): see System.reward; their settings reward.alive_bonus,
 # reward.velocity_penalty and reward.position_weight are optional (default 0) and >= 0
 CH7_REWARD_KINDS = ("angle_squared", "angle_cosine", "tip_distance")
@@ -306,6 +309,9 @@ def validate(spec: Spec) -> None:
     for key in CH7_REWARD_SETTINGS:  # Ch. 7 reward settings (optional)
         if spec.has(key):
             _require_positive(spec, key, allow_zero=True)
+    for key in CENTERED_REWARD_SETTINGS:
+        if spec.has(key):
+            _require_positive(spec, key)
     Q = np.atleast_2d(spec.get("lqr.Q"))
     R = np.atleast_2d(spec.get("lqr.R"))
     if Q.shape != (n, n) or not np.allclose(Q, Q.T) or np.linalg.eigvalsh(Q).min() < -1e-12:
@@ -345,6 +351,8 @@ OPTIONAL_DEFAULTS = {
     "reward.alive_bonus": 0.0,        # thesis Ch. 7 reward settings: off unless a spec sets them
     "reward.velocity_penalty": 0.0,
     "reward.position_weight": 0.0,
+    "reward.position_scale": 1.0,     # upright_centered settings (m, m/s)
+    "reward.speed_scale": 1.0,
 }
 """Optional spec keys and the value a spec that does not set them has. One source for the
 readers and for checkpoint plant records: a key added to the specs after a checkpoint was
