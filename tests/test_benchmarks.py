@@ -87,23 +87,6 @@ def test_drake_entry_reports_or_skips(report):
                     assert _positive_finite(entry[key]), (entry["controller"], key)
 
 
-def test_ssac_baselines_script_runs_a_tiny_budget(tmp_path):
-    """benchmarks/ssac_baselines.py trains SB3 SAC and A2C briefly and prints the Table 3.1 JSON."""
-    pytest.importorskip("stable_baselines3")
-    runs = tmp_path / "runs"
-    (runs / "ssac-acrobot-s0").mkdir(parents=True)
-    (runs / "ssac-acrobot-s0" / "eval.json").write_text(json.dumps({"mean_return": 90.0, "env_steps": 10}))
-    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "ssac_baselines.py"), "--steps", "200",
-                           "--seeds", "0", "--algos", "sac", "a2c", "--eval-episodes", "2", "--runs", str(runs)],
-                          cwd=ROOT, capture_output=True, text=True, timeout=300)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    report = json.loads(proc.stdout)
-    assert set(report["stable_baselines3"]) == {"SAC", "A2C"}
-    assert report["stable_baselines3"]["SAC"]["thesis"] == [73.01, 11.41]
-    assert math.isfinite(report["stable_baselines3"]["A2C"]["mean_return"])
-    assert report["hybridctl"]["SSAC"]["mean_return"] == 90.0
-
-
 def test_mesh_dimension_benchmark_reports_both_methods(tmp_path):
     """benchmarks/mesh_dimension.py --quick: both counts on the same curve, positive timings (no thresholds)."""
     out = tmp_path / "mesh.json"
