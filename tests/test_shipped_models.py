@@ -118,3 +118,21 @@ def test_shipped_sb3_ppo_pendulum_reproduces_its_recorded_returns_without_sb3():
     # (relative 9e-9; 2.8e-7 on the -2.70 episode) over the 200-step episodes: the same policy,
     # last-bit kernel differences. A wrong reader is off by far more (>1e-2).
     np.testing.assert_allclose(returns, recorded["returns"], rtol=1e-7, atol=1e-6)
+
+
+def test_shipped_ssac_cartpole_reproduces_its_evaluation_and_balances_from_hanging_down_in_drake():
+    """The SSAC cart-pole (issue 16 recipe): its recorded eval.json, and in the Drake diagram (learned
+    swing-up + learned gate + LQR, plain cart-pole spec) it swings up from hanging down and balances."""
+    pytest.importorskip("pydrake")
+    from hybridctl import drake, experiments, systems
+    from hybridctl.learn import SSAC
+
+    torch.set_num_threads(1)
+    path = POLICIES / "ssac-cartpole"
+    recorded = json.loads((ROOT / "notebooks" / "data" / "ch3" / "cartpole" / "eval.json").read_text())
+    result = SSAC.load(path).evaluate(episodes=recorded["episodes"], seed=recorded["seed"])
+    assert result["mean_return"] == pytest.approx(recorded["mean_return"], abs=1e-6)
+    assert result["success_rate"] == pytest.approx(recorded["success_rate"])
+    cartpole = systems.load("cartpole")                    # the deployed plant: the spec's own reward and starts
+    traj = drake.simulate(experiments.build_named_diagram(cartpole, f"ssac:{path}"), np.zeros(4), duration=10.0)
+    assert traj.balanced and bool(np.asarray(traj.gate)[-1])   # balanced, with the LQR in control at the end
