@@ -545,15 +545,20 @@ RUN_DIR_RE = re.compile(r"^(?P<algo>[a-z0-9]+)-s(?P<seed>\d+)$")
 
 
 def hybridctl_runs(runs: Path) -> dict:
-    """Per-algorithm summaries of ``hybridctl train`` eval.json files under ``runs`` (SSAC, SAC)."""
+    """Per-algorithm summaries of ``hybridctl train`` eval.json files under ``runs`` (SSAC, SAC) of runs
+    on the plain acrobot (the system and spec overrides their final/config.json records)."""
     found: dict[str, list[dict]] = {}
     for path in sorted(runs.glob("*/eval.json")) if runs.is_dir() else []:
         try:
             data = json.loads(path.read_text())
             mean = float(data["mean_return"])
+            meta = json.loads((path.parent / "final" / "config.json").read_text())
         except (OSError, ValueError, KeyError, TypeError):
             continue
-        algo = "SSAC" if path.parent.name.startswith("ssac") else "SAC"
+        system = meta.get("system") or {}
+        if system.get("name") != "acrobot" or system.get("overrides"):
+            continue  # another system (a cart-pole run), or the acrobot with another reward or starts
+        algo = str(meta.get("algorithm", "SAC")).upper()
         found.setdefault(algo, []).append({"run": str(path.parent), "mean_return": mean,
                                            "env_steps": data.get("env_steps")})
     return {a: {"seeds": len(v), "mean_return": float(np.mean([r["mean_return"] for r in v])),

@@ -35,6 +35,7 @@ EXPECTED_LINES = {
         "balanced: True",              # the pretrained SSAC from hanging down, in Drake
         "engines agree on >= 99 % of cells: True",   # the balance map's Drake and torch engines (issue 15)
         "second build (C++ wrapper, overlapped refits) (notebooks/data/ch3/fast/):",   # the issue-15 record
+        "cart-pole balanced: True",    # the shipped SSAC cart-pole from hanging down, in Drake (issue 16)
     ],
     "04_reachable_mesh_mfpt.ipynb": [
         "finest mesh inside the Monte Carlo 95 % interval: True",   # mesh MFPT vs the true map
