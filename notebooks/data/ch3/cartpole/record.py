@@ -1,12 +1,15 @@
-"""Record of the shipped SSAC cart-pole (models/policies/ssac-cartpole): Drake from hanging down,
-the 21 x 21 balance map of (x, theta) starts at rest (Drake engine) and the torch engine's map.
+"""Record of a shipped SSAC cart policy: Drake from hanging down, the 21 x 21 balance map of (x, theta)
+starts at rest over the spec's start box (Drake engine), the same map by the torch engine, and a
+wide map (x in +-1 m, the first angle over the whole circle, Drake).
 
-    .venv/bin/python notebooks/data/ch3/cartpole/record.py   # ~1-2 min on 2 cores
+    .venv/bin/python notebooks/data/ch3/cartpole/record.py                       # the cart-pole, ~7 min shared
+    .venv/bin/python notebooks/data/ch3/cartpole/record.py --system double_cartpole \\
+        --policy models/policies/ssac-double-cartpole --out notebooks/data/ch3/double_cartpole
 """
+import argparse
 import json
 import os
 import platform
-import shutil
 import sys
 import time
 from pathlib import Path
@@ -18,45 +21,56 @@ from hybridctl import drake, experiments, systems
 from hybridctl.experiments import balance_map
 
 torch.set_num_threads(1)
+ROOT = Path(__file__).resolve().parents[4]
 
 
 def main():
-    """Simulate, map and write drake_record.json beside this script."""
-    ROOT = Path(__file__).resolve().parents[4]
-    HERE = Path(__file__).resolve().parent
-    POLICY = ROOT / "models" / "policies" / "ssac-cartpole"
-    cartpole = systems.load("cartpole")
-    diagram = experiments.build_named_diagram(cartpole, f"ssac:{POLICY}")
-    traj = drake.simulate(diagram, np.zeros(4), duration=10.0)
-    summary = traj.save(ROOT / "runs" / "ssac-cartpole-drake")
+    """Simulate, map and write drake_record.json into --out."""
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--system", default="cartpole")
+    parser.add_argument("--policy", default="models/policies/ssac-cartpole")
+    parser.add_argument("--out", default="notebooks/data/ch3/cartpole")
+    parser.add_argument("--grid", type=int, default=21)
+    args = parser.parse_args()
+    out = ROOT / args.out
+    policy = ROOT / args.policy
+    system = systems.load(args.system)
+    controller = f"ssac:{policy}"
+    traj = drake.simulate(experiments.build_named_diagram(system, controller), system.initial_state.nominal,
+                          duration=system.episode_duration)
+    summary = traj.save(ROOT / "runs" / f"ssac-{args.system}-drake")
     start = time.perf_counter()
-    drake_map = balance_map(cartpole, f"ssac:{POLICY}", grid=21, workers=os.cpu_count(), progress=False)
-    drake_map.save(HERE / "balance_map_21")
+    drake_map = balance_map(system, controller, grid=args.grid, workers=os.cpu_count(), progress=False)
     drake_wall = time.perf_counter() - start
-    torch_map = balance_map(cartpole, f"ssac:{POLICY}", grid=21, engine="torch", progress=False)
-    # the whole circle of pole angles and +-1 m of cart (the training starts were theta in [-pi, pi], x in +-0.5 m)
+    drake_map.save(out / f"balance_map_{args.grid}")
+    torch_map = balance_map(system, controller, grid=args.grid, engine="torch", progress=False)
+    # the whole circle of the first pole angle and +-1 m of cart
     start = time.perf_counter()
-    wide_map = balance_map(cartpole, f"ssac:{POLICY}", grid=21, ranges=((-1.0, 1.0), (-np.pi, np.pi)),
+    wide_map = balance_map(system, controller, grid=args.grid, ranges=((-1.0, 1.0), (-np.pi, np.pi)),
                            workers=os.cpu_count(), progress=False)
     wide_wall = time.perf_counter() - start
-    wide_map.save(HERE / "balance_map_21_wide")
+    wide_map.save(out / f"balance_map_{args.grid}_wide")
+    low, high = system.initial_state.low, system.initial_state.high
     record = {
-        "policy": "models/policies/ssac-cartpole",
+        "system": args.system,
+        "policy": args.policy,
         "from_hanging_down_drake": {"balanced": bool(traj.balanced), "return": summary["return"],
                                     "first_balance_time": summary["first_balance_time"],
                                     "final_state": np.asarray(traj.x[-1]).round(4).tolist()},
-        "balance_map_21_drake": {"balanced_fraction": drake_map.fraction, "wall_time_s": drake_wall,
-                                 "x_range": [-0.5, 0.5], "theta_range": [-0.3, 0.3],
-                                 "folder": "notebooks/data/ch3/cartpole/balance_map_21"},
-        "balance_map_21_wide_drake": {"balanced_fraction": wide_map.fraction, "wall_time_s": wide_wall,
-                                      "x_range": [-1.0, 1.0], "theta_range": [-np.pi, np.pi],
-                                      "folder": "notebooks/data/ch3/cartpole/balance_map_21_wide"},
-        "balance_map_21_torch": {"balanced_fraction": torch_map.fraction, "wall_time_s": torch_map.wall_time},
+        f"balance_map_{args.grid}_drake": {"balanced_fraction": drake_map.fraction, "wall_time_s": drake_wall,
+                                           "x_range": [float(low[0]), float(high[0])],
+                                           "theta_range": [float(low[1]), float(high[1])],
+                                           "folder": f"{args.out}/balance_map_{args.grid}"},
+        f"balance_map_{args.grid}_wide_drake": {"balanced_fraction": wide_map.fraction, "wall_time_s": wide_wall,
+                                                "x_range": [-1.0, 1.0], "theta_range": [-np.pi, np.pi],
+                                                "folder": f"{args.out}/balance_map_{args.grid}_wide"},
+        f"balance_map_{args.grid}_torch": {"balanced_fraction": torch_map.fraction,
+                                           "wall_time_s": torch_map.wall_time},
         "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(), "python": sys.version.split()[0],
                     "torch": torch.__version__},
         "date": time.strftime("%Y-%m-%d %H:%M:%S %z"),
     }
-    (HERE / "drake_record.json").write_text(json.dumps(record, indent=1))
+    (out / "drake_record.json").write_text(json.dumps(record, indent=1))
     print(json.dumps(record, indent=1))
 
 
