@@ -838,6 +838,10 @@ class Learner:
             torch.set_num_threads(previous_threads)
 
 
+CURVES_EVERY_S = 30.0
+"""Seconds between redraws of ``training_curves.png`` at periodic checkpoints (the final one always draws)."""
+
+
 class Run:
     """One training run in progress: what a learner's loop calls.
 
@@ -852,6 +856,7 @@ class Run:
         self.stopped = False
         self.checkpoint_seconds = float(checkpoint_seconds)
         self._last_checkpoint = time.monotonic()
+        self._last_curves: float | None = None   # when training_curves.png was last drawn
 
     def checkpoint_due(self) -> bool:
         """Whether ``checkpoint_seconds`` of wall time passed since the run began or last checkpointed."""
@@ -891,8 +896,13 @@ class Run:
         if self.log_dir is None:
             return None
         path = self.learner.checkpointer.save(self.log_dir / name, include_bulky=self.learner._checkpoint_with_data())
-        if self.logger is not None:
+        # the curves take ~1.5 s to draw: at most every CURVES_EVERY_S on periodic checkpoints (a run
+        # checkpointing every second spent 94 % of its time drawing), always for the final one
+        now = time.monotonic()
+        due = name != "checkpoint" or self._last_curves is None or now - self._last_curves >= CURVES_EVERY_S
+        if self.logger is not None and due:
             self.learner.plot_curves(self.logger)
+            self._last_curves = now
         self.callbacks.on_checkpoint(self.learner, path)
         return path
 
