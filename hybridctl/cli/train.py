@@ -241,10 +241,7 @@ def parse_set_pairs(pairs: list[str] | None, config_class: type) -> dict:
             raise ValueError(f"--set expects key=value, got {pair!r}")
         if key not in fields:
             raise ValueError(f"--set {key}: not a {config_class.__name__} field; fields: " + ", ".join(sorted(fields)))
-        try:
-            out[key] = json.loads(text)
-        except json.JSONDecodeError:
-            out[key] = text
+        out[key] = _json_or_text(text)
     return out
 
 
@@ -253,14 +250,18 @@ def parse_spec_pairs(pairs: list[str] | None) -> dict:
     out = {}
     for pair in pairs or []:
         key, sep, text = pair.partition("=")
-        key = key.strip()
-        if not sep or not key:
+        if not sep or not key.strip():
             raise ValueError(f"--spec expects section.key=value (e.g. reward.kind=upright_centered), got {pair!r}")
-        try:
-            out[key] = json.loads(text)
-        except json.JSONDecodeError:
-            out[key] = text
+        out[key.strip()] = _json_or_text(text)
     return out
+
+
+def _json_or_text(text: str):
+    """A ``--set`` / ``--spec`` value: JSON where it parses, else the text itself."""
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError:
+        return text
 
 
 def config_settings(args: argparse.Namespace) -> dict:

@@ -302,8 +302,12 @@ class SSAC(SAC):
             cost = cost_to_go(err, self._cost_matrix)
             keep = swingup & (cost < self.config.gate_relabel_cost)
             if bool(keep.any()):
-                pool = torch.cat([self._relabel_pool, obs[keep].cpu()])
-                self._relabel_pool = pool[-max(50_000, self.config.gate_relabel_per_refit):]
+                self._pool_for_relabel(obs[keep])
+
+    def _pool_for_relabel(self, states: torch.Tensor) -> None:
+        """Queue decision states for LQR-rollout labels at the next refit (the newest are kept)."""
+        pool = torch.cat([self._relabel_pool, states.float().cpu()])
+        self._relabel_pool = pool[-max(50_000, self.config.gate_relabel_per_refit):]
 
     def on_episodes_end(self, ended: torch.Tensor, infos: dict) -> None:
         """Alg. 4 line 8: LQR-active decision states of the ended episodes, labelled T(s), go to D_g."""
@@ -316,8 +320,7 @@ class SSAC(SAC):
         if self.config.gate_lqr_labels == "rollout":  # labelled by LQR rollouts at the next refit
             states = self.staging.data["obs"][rows][mask]
             if states.numel():
-                pool = torch.cat([self._relabel_pool, states.float().cpu()])
-                self._relabel_pool = pool[-max(50_000, self.config.gate_relabel_per_refit):]
+                self._pool_for_relabel(states)
                 self.num_gate_episodes += int(mask.any(-1).sum())
             self._lqr_at_start[ended] = False
             return
