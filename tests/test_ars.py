@@ -157,6 +157,15 @@ def test_postprocessed_training_divides_by_the_dimension():
     assert row["mean_return"] < row["mean_raw_return"]     # positive returns divided by D > 1
 
 
+def test_training_noise_changes_the_rollouts_and_repeats_with_the_seed():
+    """Thesis Ch. 5 "noise" agents: Gaussian noise on actions and observations in training rollouts."""
+    plain = ARS(point_reach, ARSConfig(seed=7, **SMALL)).learn(epochs=2, progress=False)
+    noisy = [ARS(point_reach, ARSConfig(seed=7, train_action_noise=0.01, train_obs_noise=0.001, **SMALL))
+             .learn(epochs=2, progress=False) for _ in range(2)]
+    np.testing.assert_array_equal(noisy[0].theta, noisy[1].theta)
+    assert not np.array_equal(plain.theta, noisy[0].theta)
+
+
 def test_nan_rollouts_stop_training_with_a_message():
     agent = ARS(point_reach_nan, ARSConfig(seed=0, **SMALL))
     with pytest.raises(FloatingPointError, match="NaN"):
@@ -164,7 +173,8 @@ def test_nan_rollouts_stop_training_with_a_message():
 
 
 @pytest.mark.parametrize("field, value", [("n_directions", 0), ("top_directions", 99), ("noise", -1.0),
-                                          ("postprocess", "fractal"), ("backend", "mpi"), ("policy", "mlp:")])
+                                          ("postprocess", "fractal"), ("backend", "mpi"), ("policy", "mlp:"),
+                                          ("train_action_noise", -0.01), ("train_obs_noise", float("nan"))])
 def test_bad_settings_name_the_field(field, value):
     with pytest.raises(ValueError, match=field):
         ARSConfig(**{field: value}).validate()

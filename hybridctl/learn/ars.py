@@ -76,6 +76,10 @@ class ARSConfig:
     #                                  variogram
     postprocess_form: str = "auto"   # "divide" (eq. 4.4), "multiply" (eq. 6.2), "auto": by the return's sign
     transient_steps: int = TRANSIENT_STEPS  # T_r = 200, thesis Sec. 4.2.5
+    train_action_noise: float = 0.0  # std of Gaussian noise on actions in training rollouts; thesis Ch. 5
+    #                                  "noise" agents (Sec. 5.3 and its appendix): 0.01
+    train_obs_noise: float = 0.0     # std of Gaussian noise on observations seen by the policy in training;
+    #                                  thesis Ch. 5 "noise" agents: 0.001
     seed: int = 0
     backend: str = "processes"       # "serial", "processes" (local, default), "ray"
     workers: int | None = None       # None: every core (processes) or the cluster's CPUs (ray)
@@ -97,6 +101,10 @@ class ARSConfig:
         check_fields(self, positive=("step_size", "noise"), integers_from_1=(
             "n_directions", "top_directions", "epochs", "checkpoint_every", "eval_episodes", "torch_threads"),
             integers_from_0=("seed", "transient_steps"))
+        for name in ("train_action_noise", "train_obs_noise"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"ARSConfig.{name} must be a finite number >= 0 (a noise std), got {value!r}")
         if self.workers is not None and self.workers < 1:
             raise ValueError(f"ARSConfig.workers must be None (every core) or an integer >= 1, got {self.workers!r}")
         if self.top_directions > self.n_directions:
@@ -530,7 +538,9 @@ class ARS(Learner):
         cfg = self.config
         directions, seeds = self._epoch_draws(self.epoch)
         thetas = [self.theta + sign * cfg.noise * d for d in directions for sign in (1.0, -1.0)]
-        results = rollouts(self._tasks(thetas, [s for s in seeds for _ in (0, 1)]), backend, cfg.engine, cfg.workers)
+        tasks = self._tasks(thetas, [s for s in seeds for _ in (0, 1)], action_noise=cfg.train_action_noise,
+                            obs_noise=cfg.train_obs_noise)
+        results = rollouts(tasks, backend, cfg.engine, cfg.workers)
         bad = [i for i, r in enumerate(results) if not r["finite"]]
         if bad:
             raise FloatingPointError(f"ARS epoch {self.epoch}: {len(bad)} rollouts produced NaN/inf states or "
