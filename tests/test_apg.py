@@ -332,6 +332,7 @@ def test_bad_settings_are_named(overrides, message):
         APG("cartpole", APGConfig(**overrides))
 
 
+@pytest.mark.slow   # CLI CE-APG training twice (~40-50 s); the library resume test of CE-APG stays
 def test_cli_trains_and_resumes_ce_apg(tmp_path):
     import json
     import subprocess

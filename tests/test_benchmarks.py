@@ -10,6 +10,10 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
+# Each test runs a benchmark script end to end (~270 s of the default suite on 2 loaded cores):
+# they check the JSON that `make bench` prints, so they run with `make test-all`, not `make test`.
+pytestmark = pytest.mark.slow
+
 
 @pytest.fixture(scope="module")
 def report(tmp_path_factory):

@@ -32,6 +32,7 @@ def test_pickles_without_drake_objects_and_rebuilds():
     np.testing.assert_array_equal(clone.step([1.29], 0.15), first)
 
 
+@pytest.mark.slow   # Drake plants built in 2 worker processes (~30-60 s); the Drake map and its pickling stay, serially
 def test_drake_mesh_in_worker_processes_equals_the_analytic_mesh():
     """A coarse mesh built from Drake simulations in 2 processes has the analytic mesh's chain."""
     slopes = GaussianDisturbance(0.15, 0.06, 7)

@@ -198,6 +198,7 @@ def test_cli_bad_input_exits_2_without_traceback(argv, message, capsys, tmp_path
     assert message in err and "Traceback" not in err
 
 
+@pytest.mark.slow   # kills a worker mid-run (~30-45 s); tests/test_ars.py keeps a dead-worker check in `make test`
 def test_a_killed_worker_neither_hangs_nor_changes_the_result():
     """Tasks carry the module as plain bytes: after a worker is killed the rebuilt pool gets them
     (torch's shared-memory hand-over hung here), and the run equals the serial one."""

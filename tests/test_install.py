@@ -56,6 +56,7 @@ def test_the_installed_package_is_the_wheel_not_the_checkout(installed):
     assert str(ROOT) not in out.stdout and "site-packages" in out.stdout
 
 
+@pytest.mark.slow   # one more interpreter start of the installed wheel; the simulate test covers the shipped data
 def test_installed_hybridctl_lists_the_shipped_systems(installed):
     _, hybridctl, work = installed
     out = run([hybridctl, "systems"], work)
@@ -79,6 +80,7 @@ def test_installed_hybridctl_simulates_with_the_shipped_models_and_checkpoint(in
     assert "site-packages" in out.stdout
 
 
+@pytest.mark.slow   # two more interpreter starts of the installed wheel (~25-40 s)
 def test_user_specs_come_from_HYBRIDCTL_SYSTEMS(installed, tmp_path):
     _, hybridctl, work = installed
     spec = (ROOT / "hybridctl" / "data" / "systems" / "pendulum.toml").read_text()
