@@ -41,6 +41,7 @@ EXPECTED_LINES = {
         "finest mesh inside the Monte Carlo 95 % interval: True",   # mesh MFPT vs the true map
         "hopper record: notebooks/data/ch5/hopper.json",            # the shipped Ch. 5 hopper record is read
         "hopper error record: notebooks/data/ch5/hopper_error.json",   # the mesh-error decomposition (issue 16)
+        "Table 5.1 record: notebooks/data/ch5/table51.json",         # four training regimes' mesh sizes (issue 16)
     ],
     "05_analytic_policy_gradients.ipynb": [
         "balanced: True",                 # the shipped PAPG cart-pole swing-up + gate + LQR in Drake
