@@ -96,7 +96,7 @@ def same_rows(a: list[dict], b: list[dict]) -> bool:
 
 # ==================================================================== kill -9, then --resume
 
-@pytest.mark.slow   # trains SSAC in a subprocess and kills it (~60-75 s); the ARS kill -9 test below (~10 s) runs by default
+@pytest.mark.slow   # trains SSAC in a subprocess and kills it (~60-75 s); the ARS kill -9 test below (~30 s idle) runs by default
 def test_kill_9_ssac_then_resume_continues_from_the_checkpoint(tmp_path):
     """A real SSAC run checkpointing by wall time only (checkpoint_every 0), killed mid-run, resumed."""
     out = tmp_path / "ssac"
@@ -139,7 +139,7 @@ def test_kill_9_ars_then_resume_continues_from_the_checkpoint(tmp_path):
     assert json.loads((out / "eval.json").read_text())["epochs"] == 300
 
 
-@pytest.mark.slow   # about 10 s; the ARS kill -9 test above runs by default
+@pytest.mark.slow   # about 10 s; the ARS kill -9 test above covers the kill-resume path by default
 def test_kill_9_mesh_then_resume_builds_the_same_mesh(tmp_path):
     from hybridctl.analysis import GaussianDisturbance, ReachableMesh, RimlessWheel, build_mesh
 
