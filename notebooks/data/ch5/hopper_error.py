@@ -26,10 +26,9 @@ This script measures them per box size against one recorded Monte Carlo run of t
 - ``jitter``: Monte Carlo on the true map with every apex state moved by a uniform random
   offset of up to half a box (policy std units; all coordinates but the apex' vertical
   velocity) after each step: how sensitive the map is to a box-sized state error.
-- ``transient``: the mesh MFPT from the seeds against that from its quasi-stationary
-  distribution (3).
+- transients (3): ``mesh_mfpt_seeds`` (from the seeds) against ``mesh_mfpt_quasi_stationary``.
 
-usage: .venv/bin/python notebooks/data/ch5/hopper_error.py [--box-sizes 1 0.7 0.5 0.35]
+usage: .venv/bin/python notebooks/data/ch5/hopper_error.py [--box-sizes 1 0.7 0.5 0.35 0.25]
        [--episodes 200] [--jitter-episodes 100]
 Checkpoints (meshes, recorded runs) go to ``--work`` (runs/ch5/error) and are reused.
 Writes ``hopper_error.json`` and ``hopper_error.png`` here.
