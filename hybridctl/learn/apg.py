@@ -190,16 +190,11 @@ class APGConfig:
         for name in ("beta1", "beta2"):
             if not 0.0 <= getattr(self, name) < 1.0:
                 raise ValueError(f"APGConfig.{name} must be in [0, 1), got {getattr(self, name)!r}")
-        if not 0.0 <= self.init_std or not math.isfinite(self.init_std):
-            raise ValueError(f"APGConfig.init_std must be a finite number >= 0, got {self.init_std!r}")
+        check_fields(self, non_negative=("init_std", "alive_bonus", "velocity_penalty", "position_weight"))
         for name in ("truncation", "clip", "control_period", "start_noise"):
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0):
                 raise ValueError(f"APGConfig.{name} must be None or a finite number > 0, got {value!r}")
-        for name in ("alive_bonus", "velocity_penalty", "position_weight"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value >= 0):
-                raise ValueError(f"APGConfig.{name} must be a finite number >= 0, got {value!r}")
 
     @classmethod
     def preset(cls, name: str = "thesis", method: str = "ce-apg", **overrides) -> "APGConfig":

@@ -100,11 +100,7 @@ class ARSConfig:
         check_types(self)
         check_fields(self, positive=("step_size", "noise"), integers_from_1=(
             "n_directions", "top_directions", "epochs", "checkpoint_every", "eval_episodes", "torch_threads"),
-            integers_from_0=("seed", "transient_steps"))
-        for name in ("train_action_noise", "train_obs_noise"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value >= 0):
-                raise ValueError(f"ARSConfig.{name} must be a finite number >= 0 (a noise std), got {value!r}")
+            integers_from_0=("seed", "transient_steps"), non_negative=("train_action_noise", "train_obs_noise"))
         if self.workers is not None and self.workers < 1:
             raise ValueError(f"ARSConfig.workers must be None (every core) or an integer >= 1, got {self.workers!r}")
         if self.top_directions > self.n_directions:

@@ -125,9 +125,11 @@ def check_finite(name: str, value, where: str) -> None:
 
 
 def check_fields(config, integers_from_1: Iterable[str] = (), integers_from_0: Iterable[str] = (),
-                 positive: Iterable[str] = (), unit_interval: Iterable[str] = ()) -> None:
+                 positive: Iterable[str] = (), unit_interval: Iterable[str] = (),
+                 non_negative: Iterable[str] = ()) -> None:
     """Raise ValueError naming the first field of ``config`` that is not an integer >= 1 / >= 0,
-    a finite number > 0, or a number in [0, 1] (the checks every learner's ``validate`` repeats)."""
+    a finite number > 0, a number in [0, 1], or a finite number >= 0 (the checks every learner's
+    ``validate`` repeats)."""
     cls = type(config).__name__
     for minimum, names in ((1, integers_from_1), (0, integers_from_0)):
         for name in names:
@@ -142,6 +144,10 @@ def check_fields(config, integers_from_1: Iterable[str] = (), integers_from_0: I
         value = getattr(config, name)
         if not (isinstance(value, (int, float, np.number)) and 0.0 <= value <= 1.0):
             raise ValueError(f"{cls}.{name} must be in [0, 1], got {value!r}")
+    for name in non_negative:
+        value = getattr(config, name)
+        if not (isinstance(value, (int, float, np.number)) and math.isfinite(value) and value >= 0):
+            raise ValueError(f"{cls}.{name} must be a finite number >= 0, got {value!r}")
 
 
 # ============================================================================ resuming with changed settings
