@@ -203,3 +203,59 @@ def test_ray_backend_builds_the_same_mesh_and_monte_carlo(local_ray):
     ray_mc = monte_carlo_mfpt(WHEEL, [[w]], SLOPES, episodes=400, seed=5, chunks=4, backend="ray", workers=2)
     np.testing.assert_array_equal(serial_mc.steps, ray_mc.steps)
     assert ray_mc.censored == serial_mc.censored
+
+
+PLANE_PUSHES = list(np.linspace(-0.5, 0.5, 9))
+
+
+def test_samples_per_box_rows_are_the_mean_of_their_samples_rows():
+    mesh = build_mesh(FunctionMap(lambda_free_map), [[0.0, 0.0]], PLANE_PUSHES, 0.2, samples_per_box=4,
+                      progress=False)
+    owners = mesh.owners
+    assert mesh.complete and owners is not None and mesh.states.shape[0] == owners.size == mesh.successors.shape[0]
+    counts = np.bincount(owners)[1:]
+    assert counts.min() >= 1 and counts.max() == 4 and counts.size == mesh.size   # ids 1..size, <= 4 samples each
+    T = mesh.transition_matrix().toarray()
+    by_hand = np.zeros_like(T)
+    by_hand[0, 0] = 1.0
+    for owner, row in zip(owners, mesh.successors):
+        for j in row:
+            by_hand[owner, j] += 1.0 / (len(row) * counts[owner - 1])
+    np.testing.assert_allclose(T, by_hand, atol=1e-15)
+    np.testing.assert_allclose(mesh.failure_probability(), T[1:, 0], atol=1e-15)
+    first = [int(np.flatnonzero(owners == b)[0]) for b in range(1, mesh.size + 1)]
+    np.testing.assert_array_equal(mesh.representatives, mesh.states[first])
+    assert mesh.summary()["samples"] == owners.size
+
+
+def test_more_samples_per_box_bring_a_coarse_mesh_towards_monte_carlo():
+    # one representative per box follows one state's path; a shearing map sends the box's other
+    # states elsewhere, so coarse meshes fail too early. Averaging arrivals narrows the error.
+    plane = FunctionMap(lambda_free_map)
+    mc = monte_carlo_mfpt(plane, [[0.0, 0.0]], FiniteDisturbances(PLANE_PUSHES), episodes=4000, seed=3)
+    for box in (0.2, 0.4):
+        meshes = [build_mesh(plane, [[0.0, 0.0]], PLANE_PUSHES, box, samples_per_box=k, progress=False)
+                  for k in (1, 4, 32)]
+        errors = [abs(m.mfpt().mean(m.seed_distribution()) - mc.mean) for m in meshes]
+        assert errors[2] < errors[1] < errors[0], (box, errors, mc.mean)
+    assert errors[0] > 0.4 * mc.mean and errors[2] < 0.15 * mc.mean       # box 0.4: 45 % off -> 10 %
+
+
+def test_samples_per_box_resume_and_round_trip(tmp_path):
+    from hybridctl.analysis import ReachableMesh
+    ck = tmp_path / "mesh.npz"
+    args = (FunctionMap(lambda_free_map), [[0.0, 0.0]], PLANE_PUSHES, 0.1)
+    partial = build_mesh(*args, samples_per_box=3, max_states=40, checkpoint=ck, batch_size=8, progress=False)
+    assert not partial.complete and partial.size <= 40
+    resumed = build_mesh(*args, samples_per_box=3, checkpoint=ck, resume=True, batch_size=8, progress=False)
+    fresh = build_mesh(*args, samples_per_box=3, batch_size=8, progress=False)
+    assert resumed.complete and resumed.size == fresh.size
+    np.testing.assert_array_equal(resumed.successors, fresh.successors)
+    np.testing.assert_array_equal(resumed.owners, fresh.owners)
+    again = ReachableMesh.load(fresh.save(tmp_path / "saved.npz"))
+    np.testing.assert_array_equal(again.owners, fresh.owners)
+    assert (again.transition_matrix() != fresh.transition_matrix()).nnz == 0
+    with pytest.raises(ValueError, match="samples_per_box 3, not 2"):
+        build_mesh(*args, samples_per_box=2, checkpoint=ck, resume=True, progress=False)
+    with pytest.raises(ValueError, match="samples_per_box must be an integer >= 1"):
+        build_mesh(*args, samples_per_box=0, progress=False)

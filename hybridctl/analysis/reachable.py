@@ -5,7 +5,10 @@ each disturbance of a finite set; the next state's box key (thesis Alg. 5: round
 normalised state / ``box_size``) either names a known mesh state or adds a new one,
 which is expanded in turn (breadth first). Failure is one absorbing state, index 0.
 Each box keeps the first state that reached it as its representative, from which it
-is expanded. The result is a Markov chain: :meth:`ReachableMesh.transition_matrix`
+is expanded. With ``samples_per_box=k > 1`` a box keeps the first ``k`` states that reach it
+(Ulam's method with arrival samples): every sample is expanded, and the box's row of the chain
+is the average of its samples' rows, so a box's transitions spread over where states in it
+actually go instead of following one representative. The result is a Markov chain: :meth:`ReachableMesh.transition_matrix`
 (CSR, rows sum to 1) and :meth:`ReachableMesh.mfpt` (:func:`~hybridctl.analysis.absorbing_mfpt`).
 
 >>> wheel = RimlessWheel()
@@ -44,9 +47,14 @@ FAILURE = 0
 
 @dataclass
 class ReachableMesh:
-    """Mesh states (representatives; id i is row i - 1 of ``states``), successor ids (0 = failure)."""
+    """Mesh states (representatives; id i is row i - 1 of ``states``), successor ids (0 = failure).
 
-    states: np.ndarray            # (n_states, n_dims) representatives
+    A mesh built with ``samples_per_box > 1`` has ``owners``: then ``states`` holds every sample
+    (the first sample of a box is its representative), ``owners[i]`` is the box id (1-based) of
+    sample ``i`` and ``successors`` has one row per expanded sample.
+    """
+
+    states: np.ndarray            # (n_states, n_dims) representatives (or samples, with owners)
     successors: np.ndarray        # (n_expanded, n_disturbances) ids in 0..n_states
     weights: np.ndarray           # disturbance probabilities
     box_size: float
@@ -56,11 +64,24 @@ class ReachableMesh:
     complete: bool
     wall_time: float = 0.0
     settings: dict = field(default_factory=dict)
+    owners: np.ndarray | None = None   # (n_samples,) box id of each sample; None: one sample per box
 
     @property
     def size(self) -> int:
         """Number of mesh states (the failure state not counted)."""
+        if self.owners is not None:
+            return int(self.owners.max()) if self.owners.size else 0
         return int(self.states.shape[0])
+
+    @property
+    def representatives(self) -> np.ndarray:
+        """One state per box (row i - 1 for id i): the first state that reached it."""
+        if self.owners is None:
+            return self.states
+        first = np.zeros(self.size, dtype=np.int64)
+        order = np.arange(self.owners.size)[::-1]
+        first[self.owners[order] - 1] = order                       # the last write wins: the first sample
+        return self.states[first]
 
     def transition_matrix(self) -> sp.csr_matrix:
         """Stochastic matrix (n_states + 1 square, CSR): T[i, j] = P(next id j | id i); failure 0 absorbing.
@@ -72,8 +93,15 @@ class ReachableMesh:
             raise ValueError(f"the mesh is incomplete: {self.size - self.successors.shape[0]} of {self.size} states "
                              f"were never expanded (max_states reached); use a larger box_size or max_states")
         n, k = self.successors.shape
-        rows = np.repeat(np.arange(1, n + 1), k)
-        vals = np.tile(self.weights, n)
+        if self.owners is None:
+            rows = np.repeat(np.arange(1, n + 1), k)
+            vals = np.tile(self.weights, n)
+        else:   # a box's row: the mean of its samples' rows
+            owner = self.owners[:n]
+            count = np.bincount(owner, minlength=self.size + 1)
+            rows = np.repeat(owner, k)
+            vals = np.tile(self.weights, n) / count[rows]
+            n = self.size
         T = sp.csr_matrix((np.r_[1.0, vals], (np.r_[0, rows], np.r_[0, self.successors.ravel()])),
                           shape=(n + 1, n + 1))
         T.sum_duplicates()
@@ -91,7 +119,11 @@ class ReachableMesh:
 
     def failure_probability(self) -> np.ndarray:
         """One-step probability of failure from each mesh state (index i - 1 for id i)."""
-        return (self.successors == FAILURE) @ self.weights
+        per_row = (self.successors == FAILURE) @ self.weights
+        if self.owners is None:
+            return per_row
+        owner = self.owners[:per_row.size]
+        return np.bincount(owner, per_row, self.size + 1)[1:] / np.bincount(owner, minlength=self.size + 1)[1:]
 
     def save(self, path: str | os.PathLike) -> Path:
         """Write the mesh to one ``.npz`` file (atomically; read back with :meth:`load`, no pickle)."""
@@ -100,7 +132,8 @@ class ReachableMesh:
         arrays = dict(states=self.states, successors=self.successors, weights=self.weights,
                       box_size=self.box_size, mean=self.mean, std=self.std, seed_ids=self.seed_ids,
                       complete=self.complete, wall_time=self.wall_time,
-                      state_names=np.array(self.settings.get("state_names") or [], dtype=str))
+                      state_names=np.array(self.settings.get("state_names") or [], dtype=str),
+                      owners=np.zeros(0, dtype=np.int64) if self.owners is None else self.owners)
         return atomic_write(path, lambda f: np.savez(f, **arrays))
 
     @classmethod
@@ -115,12 +148,14 @@ class ReachableMesh:
             raise ValueError(f"{path} is not a mesh file: missing {sorted(missing)}")
         settings = {"box_size": float(data["box_size"]), "disturbances": int(data["weights"].size),
                     "state_names": [str(n) for n in data["state_names"]]}
+        owners = data["owners"] if "owners" in data.files and data["owners"].size else None
         return cls(data["states"], data["successors"], data["weights"], float(data["box_size"]), data["mean"],
-                   data["std"], data["seed_ids"], bool(data["complete"]), float(data["wall_time"]), settings)
+                   data["std"], data["seed_ids"], bool(data["complete"]), float(data["wall_time"]), settings, owners)
 
     def summary(self) -> dict:
         """JSON-ready description."""
-        return {"states": self.size, "box_size": self.box_size, "disturbances": int(self.weights.size),
+        samples = {} if self.owners is None else {"samples": int(self.owners.size)}
+        return {"states": self.size, **samples, "box_size": self.box_size, "disturbances": int(self.weights.size),
                 "complete": self.complete, "seeds": int(self.seed_ids.size), "wall_time_s": self.wall_time,
                 "transitions_to_failure": int((self.successors == FAILURE).sum()), **self.settings}
 
@@ -163,13 +198,16 @@ class _Keys:
 
 
 def _save_checkpoint(path: Path, mesh_states: list, successors: list, box_size: float, n_disturbances: int,
-                     wall_time: float = 0.0) -> None:
+                     wall_time: float = 0.0, owners: list | None = None, samples_per_box: int = 1) -> None:
     """Write the mesh so far to ``path`` (.npz) atomically (:func:`hybridctl.io.atomic_write`: a
     temporary file, fsynced, then a rename)."""
     states = np.array(mesh_states)
     succ = np.array(successors, dtype=np.int64).reshape(len(successors), n_disturbances)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    extra = {} if samples_per_box == 1 else {"owners": np.array(owners, dtype=np.int64),
+                                             "samples_per_box": samples_per_box}
     atomic_write(path, lambda f: np.savez(f, states=states, box_size=box_size, n_disturbances=n_disturbances,
-                                          wall_time=wall_time, successors=succ))
+                                          wall_time=wall_time, successors=succ, **extra))
 
 
 def _load_checkpoint(path: Path):
@@ -186,10 +224,23 @@ def _load_checkpoint(path: Path):
     return data
 
 
+def _undo_row(marks: tuple[int, int], mesh_states: list, owners: list, counts: list, keys: _Keys) -> None:
+    """Forget the samples and boxes a row added before the cap stopped it. Its expansion is redone
+    on resume; samples kept from half a row would be added twice there (with one sample per box a
+    kept box is found again and nothing is added twice, so that case keeps them, as it always did)."""
+    n_samples, n_boxes = marks
+    for owner in owners[n_samples:]:
+        counts[owner] -= 1
+    del mesh_states[n_samples:], owners[n_samples:], counts[n_boxes:]
+    for key in [key for key, box in keys.ids.items() if box >= n_boxes]:
+        del keys.ids[key]
+
+
 def build_mesh(section_map: SectionMap, seeds, disturbances, box_size: float, mean=None, std=None,
                max_states: int = 1_000_000, backend: str = "serial", workers: int | None = None,
                batch_size: int = 256, checkpoint: str | os.PathLike | None = None, checkpoint_every: int = 20,
-               resume: bool = False, progress: bool = True, checkpoint_minutes: float = 5.0) -> ReachableMesh:
+               resume: bool = False, progress: bool = True, checkpoint_minutes: float = 5.0,
+               samples_per_box: int = 1) -> ReachableMesh:
     """Reachable-state mesh of ``section_map`` from ``seeds`` under ``disturbances`` (thesis Alg. 7).
 
     ``disturbances``: a :class:`FiniteDisturbances`, anything with ``finite_set()`` (e.g.
@@ -202,6 +253,10 @@ def build_mesh(section_map: SectionMap, seeds, disturbances, box_size: float, me
     ``checkpoint_every`` batches and at least every ``checkpoint_minutes`` of wall time (0:
     by batches only), and at the end; ``resume=True`` continues from it (a damaged one, or
     one built with another box size or disturbance count, raises ValueError naming it).
+
+    ``samples_per_box``: how many of the states that reach a box are kept and expanded (1: the
+    thesis' one representative per box; k > 1: the first k arrivals, the box's row being the mean
+    of theirs). ``max_states`` counts boxes, not samples.
     """
     from tqdm.auto import tqdm
 
@@ -210,6 +265,9 @@ def build_mesh(section_map: SectionMap, seeds, disturbances, box_size: float, me
         raise ValueError(f"box_size must be a finite number > 0, got {box_size!r}")
     if not (isinstance(max_states, int) and max_states >= 1):
         raise ValueError(f"max_states must be an integer >= 1, got {max_states!r}")
+    if not (isinstance(samples_per_box, (int, np.integer)) and samples_per_box >= 1):
+        raise ValueError(f"samples_per_box must be an integer >= 1, got {samples_per_box!r}")
+    samples_per_box = int(samples_per_box)
     finite = disturbances.finite_set() if hasattr(disturbances, "finite_set") else FiniteDisturbances(list(disturbances))
     values, weights = list(finite.values), np.asarray(finite.weights)
     seeds = np.atleast_2d(np.asarray(seeds, dtype=np.float64))
@@ -223,9 +281,13 @@ def build_mesh(section_map: SectionMap, seeds, disturbances, box_size: float, me
     keys = _Keys(box_size, mean, std)
     settings = {"box_size": box_size, "disturbances": len(values), "max_states": max_states,
                 "state_names": list(getattr(section_map, "state_names", ()) or [])}
+    if samples_per_box > 1:
+        settings["samples_per_box"] = samples_per_box
     path = Path(checkpoint) if checkpoint is not None else None
 
-    mesh_states: list[np.ndarray] = []
+    mesh_states: list[np.ndarray] = []     # samples; with one per box, the representatives
+    owners: list[int] = []                 # box id of each sample
+    counts: list[int] = [0]                # samples per box id (index 0: failure)
     successors: list[np.ndarray] = []
     earlier = 0.0
     if not (isinstance(checkpoint_minutes, (int, float)) and math.isfinite(checkpoint_minutes)
@@ -236,19 +298,40 @@ def build_mesh(section_map: SectionMap, seeds, disturbances, box_size: float, me
         if float(saved["box_size"]) != box_size or int(saved["n_disturbances"]) != len(values):
             raise ValueError(f"checkpoint {path} was built with box_size {float(saved['box_size']):g} and "
                              f"{int(saved['n_disturbances'])} disturbances, not {box_size:g} and {len(values)}")
+        saved_k = int(saved.get("samples_per_box", 1))
+        if saved_k != samples_per_box:
+            raise ValueError(f"checkpoint {path} was built with samples_per_box {saved_k}, not {samples_per_box}")
         mesh_states = list(saved["states"])
+        owners = [int(o) for o in saved["owners"]] if "owners" in saved else list(range(1, len(mesh_states) + 1))
+        counts = np.bincount(owners, minlength=1).tolist() if owners else [0]
         earlier = float(saved["wall_time"]) if "wall_time" in saved else 0.0   # time of the earlier parts
         successors = list(saved["successors"])
-        for i, k in enumerate(keys.keys(np.array(mesh_states))):
-            keys.ids.setdefault(k, i + 1)
+        for owner, k in zip(owners, keys.keys(np.array(mesh_states))):
+            keys.ids.setdefault(k, owner)
+    def add(state: np.ndarray, key: bytes) -> int | None:
+        """Box id of ``state`` (a new box, or a further sample of a box with room); None at the cap."""
+        found = keys.ids.get(key)
+        if found is None:
+            if len(counts) - 1 >= max_states:
+                return None
+            found = keys.ids[key] = len(counts)
+            counts.append(0)
+        if counts[found] < samples_per_box:
+            mesh_states.append(state)
+            owners.append(found)
+            counts[found] += 1
+        return found
+
     seed_ids = []
+    fresh = not mesh_states
     for s, k in zip(seeds, keys.keys(seeds)):
-        if k not in keys.ids:
-            if len(mesh_states) >= max_states:
-                break
-            mesh_states.append(s)
-            keys.ids[k] = len(mesh_states)
-        seed_ids.append(keys.ids[k])
+        if not fresh and k in keys.ids:    # resumed: the seeds' boxes are known, their samples kept
+            seed_ids.append(keys.ids[k])
+            continue
+        found = add(s, k)
+        if found is None:
+            break
+        seed_ids.append(found)
 
     start = time.perf_counter()
     complete = True
@@ -267,16 +350,16 @@ def build_mesh(section_map: SectionMap, seeds, disturbances, box_size: float, me
             for row, fail_row in zip(nxt, failed):
                 ids = np.zeros(len(values), dtype=np.int64)
                 ok = np.flatnonzero(~fail_row)
+                marks = (len(mesh_states), len(counts))
                 for j, k in zip(ok, keys.keys(row[ok])):
-                    found = keys.ids.get(k)
+                    found = add(row[j], k)
                     if found is None:
-                        if len(mesh_states) >= max_states:
-                            complete = False
-                            break
-                        mesh_states.append(row[j])
-                        found = keys.ids[k] = len(mesh_states)
+                        complete = False
+                        break
                     ids[j] = found
                 if not complete:
+                    if samples_per_box > 1:
+                        _undo_row(marks, mesh_states, owners, counts, keys)
                     break
                 successors.append(ids)
             bar.total = len(mesh_states)
@@ -285,7 +368,7 @@ def build_mesh(section_map: SectionMap, seeds, disturbances, box_size: float, me
             by_time = checkpoint_minutes > 0 and time.monotonic() - last_checkpoint >= 60.0 * checkpoint_minutes
             if path is not None and (batches % checkpoint_every == 0 or by_time or not complete):
                 _save_checkpoint(path, mesh_states, successors, box_size, len(values),
-                                 earlier + time.perf_counter() - start)
+                                 earlier + time.perf_counter() - start, owners, samples_per_box)
                 last_checkpoint = time.monotonic()
             if not complete:
                 break
@@ -293,10 +376,12 @@ def build_mesh(section_map: SectionMap, seeds, disturbances, box_size: float, me
         bar.close()
         pool.close()
     if path is not None:
-        _save_checkpoint(path, mesh_states, successors, box_size, len(values), earlier + time.perf_counter() - start)
+        _save_checkpoint(path, mesh_states, successors, box_size, len(values), earlier + time.perf_counter() - start,
+                         owners, samples_per_box)
     return ReachableMesh(np.array(mesh_states).reshape(-1, dim),
                          np.array(successors, dtype=np.int64).reshape(-1, len(values)), weights, box_size, mean, std,
-                         np.array(seed_ids, dtype=np.int64), complete, earlier + time.perf_counter() - start, settings)
+                         np.array(seed_ids, dtype=np.int64), complete, earlier + time.perf_counter() - start, settings,
+                         None if samples_per_box == 1 else np.array(owners, dtype=np.int64))
 
 
 @dataclass

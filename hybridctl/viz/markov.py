@@ -69,7 +69,7 @@ def plot_mesh_states(mesh, highlight=None, ax=None, path=None, share: float = 0.
 
     red = failure_states(mesh, share) if highlight is None else np.asarray(highlight, dtype=np.int64)
     fig, ax, own = _figure(ax)
-    x = mesh.states
+    x = mesh.representatives
     mask = np.zeros(mesh.size, dtype=bool)
     mask[red] = True
     if x.shape[1] == 1:
