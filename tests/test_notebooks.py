@@ -42,6 +42,7 @@ EXPECTED_LINES = {
         "hopper record: notebooks/data/ch5/hopper.json",            # the shipped Ch. 5 hopper record is read
         "hopper error record: notebooks/data/ch5/hopper_error.json",   # the mesh-error decomposition (issue 16)
         "Table 5.1 record: notebooks/data/ch5/table51.json",         # four training regimes' mesh sizes (issue 16)
+        "Ulam record: notebooks/data/ch5/hopper_ulam.json",          # several samples per box (issue 16)
     ],
     "05_analytic_policy_gradients.ipynb": [
         "balanced: True",                 # the shipped PAPG cart-pole swing-up + gate + LQR in Drake
@@ -56,6 +57,7 @@ EXPECTED_LINES = {
     "03_trajectory_dimension.ipynb": [
         "same curve: True",            # vectorised box count equals the thesis' dict of tuples
         "MuJoCo record: notebooks/data/ch4/results.json",   # the shipped Table 4.1 / 4.4 record is read
+        "Table 4.4 record: notebooks/data/ch4/table44.json",   # the grid-searched failure rates (issue 16)
     ],
 }
 

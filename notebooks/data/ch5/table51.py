@@ -42,27 +42,34 @@ REGIMES = {"standard": ("plain", "identity"), "fractal": ("plain", "mesh-upper")
            "standard noise": ("noise", "identity"), "fractal noise": ("noise", "mesh-upper")}
 
 
+def ars_command(hc: str, seed: int) -> list[str]:
+    """The ``hybridctl train ars`` prefix every run of a seed shares (Ch. 4's reduced scale)."""
+    return [hc, "train", "ars", "Hopper-v5", "--seed", str(seed), "--backend", "serial", "--quiet",
+            "--set", "n_directions=8", "--set", "top_directions=4", "--set", "reward_shift=1"]
+
+
+def train_regime(hc: str, seed: int, work: Path, folder: str, kind: str, post: str, pretrain: int,
+                 more: int) -> Path:
+    """Train (or resume) one continuation ``work/sSEED/FOLDER`` of the ``kind`` pretrain
+    (``plain`` or ``noise``) with post-processor ``post``; trains the pretrain first if missing.
+    Returns the final checkpoint dir. Also used by ``notebooks/data/ch4/table44.py``."""
+    extra = NOISE if kind == "noise" else []
+    base = work / f"s{seed}" / f"pretrain-{kind}"
+    if not (base / "eval.json").is_file():
+        subprocess.run([*ars_command(hc, seed), *extra, "--epochs", str(pretrain), "--out", str(base), "--resume"],
+                       check=True)
+    out = work / f"s{seed}" / folder
+    if not (out / "eval.json").is_file():
+        start = ["--resume"] if any(out.glob("checkpoint*")) else ["--init", str(base / "final")]
+        subprocess.run([*ars_command(hc, seed), *extra, "--epochs", str(pretrain + more), "--postprocess", post,
+                        "--out", str(out), *start], check=True)
+    return out / "final"
+
+
 def train(hc: str, seed: int, work: Path, pretrain: int, more: int) -> dict:
     """Train (or resume) the four regimes of one seed; returns regime -> final checkpoint dir."""
-    common = ["--seed", str(seed), "--backend", "serial", "--quiet", "--set", "n_directions=8",
-              "--set", "top_directions=4", "--set", "reward_shift=1"]
-    finals = {}
-    for kind in ("plain", "noise"):
-        extra = NOISE if kind == "noise" else []
-        out = work / f"s{seed}" / f"pretrain-{kind}"
-        if not (out / "eval.json").is_file():
-            subprocess.run([hc, "train", "ars", "Hopper-v5", *common, *extra, "--epochs", str(pretrain),
-                            "--out", str(out), "--resume"], check=True)
-    for regime, (kind, post) in REGIMES.items():
-        extra = NOISE if kind == "noise" else []
-        out = work / f"s{seed}" / regime.replace(" ", "-")
-        if not (out / "eval.json").is_file():
-            resume = any(out.glob("checkpoint*"))
-            start = ["--resume"] if resume else ["--init", str(work / f"s{seed}" / f"pretrain-{kind}" / "final")]
-            subprocess.run([hc, "train", "ars", "Hopper-v5", *common, *extra, "--epochs", str(pretrain + more),
-                            "--postprocess", post, "--out", str(out), *start], check=True)
-        finals[regime] = out / "final"
-    return finals
+    return {regime: train_regime(hc, seed, work, regime.replace(" ", "-"), kind, post, pretrain, more)
+            for regime, (kind, post) in REGIMES.items()}
 
 
 def meshes(policy_dir: Path, box_sizes, max_states: int, work: Path) -> dict:

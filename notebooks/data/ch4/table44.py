@@ -1,0 +1,238 @@
+"""Thesis Table 4.4 with its protocol, on the hopper: failure rates of identity against mesh post-processed
+ARS policies under action noise, observation noise and pushes.
+
+Protocol (thesis Sec. 4.4, Table 4.4):
+
+1. **Policies.** Per seed, ARS on ``Hopper-v5`` at Chapter 4's reduced scale (8 directions, best 4,
+   reward shift 1): ``P`` identity epochs, then ``C`` more epochs with ``identity``, ``mesh-lower``
+   or ``mesh-upper`` from that checkpoint (thesis: 750 + 250 at N 50 / b 20). They live in the
+   Table 5.1 work folder (``notebooks/data/ch5/table51_runs``, trained by the same function), where
+   ``standard`` is the identity run and ``fractal`` the mesh-upper one; ``mesh-lower`` is added.
+   A seed counts only if its identity policy hops (mean 1,000-step return >= ``--min-return``) and
+   survives undisturbed 10,000-step episodes (at most 10 % of ``--grid-episodes`` fail): a policy
+   that falls on its own would set the failure rate before any disturbance does.
+2. **Grid search.** For each disturbance kind, the identity policies of all counted seeds run
+   ``--grid-episodes`` episodes per seed of 10,000 steps at each level of a coarse grid; three
+   geometric points are then tried between the two levels that bracket 20 % failures. The level whose
+   pooled failure rate is closest to 0.2 is kept (thesis: "the parameter for which the identity post
+   processor failed in roughly 20 percent of cases").
+3. **Evaluation.** Every variant of every counted seed runs ``--episodes`` fresh episodes (other env
+   seeds than the grid search, so the chosen level's identity rate is not biased towards 0.2) of
+   10,000 steps at the chosen levels and without disturbance. Failure = early termination.
+   Reported: pooled failures with 95 % Wilson intervals, failures per seed, and in how many seeds the
+   post-processed policy failed less often than that seed's identity policy.
+
+Pushes follow the thesis: at every step with probability 0.2 (the thesis' rate) a force of fixed
+magnitude at a uniform random angle in the x-z plane on the torso; the magnitude is searched.
+HalfCheetah-v5 never terminates (no failure to count) and no Walker2d-v5 seed walked at this
+scale (README, Table 4.1), so this record covers the hopper only.
+
+usage: .venv/bin/python notebooks/data/ch4/table44.py --seeds 1 2 3 4 [--episodes 25] [--grid-episodes 10]
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[3]
+sys.path.insert(0, str(ROOT))
+from benchmarks.common import machine_info  # noqa: E402
+from hybridctl.learn import failure_rates  # noqa: E402
+from hybridctl.learn.ars import ARS  # noqa: E402
+from hybridctl.learn.robustness import wilson_interval  # noqa: E402
+
+_spec = importlib.util.spec_from_file_location("table51", ROOT / "notebooks/data/ch5/table51.py")
+table51 = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(table51)
+
+# variant -> (folder in the Table 5.1 work folder, post-processor of the continuation)
+VARIANTS = {"identity": ("standard", "identity"), "mesh-lower": ("mesh-lower", "mesh-lower"),
+            "mesh-upper": ("fractal", "mesh-upper")}
+PUSH_RATE = 0.2          # thesis Table 4.4 (c): rate .2 for every env
+# coarse grids (the thesis' hopper levels, 0.05 / 0.02 / 1 N, are in each)
+GRIDS = {"action_noise": [0.02, 0.05, 0.1, 0.2, 0.4], "obs_noise": [0.005, 0.01, 0.02, 0.05, 0.1],
+         "push": [1.0, 3.0, 10.0, 30.0, 100.0]}
+THESIS = {"action_noise": {"level": 0.05, "identity": 0.19, "mesh-lower": 0.10},
+          "obs_noise": {"level": 0.02, "identity": 0.20, "mesh-lower": 0.25},
+          "push": {"level": [1.0, 0.2], "identity": 0.17, "mesh-lower": 0.10}}
+TARGET = 0.2
+
+
+def condition(kind: str, level: float) -> dict:
+    """A failure_rates condition for one disturbance kind and level."""
+    return {"push": (PUSH_RATE, level)} if kind == "push" else {kind: level}
+
+
+def pooled(agents: dict, cond: dict, episodes: int, seed: int, workers: int) -> dict:
+    """Failures of each seed's policy under one condition, and the pooled rate with its interval."""
+    per_seed = {}
+    for s, agent in agents.items():
+        r = failure_rates(agent, conditions={"c": cond}, episodes=episodes, episode_steps=10_000,
+                          seed=seed + 1000 * s, backend="serial", workers=workers)["c"]
+        per_seed[str(s)] = {"failures": r["failures"], "mean_steps": r["mean_steps"], "mean_return": r["mean_return"]}
+    failures, n = sum(v["failures"] for v in per_seed.values()), episodes * len(agents)
+    return {"failures": failures, "episodes": n, "failure_rate": failures / n,
+            "interval95": wilson_interval(failures, n), "per_seed": per_seed}
+
+
+def grid_search(agents: dict, kind: str, episodes: int, seed: int, workers: int, log) -> dict:
+    """Coarse grid, then three geometric points inside the bracket of 20 %; keep the closest level."""
+    tried = {}
+
+    def run(level):
+        if level not in tried:
+            t = time.time()
+            tried[level] = pooled(agents, condition(kind, level), episodes, seed, workers)
+            log(f"  grid {kind} {level:g}: {tried[level]['failures']}/{tried[level]['episodes']} "
+                f"({time.time() - t:.0f} s)")
+        return tried[level]["failure_rate"]
+
+    for level in GRIDS[kind]:
+        run(level)
+    levels = sorted(tried)
+    below = [lv for lv in levels if tried[lv]["failure_rate"] <= TARGET]
+    above = [lv for lv in levels if tried[lv]["failure_rate"] > TARGET]
+    if below and above and max(below) < min(above):
+        lo, hi = max(below), min(above)
+        for f in (0.25, 0.5, 0.75):
+            run(float(f"{lo * (hi / lo) ** f:.3g}"))
+    best = min(tried, key=lambda lv: (abs(tried[lv]["failure_rate"] - TARGET), lv))
+    return {"chosen": best, "tried": {f"{lv:g}": tried[lv] for lv in sorted(tried)}}
+
+
+def summary(record: dict) -> dict:
+    """Per condition: pooled failure rate per variant, and seeds where a post-processor failed less."""
+    out = {}
+    for cname, rows in record["evaluation"].items():
+        entry = {v: {"failure_rate": r["failure_rate"], "interval95": r["interval95"], "failures": r["failures"],
+                     "episodes": r["episodes"]} for v, r in rows.items()}
+        ident = rows["identity"]["per_seed"]
+        for v in rows:
+            if v != "identity":
+                fewer = sum(rows[v]["per_seed"][s]["failures"] < ident[s]["failures"] for s in ident)
+                more = sum(rows[v]["per_seed"][s]["failures"] > ident[s]["failures"] for s in ident)
+                entry[v]["seeds_fewer_failures_than_identity"] = int(fewer)
+                entry[v]["seeds_more_failures_than_identity"] = int(more)
+        out[cname] = entry
+    return out
+
+
+def figure(record: dict, path: Path) -> None:
+    """Bars of the pooled failure rates with their 95 % intervals, one group per condition."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    conds = list(record["evaluation"])
+    fig, ax = plt.subplots(figsize=(8, 3.6))
+    width = 0.8 / len(VARIANTS)
+    for i, v in enumerate(VARIANTS):
+        rates = [record["evaluation"][c][v]["failure_rate"] for c in conds]
+        lo = [r - record["evaluation"][c][v]["interval95"][0] for c, r in zip(conds, rates)]
+        hi = [record["evaluation"][c][v]["interval95"][1] - r for c, r in zip(conds, rates)]
+        ax.bar(np.arange(len(conds)) + (i - 1) * width, rates, width, yerr=[lo, hi], capsize=3, label=v)
+    ax.axhline(TARGET, color="k", lw=0.7, ls=":")
+    ax.set_xticks(np.arange(len(conds)), conds, fontsize=8)
+    ax.set_ylabel("failure rate (10,000 steps)")
+    ax.set_title(f"Hopper-v5, {len(record['seeds'])} seeds x {record['episodes']} episodes, 95 % Wilson intervals")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--seeds", type=int, nargs="+", required=True)
+    parser.add_argument("--episodes", type=int, default=25, help="evaluation episodes per seed and condition")
+    parser.add_argument("--grid-episodes", type=int, default=10, help="grid-search episodes per seed and level")
+    parser.add_argument("--epochs", type=int, nargs=2, default=[100, 40], metavar=("P", "C"))
+    parser.add_argument("--min-return", type=float, default=2000.0,
+                        help="a seed counts if its identity policy's mean 1,000-step return reaches this")
+    parser.add_argument("--workers", type=int, default=1, help="MuJoCo threads of the batched stepper")
+    parser.add_argument("--work", default=str(ROOT / "notebooks/data/ch5/table51_runs"))
+    parser.add_argument("--out", default=str(Path(__file__).with_name("table44.json")))
+    args = parser.parse_args()
+    if min(args.episodes, args.grid_episodes) < 1:
+        parser.error("--episodes and --grid-episodes must be >= 1")
+    torch.set_num_threads(1)
+    hc = str(Path(sys.executable).with_name("hybridctl"))
+    work, out, start = Path(args.work), Path(args.out), time.time()
+
+    def log(msg):
+        print(f"[{time.time() - start:6.0f} s] {msg}", flush=True)
+
+    record = {"command": " ".join(["python", "notebooks/data/ch4/table44.py", *sys.argv[1:]]),
+              "machine": machine_info(), "episodes": args.episodes, "grid_episodes": args.grid_episodes,
+              "episode_steps": 10_000, "push_rate": PUSH_RATE, "thesis_hopper": THESIS,
+              "training": f"ARS Hopper-v5, 8 directions, best 4, reward shift 1, {args.epochs[0]} identity epochs "
+                          f"+ {args.epochs[1]} with the variant's post-processor (thesis 750 + 250, N 50 / b 20)",
+              "runs": {}}
+    agents = {v: {} for v in VARIANTS}
+    for seed in args.seeds:
+        for variant, (folder, post) in VARIANTS.items():
+            final = table51.train_regime(hc, seed, work, folder, "plain", post, *args.epochs)
+            agent = ARS.load(final, backend="serial")
+            evaluation = json.loads((final.parent / "eval.json").read_text())
+            progress = json.loads((final / "progress.json").read_text())
+            record["runs"][f"s{seed}/{variant}"] = {
+                "policy": str(final.relative_to(ROOT)) if final.is_absolute() else str(final),
+                "return": evaluation["mean_return"], "epochs": progress["epoch"],
+                "env_steps": progress["env_steps"], "train_wall_time_s": progress["wall_time"]}
+            agents[variant][seed] = agent
+        log(f"seed {seed}: " + ", ".join(f"{v} {record['runs'][f's{seed}/{v}']['return']:.0f}" for v in VARIANTS))
+    record["undisturbed_identity"] = {}
+    for s in args.seeds:
+        if record["runs"][f"s{s}/identity"]["return"] >= args.min_return:
+            record["undisturbed_identity"][str(s)] = pooled({s: agents["identity"][s]}, {}, args.grid_episodes, 1,
+                                                            args.workers)["failures"]
+    counted = [s for s in args.seeds if record["runs"][f"s{s}/identity"]["return"] >= args.min_return
+               and record["undisturbed_identity"][str(s)] <= 0.1 * args.grid_episodes]
+    record["seeds"] = counted
+    record["seeds_dropped"] = {
+        str(s): (f"identity return {record['runs'][f's{s}/identity']['return']:.0f} < {args.min_return:g}"
+                 if str(s) not in record["undisturbed_identity"] else
+                 f"identity fails {record['undisturbed_identity'][str(s)]}/{args.grid_episodes} undisturbed episodes")
+        for s in args.seeds if s not in counted}
+    log(f"seeds counted: {counted}; dropped: {record['seeds_dropped']}")
+    if len(counted) < 1:
+        raise SystemExit("no seed's identity policy hops; train more seeds")
+    agents = {v: {s: a for s, a in agents[v].items() if s in counted} for v in VARIANTS}
+
+    record["grid"] = {}
+    for kind in GRIDS:
+        log(f"grid search {kind}")
+        record["grid"][kind] = grid_search(agents["identity"], kind, args.grid_episodes, 1, args.workers, log)
+        out.write_text(json.dumps(record, indent=1) + "\n")
+    conditions = {"none": {}}
+    for kind, g in record["grid"].items():
+        name = f"push {g['chosen']:g} N at rate {PUSH_RATE:g}" if kind == "push" else \
+            f"{kind.replace('_', ' ').replace('obs', 'observation')} {g['chosen']:g}"
+        conditions[name] = condition(kind, g["chosen"])
+    record["evaluation"] = {}
+    for cname, cond in conditions.items():
+        record["evaluation"][cname] = {}
+        for variant in VARIANTS:
+            t = time.time()
+            r = pooled(agents[variant], cond, args.episodes, 2, args.workers)   # eval seeds differ from the grid's
+            record["evaluation"][cname][variant] = {"condition": cond, **r}
+            log(f"{cname} {variant}: {r['failures']}/{r['episodes']} "
+                f"{[v['failures'] for v in r['per_seed'].values()]} ({time.time() - t:.0f} s)")
+        out.write_text(json.dumps(record, indent=1) + "\n")
+    record["table"] = summary(record)
+    record["wall_time_s"] = time.time() - start
+    out.write_text(json.dumps(record, indent=1) + "\n")
+    figure(record, out.with_suffix(".png"))
+    log(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
