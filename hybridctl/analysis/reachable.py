@@ -90,8 +90,10 @@ class ReachableMesh:
         states have no rows.
         """
         if not self.complete:
-            raise ValueError(f"the mesh is incomplete: {self.size - self.successors.shape[0]} of {self.size} states "
-                             f"were never expanded (max_states reached); use a larger box_size or max_states")
+            # rows of `states` (with owners: samples) that were never expanded
+            raise ValueError(f"the mesh is incomplete: {self.states.shape[0] - self.successors.shape[0]} of "
+                             f"{self.states.shape[0]} states were never expanded (max_states reached); use a larger "
+                             f"box_size or max_states")
         n, k = self.successors.shape
         if self.owners is None:
             rows = np.repeat(np.arange(1, n + 1), k)
