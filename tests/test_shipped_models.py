@@ -131,7 +131,11 @@ def test_shipped_ssac_cartpole_reproduces_its_evaluation_and_balances_from_hangi
     path = POLICIES / "ssac-cartpole"
     recorded = json.loads((ROOT / "notebooks" / "data" / "ch3" / "cartpole" / "eval.json").read_text())
     result = SSAC.load(path).evaluate(episodes=recorded["episodes"], seed=recorded["seed"])
-    assert result["mean_return"] == pytest.approx(recorded["mean_return"], abs=1e-6)
+    # the same scheme as the SB3 returns above: the VM of 2026-12-02 18:20 UTC (Xeon, AVX-512) gives
+    # 165.81803863 against the recorded 165.81804083 (2.2e-6, relative 1.3e-8), also at the commit that
+    # shipped it: last-bit kernel differences through 100 chaotic 200-step episodes. A wrong reader or
+    # policy is off by > 1e-2.
+    assert result["mean_return"] == pytest.approx(recorded["mean_return"], rel=1e-7, abs=1e-6)
     assert result["success_rate"] == pytest.approx(recorded["success_rate"])
     cartpole = systems.load("cartpole")                    # the deployed plant: the spec's own reward and starts
     traj = drake.simulate(experiments.build_named_diagram(cartpole, f"ssac:{path}"), np.zeros(4), duration=10.0)
