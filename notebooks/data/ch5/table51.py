@@ -16,7 +16,10 @@ steps) is recorded as such and gets no mesh. Training and meshes resume from the
 checkpoints under ``--work``; the record (``table51.json`` here) is rewritten after each step.
 
 usage: .venv/bin/python notebooks/data/ch5/table51.py --seeds 1 2 [--box-sizes 0.4 0.3 0.2]
-       [--max-states 20000] [--epochs 100 40]
+       [--max-states 20000] [--epochs 100 40] [--out RECORD] [--merge RECORD ...]
+Two processes can share the work folder on different seeds with their own ``--out``; then
+``table51.py --merge A.json B.json`` copies their runs into the record and rewrites the summary
+(per-regime means and medians, per-seed sign tests against the thesis' claims, ``table51.png``).
 """
 
 from __future__ import annotations
@@ -98,18 +101,30 @@ def meshes(policy_dir: Path, box_sizes, max_states: int, work: Path) -> dict:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--seeds", type=int, nargs="+", required=True)
+    parser.add_argument("--seeds", type=int, nargs="*", default=[],
+                        help="seeds to train (what is missing) and mesh; none: only --merge and rewrite the summary")
     parser.add_argument("--box-sizes", type=float, nargs="+", default=[0.4, 0.3, 0.2])
     parser.add_argument("--max-states", type=int, default=20000)
     parser.add_argument("--epochs", type=int, nargs=2, default=[100, 40], metavar=("P", "C"))
     parser.add_argument("--work", default="runs/ch5/table51")
     parser.add_argument("--out", default=str(Path(__file__).with_name("table51.json")))
+    parser.add_argument("--merge", nargs="+", default=[], metavar="RECORD",
+                        help="runs of other records (e.g. two processes' --out files) to copy into --out first")
     args = parser.parse_args()
+    if not (args.seeds or args.merge):
+        parser.error("give --seeds to run or --merge records to combine")
     torch.set_num_threads(1)
     hc = str(Path(sys.executable).with_name("hybridctl"))
     work = Path(args.work)
     out = Path(args.out)
     record = json.loads(out.read_text()) if out.is_file() else {"runs": {}}
+    # every command that wrote runs into this record, oldest first (a merge brings its sources' commands)
+    commands = record.get("commands", [record["command"]] if "command" in record else [])
+    for other in args.merge:
+        merged = json.loads(Path(other).read_text())
+        record["runs"].update(merged["runs"])
+        commands += [c for c in merged.get("commands", [merged.get("command")]) if c and c not in commands]
+    record["commands"] = commands + ["python " + " ".join(sys.argv)]
     record.update({"command": "python " + " ".join(sys.argv), "machine": machine_info(),
                    "pushes": "25 along x in [-15, 15] N (thesis Table 5.1)", "epochs": args.epochs,
                    "ars": "8 directions, best 4, reward shift 1, step 0.02, noise 0.025 (Ch. 4 reduced scale)",
@@ -127,12 +142,18 @@ def main() -> int:
             print(json.dumps(record["runs"][key]), flush=True)
             out.write_text(json.dumps(record, indent=1) + "\n")
     record["table"] = table(record)
+    record["paired"] = paired(record)
     out.write_text(json.dumps(record, indent=1) + "\n")
+    plot(record, out.with_suffix(".png"))
     return 0
 
 
 def table(record: dict) -> dict:
-    """Mean mesh size per regime and box size over the seeds whose policy hops (complete meshes only)."""
+    """Mesh size per regime and box size over the seeds whose policy hops.
+
+    ``mean_states`` is None where a mesh stopped at ``--max-states`` (its size is then only a
+    lower bound, kept in ``lower_bound_mean``); ``median_states`` stays exact while fewer than
+    half the meshes stopped."""
     out = {}
     for regime in REGIMES:
         rows = [r for r in record["runs"].values() if r["regime"] == regime]
@@ -140,11 +161,103 @@ def table(record: dict) -> dict:
         for r in rows:
             for m in r.get("meshes", []):
                 sizes.setdefault(f"{m['box_size']:g}", []).append(m["states"] if m["complete"] else None)
+        capped = {d: [m["states"] for r in rows for m in r.get("meshes", []) if f"{m['box_size']:g}" == d]
+                  for d in sizes}
         out[regime] = {"seeds": len(rows), "hopping": sum(bool(r.get("hops")) for r in rows),
                        "mean_states": {d: (float(np.mean(v)) if v and None not in v else None)
                                        for d, v in sizes.items()},
+                       "lower_bound_mean": {d: float(np.mean(v)) for d, v in capped.items() if v},
+                       "median_states": {d: _median(v) for d, v in sizes.items()},
+                       # a small mesh can also mean a policy that falls: count the meshes with a failing push
+                       "meshes_with_failures": {d: sum(m["transitions_to_failure"] > 0 for r in rows
+                                                       for m in r.get("meshes", []) if f"{m['box_size']:g}" == d)
+                                                for d in sizes},
                        "states": sizes}
     return out
+
+
+def _median(values: list) -> float | None:
+    """Median where stopped meshes (None) count as larger than every complete one; None if that
+    leaves the median undetermined."""
+    ordered = sorted(v for v in values if v is not None) + [None] * values.count(None)
+    if not ordered:
+        return None
+    middle = ordered[(len(ordered) - 1) // 2: len(ordered) // 2 + 1]
+    return None if None in middle else float(np.mean(middle))
+
+
+def mesh_sizes(record: dict) -> dict:
+    """(seed, regime, box size) -> (states, complete) for every hopping policy's mesh."""
+    return {(r["seed"], r["regime"], f"{m['box_size']:g}"): (m["states"], m["complete"])
+            for r in record["runs"].values() if r.get("hops") for m in r.get("meshes", [])}
+
+
+def paired(record: dict) -> dict:
+    """Per-seed comparisons behind the thesis' claims (Sec. 5.4.1: noise shrinks the mesh, the fractal
+    reward shrinks it more, both together most), as sign tests over the seeds where both meshes exist.
+
+    A stopped mesh is a lower bound: it counts as larger than a complete one below it; a pair it
+    leaves undecided is dropped. ``log_ratio_mean`` is the mean of log(states / baseline states)
+    over the decided pairs of complete meshes (exp of it: the geometric-mean ratio)."""
+    from scipy.stats import binomtest
+    sizes = mesh_sizes(record)
+    seeds = sorted({k[0] for k in sizes})
+    boxes = sorted({k[2] for k in sizes}, key=float, reverse=True)
+    comparisons = [("standard noise", "standard"), ("fractal", "standard"), ("fractal noise", "standard"),
+                   ("fractal noise", "standard noise"), ("fractal noise", "fractal")]
+    out = []
+    for regime, baseline in comparisons:
+        for d in boxes:
+            smaller = larger = ties = 0
+            logs = []
+            for seed in seeds:
+                a, b = sizes.get((seed, regime, d)), sizes.get((seed, baseline, d))
+                if a is None or b is None:
+                    continue
+                (na, ca), (nb, cb) = a, b
+                if ca and cb:
+                    smaller, larger, ties = smaller + (na < nb), larger + (na > nb), ties + (na == nb)
+                    logs.append(float(np.log(na / nb)))
+                elif ca and na < nb:      # b stopped at nb states: it is larger still
+                    smaller += 1
+                elif cb and nb < na:
+                    larger += 1
+            decided = smaller + larger
+            out.append({"regime": regime, "baseline": baseline, "box_size": d, "smaller": smaller,
+                        "larger": larger, "ties": ties,
+                        "sign_test_p": float(binomtest(smaller, decided).pvalue) if decided else None,
+                        "geometric_mean_ratio": float(np.exp(np.mean(logs))) if logs else None})
+    return out
+
+
+def plot(record: dict, path: Path) -> None:
+    """Mesh size per regime, one line per seed (log scale), one panel per box size."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    sizes = mesh_sizes(record)
+    boxes = sorted({k[2] for k in sizes}, key=float, reverse=True)
+    seeds = sorted({k[0] for k in sizes})
+    regimes = ["standard", "standard noise", "fractal", "fractal noise"]     # the thesis' row order
+    fig, axes = plt.subplots(1, len(boxes), figsize=(4.2 * len(boxes), 4.0), sharey=True, squeeze=False)
+    for ax, d in zip(axes[0], boxes):
+        for seed in seeds:
+            pts = [(i, *sizes[(seed, r, d)]) for i, r in enumerate(regimes) if (seed, r, d) in sizes]
+            ax.plot([p[0] for p in pts], [p[1] for p in pts], "-", color="0.75", lw=0.8)
+            ax.scatter([p[0] for p in pts], [p[1] for p in pts], s=14,
+                       c=["C0" if p[2] else "C3" for p in pts], zorder=3)
+        for i, r in enumerate(regimes):
+            median = record["table"][r]["median_states"].get(d)
+            if median is not None:
+                ax.plot([i - 0.3, i + 0.3], [median, median], "k-", lw=2)
+        ax.set(yscale="log", title=f"box size {d}", xticks=range(len(regimes)))
+        ax.set_xticklabels([r.replace(" ", "\n") for r in regimes])
+    axes[0][0].set_ylabel("reachable mesh states (red: stopped at the cap)")
+    fig.suptitle(f"Table 5.1: hopper meshes, 25 pushes of +-15 N, {len(seeds)} seeds (lines: one seed; bars: median)",
+                 fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
 
 
 if __name__ == "__main__":
