@@ -1,5 +1,5 @@
-"""Thesis Table 4.4 with its protocol, on the hopper: failure rates of identity against mesh post-processed
-ARS policies under action noise, observation noise and pushes.
+"""Thesis Table 4.4 with its protocol, on the hopper (and the walker): failure rates of identity against
+mesh post-processed ARS policies under action noise, observation noise and pushes.
 
 Protocol (thesis Sec. 4.4, Table 4.4):
 
@@ -24,10 +24,13 @@ Protocol (thesis Sec. 4.4, Table 4.4):
 
 Pushes follow the thesis: at every step with probability 0.2 (the thesis' rate) a force of fixed
 magnitude at a uniform random angle in the x-z plane on the torso; the magnitude is searched.
-HalfCheetah-v5 never terminates (no failure to count) and no Walker2d-v5 seed walked at this
-scale (README, Table 4.1), so this record covers the hopper only.
+HalfCheetah-v5 never terminates (no failure to count). No Walker2d-v5 seed walked at Chapter 4's
+scale (README, Table 4.1); ``--env Walker2d-v5`` takes the seeds ``walker_seeds.py`` trained with
+Mania et al.'s Walker2d settings (150 identity epochs, then 40 with each variant; grids hold the
+thesis' walker levels 0.15 / 0.03 / 1 N) and writes ``table44-walker2d.json``.
 
-usage: .venv/bin/python notebooks/data/ch4/table44.py --seeds 1 2 3 4 [--episodes 25] [--grid-episodes 10]
+usage: .venv/bin/python notebooks/data/ch4/table44.py --seeds 1 2 3 4 [--env Walker2d-v5] [--episodes 25]
+       [--grid-episodes 10]
 """
 
 from __future__ import annotations
@@ -57,12 +60,25 @@ _spec.loader.exec_module(table51)
 VARIANTS = {"identity": ("standard", "identity"), "mesh-lower": ("mesh-lower", "mesh-lower"),
             "mesh-upper": ("fractal", "mesh-upper")}
 PUSH_RATE = 0.2          # thesis Table 4.4 (c): rate .2 for every env
-# coarse grids (the thesis' hopper levels, 0.05 / 0.02 / 1 N, are in each)
-GRIDS = {"action_noise": [0.02, 0.05, 0.1, 0.2, 0.4], "obs_noise": [0.005, 0.01, 0.02, 0.05, 0.1],
-         "push": [1.0, 3.0, 10.0, 30.0, 100.0]}
-THESIS = {"action_noise": {"level": 0.05, "identity": 0.19, "mesh-lower": 0.10},
-          "obs_noise": {"level": 0.02, "identity": 0.20, "mesh-lower": 0.25},
-          "push": {"level": [1.0, 0.2], "identity": 0.17, "mesh-lower": 0.10}}
+# Per env: coarse grids (each holds the thesis' level for that env), the thesis' Table 4.4 row,
+# the work folder that holds (or gets) the policies, the epochs P + C and the record.
+ENVS = {
+    "Hopper-v5": {
+        "grids": {"action_noise": [0.02, 0.05, 0.1, 0.2, 0.4], "obs_noise": [0.005, 0.01, 0.02, 0.05, 0.1],
+                  "push": [1.0, 3.0, 10.0, 30.0, 100.0]},
+        "thesis": {"action_noise": {"level": 0.05, "identity": 0.19, "mesh-lower": 0.10},
+                   "obs_noise": {"level": 0.02, "identity": 0.20, "mesh-lower": 0.25},
+                   "push": {"level": [1.0, 0.2], "identity": 0.17, "mesh-lower": 0.10}},
+        "work": "notebooks/data/ch5/table51_runs", "epochs": [100, 40], "out": "table44.json"},
+    "Walker2d-v5": {
+        "grids": {"action_noise": [0.05, 0.15, 0.3, 0.6, 1.0], "obs_noise": [0.01, 0.03, 0.1, 0.3],
+                  "push": [1.0, 3.0, 10.0, 30.0, 100.0]},
+        "thesis": {"action_noise": {"level": 0.15, "identity": 0.28, "mesh-lower": 0.03},
+                   "obs_noise": {"level": 0.03, "identity": 0.18, "mesh-lower": 0.10},
+                   "push": {"level": [1.0, 0.2], "identity": 0.20, "mesh-lower": 0.00}},
+        # the seeds walker_seeds.py trained (Mania et al.'s Walker2d settings, table51.ARS_SETTINGS)
+        "work": "notebooks/data/ch4/walker_runs", "epochs": [150, 40], "out": "table44-walker2d.json"},
+}
 TARGET = 0.2
 
 
@@ -83,7 +99,7 @@ def pooled(agents: dict, cond: dict, episodes: int, seed: int, workers: int) -> 
             "interval95": wilson_interval(failures, n), "per_seed": per_seed}
 
 
-def grid_search(agents: dict, kind: str, episodes: int, seed: int, workers: int, log) -> dict:
+def grid_search(agents: dict, kind: str, grid: list, episodes: int, seed: int, workers: int, log) -> dict:
     """Coarse grid, then three geometric points inside the bracket of 20 %; keep the closest level."""
     tried = {}
 
@@ -95,7 +111,7 @@ def grid_search(agents: dict, kind: str, episodes: int, seed: int, workers: int,
                 f"({time.time() - t:.0f} s)")
         return tried[level]["failure_rate"]
 
-    for level in GRIDS[kind]:
+    for level in grid:
         run(level)
     levels = sorted(tried)
     below = [lv for lv in levels if tried[lv]["failure_rate"] <= TARGET]
@@ -141,7 +157,8 @@ def figure(record: dict, path: Path) -> None:
     ax.axhline(TARGET, color="k", lw=0.7, ls=":")
     ax.set_xticks(np.arange(len(conds)), conds, fontsize=8)
     ax.set_ylabel("failure rate (10,000 steps)")
-    ax.set_title(f"Hopper-v5, {len(record['seeds'])} seeds x {record['episodes']} episodes, 95 % Wilson intervals")
+    ax.set_title(f"{record.get('env', 'Hopper-v5')}, {len(record['seeds'])} seeds x {record['episodes']} episodes, "
+                 "95 % Wilson intervals")
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
@@ -150,18 +167,23 @@ def figure(record: dict, path: Path) -> None:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--env", choices=list(ENVS), default="Hopper-v5")
     parser.add_argument("--seeds", type=int, nargs="+", required=True)
     parser.add_argument("--episodes", type=int, default=25, help="evaluation episodes per seed and condition")
     parser.add_argument("--grid-episodes", type=int, default=10, help="grid-search episodes per seed and level")
-    parser.add_argument("--epochs", type=int, nargs=2, default=[100, 40], metavar=("P", "C"))
+    parser.add_argument("--epochs", type=int, nargs=2, metavar=("P", "C"), help="default: the env's (ENVS)")
     parser.add_argument("--min-return", type=float, default=2000.0,
                         help="a seed counts if its identity policy's mean 1,000-step return reaches this")
     parser.add_argument("--workers", type=int, default=1, help="MuJoCo threads of the batched stepper")
-    parser.add_argument("--work", default=str(ROOT / "notebooks/data/ch5/table51_runs"))
-    parser.add_argument("--out", default=str(Path(__file__).with_name("table44.json")))
+    parser.add_argument("--work", help="default: the env's (ENVS)")
+    parser.add_argument("--out", help="default: table44.json (hopper) or table44-walker2d.json here")
     args = parser.parse_args()
     if min(args.episodes, args.grid_episodes) < 1:
         parser.error("--episodes and --grid-episodes must be >= 1")
+    profile = ENVS[args.env]
+    args.epochs = args.epochs or profile["epochs"]
+    args.work = args.work or str(ROOT / profile["work"])
+    args.out = args.out or str(Path(__file__).with_name(profile["out"]))
     torch.set_num_threads(1)
     hc = str(Path(sys.executable).with_name("hybridctl"))
     work, out, start = Path(args.work), Path(args.out), time.time()
@@ -171,19 +193,20 @@ def main() -> int:
 
     record = {"command": " ".join(["python", "notebooks/data/ch4/table44.py", *sys.argv[1:]]),
               "machine": machine_info(), "episodes": args.episodes, "grid_episodes": args.grid_episodes,
-              "episode_steps": 10_000, "push_rate": PUSH_RATE, "thesis_hopper": THESIS,
-              "training": f"ARS Hopper-v5, 8 directions, best 4, reward shift 1, {args.epochs[0]} identity epochs "
-                          f"+ {args.epochs[1]} with the variant's post-processor (thesis 750 + 250, N 50 / b 20)",
+              "episode_steps": 10_000, "push_rate": PUSH_RATE, "env": args.env,
+              f"thesis_{args.env.split('-')[0].lower()}": profile["thesis"],
+              "training": f"ARS {args.env}, {', '.join(table51.ARS_SETTINGS[args.env])}, {args.epochs[0]} identity "
+                          f"epochs + {args.epochs[1]} with the variant's post-processor (thesis 750 + 250, N 50 / b 20)",
               "runs": {}}
     agents = {v: {} for v in VARIANTS}
     for seed in args.seeds:
         for variant, (folder, post) in VARIANTS.items():
-            final = table51.train_regime(hc, seed, work, folder, "plain", post, *args.epochs)
+            final = table51.train_regime(hc, seed, work, folder, "plain", post, *args.epochs, env=args.env)
             agent = ARS.load(final, backend="serial")
             evaluation = json.loads((final.parent / "eval.json").read_text())
             progress = json.loads((final / "progress.json").read_text())
             record["runs"][f"s{seed}/{variant}"] = {
-                "policy": str(final.relative_to(ROOT)) if final.is_absolute() else str(final),
+                "policy": str(final.relative_to(ROOT)) if final.is_relative_to(ROOT) else str(final),
                 "return": evaluation["mean_return"], "epochs": progress["epoch"],
                 "env_steps": progress["env_steps"], "train_wall_time_s": progress["wall_time"]}
             agents[variant][seed] = agent
@@ -203,13 +226,13 @@ def main() -> int:
         for s in args.seeds if s not in counted}
     log(f"seeds counted: {counted}; dropped: {record['seeds_dropped']}")
     if len(counted) < 1:
-        raise SystemExit("no seed's identity policy hops; train more seeds")
+        raise SystemExit(f"no seed's identity policy moves on {args.env}; train more seeds")
     agents = {v: {s: a for s, a in agents[v].items() if s in counted} for v in VARIANTS}
 
     record["grid"] = {}
-    for kind in GRIDS:
+    for kind, grid in profile["grids"].items():
         log(f"grid search {kind}")
-        record["grid"][kind] = grid_search(agents["identity"], kind, args.grid_episodes, 1, args.workers, log)
+        record["grid"][kind] = grid_search(agents["identity"], kind, grid, args.grid_episodes, 1, args.workers, log)
         out.write_text(json.dumps(record, indent=1) + "\n")
     conditions = {"none": {}}
     for kind, g in record["grid"].items():

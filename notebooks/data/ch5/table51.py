@@ -45,26 +45,46 @@ REGIMES = {"standard": ("plain", "identity"), "fractal": ("plain", "mesh-upper")
            "standard noise": ("noise", "identity"), "fractal noise": ("noise", "mesh-upper")}
 
 
-def ars_command(hc: str, seed: int) -> list[str]:
-    """The ``hybridctl train ars`` prefix every run of a seed shares (Ch. 4's reduced scale)."""
-    return [hc, "train", "ars", "Hopper-v5", "--seed", str(seed), "--backend", "serial", "--quiet",
-            "--set", "n_directions=8", "--set", "top_directions=4", "--set", "reward_shift=1"]
+# ARS V2-t settings per env (every other field: ARSConfig's thesis values, step 0.02 and noise 0.025)
+ARS_SETTINGS = {
+    # Chapter 4's reduced scale (notebooks/data/ch4/run_table41.sh): N 8 / b 4 as Mania et al. 2018
+    # Table 9 for Hopper, their reward shift 1 (thesis: N 50 / b 20)
+    "Hopper-v5": ["n_directions=8", "top_directions=4", "reward_shift=1"],
+    # Mania et al. 2018 Table 9, Walker2d-v1 (at N 8 / b 4 no seed walked: README, Table 4.1)
+    "Walker2d-v5": ["n_directions=40", "top_directions=30", "step_size=0.03", "noise=0.025", "reward_shift=1"],
+}
+
+
+def ars_command(hc: str, seed: int, env: str = "Hopper-v5") -> list[str]:
+    """The ``hybridctl train ars`` prefix every run of a seed shares (``ARS_SETTINGS[env]``)."""
+    return [hc, "train", "ars", env, "--seed", str(seed), "--backend", "serial", "--quiet",
+            *[arg for setting in ARS_SETTINGS[env] for arg in ("--set", setting)]]
+
+
+def train_pretrain(hc: str, seed: int, work: Path, kind: str, epochs: int, env: str = "Hopper-v5") -> Path:
+    """Train (or resume, or extend to more ``epochs``) the identity pretrain ``work/sSEED/pretrain-KIND``
+    (``plain``, or ``noise`` with the thesis' training noise); returns its folder."""
+    extra = NOISE if kind == "noise" else []
+    base = work / f"s{seed}" / f"pretrain-{kind}"
+    progress = base / "final" / "progress.json"
+    if not (progress.is_file() and (base / "eval.json").is_file()
+            and json.loads(progress.read_text())["epoch"] >= epochs):
+        subprocess.run([*ars_command(hc, seed, env), *extra, "--epochs", str(epochs), "--out", str(base), "--resume"],
+                       check=True)
+    return base
 
 
 def train_regime(hc: str, seed: int, work: Path, folder: str, kind: str, post: str, pretrain: int,
-                 more: int) -> Path:
+                 more: int, env: str = "Hopper-v5") -> Path:
     """Train (or resume) one continuation ``work/sSEED/FOLDER`` of the ``kind`` pretrain
     (``plain`` or ``noise``) with post-processor ``post``; trains the pretrain first if missing.
     Returns the final checkpoint dir. Also used by ``notebooks/data/ch4/table44.py``."""
     extra = NOISE if kind == "noise" else []
-    base = work / f"s{seed}" / f"pretrain-{kind}"
-    if not (base / "eval.json").is_file():
-        subprocess.run([*ars_command(hc, seed), *extra, "--epochs", str(pretrain), "--out", str(base), "--resume"],
-                       check=True)
+    base = train_pretrain(hc, seed, work, kind, pretrain, env)
     out = work / f"s{seed}" / folder
     if not (out / "eval.json").is_file():
         start = ["--resume"] if any(out.glob("checkpoint*")) else ["--init", str(base / "final")]
-        subprocess.run([*ars_command(hc, seed), *extra, "--epochs", str(pretrain + more), "--postprocess", post,
+        subprocess.run([*ars_command(hc, seed, env), *extra, "--epochs", str(pretrain + more), "--postprocess", post,
                         "--out", str(out), *start], check=True)
     return out / "final"
 
