@@ -58,6 +58,7 @@ EXPECTED_LINES = {
         "same curve: True",            # vectorised box count equals the thesis' dict of tuples
         "MuJoCo record: notebooks/data/ch4/results.json",   # the shipped Table 4.1 / 4.4 record is read
         "Table 4.4 record: notebooks/data/ch4/table44.json",   # the grid-searched failure rates (issue 16)
+        "Walker2d seeds record: notebooks/data/ch4/walker_seeds.json",   # the walker seeds for Table 4.4
     ],
 }
 
