@@ -29,7 +29,8 @@ This script measures them per box size against one recorded Monte Carlo run of t
 - transients (3): ``mesh_mfpt_seeds`` (from the seeds) against ``mesh_mfpt_quasi_stationary``.
 
 usage: .venv/bin/python notebooks/data/ch5/hopper_error.py [--box-sizes 1 0.7 0.5 0.35 0.25]
-       [--episodes 200] [--jitter-episodes 100]
+       [--episodes 200] [--jitter-episodes 100] [--keep-rows]
+``--keep-rows --box-sizes 0.18`` adds a finer row to the record and keeps the others.
 Checkpoints (meshes, recorded runs) go to ``--work`` (runs/ch5/error) and are reused.
 Writes ``hopper_error.json`` and ``hopper_error.png`` here.
 """
@@ -199,6 +200,19 @@ def spread(states: np.ndarray, weights: np.ndarray, centre: np.ndarray, std: np.
     return float(np.sqrt(np.sum(weights * r2) / np.sum(weights)))
 
 
+def kept_rows(path: Path, record: dict, box_sizes) -> list:
+    """The rows of the record at ``path`` for box sizes not rebuilt now; refuses a record of another
+    policy, push set or seed count, whose rows would not be comparable."""
+    if not path.is_file():
+        return []
+    old = json.loads(path.read_text())
+    for key in ("policy", "push_magnitude_N", "pushes", "seed_apexes"):
+        if old.get(key) != record[key]:
+            raise SystemExit(f"--keep-rows: {path} has {key} = {old.get(key)!r}, this run {record[key]!r}")
+    record.setdefault("kept_rows_from", old["command"])
+    return [r for r in old["rows"] if not any(np.isclose(r["box_size"], d) for d in box_sizes)]
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--policy", default=str(ROOT / "models" / "policies" / "ars-hopper"))
@@ -211,6 +225,9 @@ def main() -> int:
     parser.add_argument("--max-hops", type=int, default=1500)
     parser.add_argument("--work", default="runs/ch5/error")
     parser.add_argument("--out", default=str(Path(__file__).with_name("hopper_error.json")))
+    parser.add_argument("--keep-rows", action="store_true",
+                        help="keep the rows of --out whose box size is not in --box-sizes (same policy and pushes), "
+                             "so a finer mesh is added without rebuilding the coarser ones")
     args = parser.parse_args()
     torch.set_num_threads(1)
     work = Path(args.work)
@@ -225,6 +242,7 @@ def main() -> int:
               "push_magnitude_N": args.magnitude, "pushes": args.pushes, "seed_apexes": int(len(seeds)),
               "monte_carlo_seed1": json.loads(Path(__file__).with_name("hopper.json").read_text())["monte_carlo"],
               "rows": []}
+    kept = kept_rows(Path(args.out), record, args.box_sizes) if args.keep_rows else []
     runs, wall = cached_runs(work / "mc-seed2.npz", section=section, seeds=seeds, pushes=pushes,
                              episodes=args.episodes, max_hops=args.max_hops, seed=2)
     record["monte_carlo_seed2"] = {**interval(runs["steps"]), "censored": runs["censored"],
@@ -255,6 +273,7 @@ def main() -> int:
         row["jitter"] = {**interval(jruns["steps"]), "censored": jruns["censored"], "wall_time_s": jwall}
         record["rows"].append(finite(row))
         print(json.dumps(record["rows"][-1]), flush=True)
+        record["rows"] = sorted(kept + [r for r in record["rows"] if r not in kept], key=lambda r: -r["box_size"])
         record["wall_time_s"] = time.perf_counter() - start
         Path(args.out).write_text(json.dumps(record, indent=1, allow_nan=False) + "\n")
     plot(record, Path(args.out).with_suffix(".png"))
