@@ -30,7 +30,7 @@ Mania et al.'s Walker2d settings (150 identity epochs, then 40 with each variant
 thesis' walker levels 0.15 / 0.03 / 1 N) and writes ``table44-walker2d.json``.
 
 usage: .venv/bin/python notebooks/data/ch4/table44.py --seeds 1 2 3 4 [--env Walker2d-v5] [--episodes 25]
-       [--grid-episodes 10]
+       [--grid-episodes 10] [--train-only]
 """
 
 from __future__ import annotations
@@ -175,6 +175,8 @@ def main() -> int:
     parser.add_argument("--min-return", type=float, default=2000.0,
                         help="a seed counts if its identity policy's mean 1,000-step return reaches this")
     parser.add_argument("--workers", type=int, default=1, help="MuJoCo threads of the batched stepper")
+    parser.add_argument("--train-only", action="store_true",
+                        help="train (or resume) the seeds' variants and stop: no grid search, no record")
     parser.add_argument("--work", help="default: the env's (ENVS)")
     parser.add_argument("--out", help="default: table44.json (hopper) or table44-walker2d.json here")
     args = parser.parse_args()
@@ -211,6 +213,8 @@ def main() -> int:
                 "env_steps": progress["env_steps"], "train_wall_time_s": progress["wall_time"]}
             agents[variant][seed] = agent
         log(f"seed {seed}: " + ", ".join(f"{v} {record['runs'][f's{seed}/{v}']['return']:.0f}" for v in VARIANTS))
+    if args.train_only:
+        return 0
     record["undisturbed_identity"] = {}
     for s in args.seeds:
         if record["runs"][f"s{s}/identity"]["return"] >= args.min_return:

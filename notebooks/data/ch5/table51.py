@@ -168,22 +168,36 @@ def main() -> int:
     return 0
 
 
+# A policy counts in the summary if it hops and its mean 1,000-step return reaches this (table44.py's bar):
+# a policy that falls at the first push has a mesh of a few states, which is no sign of robustness.
+MIN_RETURN = 2000.0
+
+
+def counted(run: dict) -> bool:
+    """Whether a run enters the summary: it hops and reaches MIN_RETURN."""
+    return bool(run.get("hops")) and run["return"] >= MIN_RETURN
+
+
 def table(record: dict) -> dict:
-    """Mesh size per regime and box size over the seeds whose policy hops.
+    """Mesh size per regime and box size over the seeds whose policy counts (:func:`counted`).
 
     ``mean_states`` is None where a mesh stopped at ``--max-states`` (its size is then only a
     lower bound, kept in ``lower_bound_mean``); ``median_states`` stays exact while fewer than
     half the meshes stopped."""
     out = {}
     for regime in REGIMES:
-        rows = [r for r in record["runs"].values() if r["regime"] == regime]
+        every = [r for r in record["runs"].values() if r["regime"] == regime]
+        rows = [r for r in every if counted(r)]
         sizes: dict[str, list] = {}
         for r in rows:
             for m in r.get("meshes", []):
                 sizes.setdefault(f"{m['box_size']:g}", []).append(m["states"] if m["complete"] else None)
         capped = {d: [m["states"] for r in rows for m in r.get("meshes", []) if f"{m['box_size']:g}" == d]
                   for d in sizes}
-        out[regime] = {"seeds": len(rows), "hopping": sum(bool(r.get("hops")) for r in rows),
+        out[regime] = {"seeds": len(every), "hopping": sum(bool(r.get("hops")) for r in every), "counted": len(rows),
+                       "excluded": {f"s{r['seed']}": ("does not hop" if not r.get("hops") else
+                                                      f"return {r['return']:.0f} < {MIN_RETURN:g}")
+                                    for r in every if not counted(r)},
                        "mean_states": {d: (float(np.mean(v)) if v and None not in v else None)
                                        for d, v in sizes.items()},
                        "lower_bound_mean": {d: float(np.mean(v)) for d, v in capped.items() if v},
@@ -207,9 +221,9 @@ def _median(values: list) -> float | None:
 
 
 def mesh_sizes(record: dict) -> dict:
-    """(seed, regime, box size) -> (states, complete) for every hopping policy's mesh."""
+    """(seed, regime, box size) -> (states, complete) for every counted policy's mesh."""
     return {(r["seed"], r["regime"], f"{m['box_size']:g}"): (m["states"], m["complete"])
-            for r in record["runs"].values() if r.get("hops") for m in r.get("meshes", [])}
+            for r in record["runs"].values() if counted(r) for m in r.get("meshes", [])}
 
 
 def paired(record: dict) -> dict:
