@@ -188,24 +188,22 @@ def table(record: dict) -> dict:
     for regime in REGIMES:
         every = [r for r in record["runs"].values() if r["regime"] == regime]
         rows = [r for r in every if counted(r)]
-        sizes: dict[str, list] = {}
+        meshes: dict[str, list] = {}      # box size -> (states, complete, transitions to failure) per policy
         for r in rows:
             for m in r.get("meshes", []):
-                sizes.setdefault(f"{m['box_size']:g}", []).append(m["states"] if m["complete"] else None)
-        capped = {d: [m["states"] for r in rows for m in r.get("meshes", []) if f"{m['box_size']:g}" == d]
-                  for d in sizes}
+                meshes.setdefault(f"{m['box_size']:g}", []).append(
+                    (m["states"], m["complete"], m["transitions_to_failure"]))
+        sizes = {d: [n if done else None for n, done, _ in v] for d, v in meshes.items()}
         out[regime] = {"seeds": len(every), "hopping": sum(bool(r.get("hops")) for r in every), "counted": len(rows),
                        "excluded": {f"s{r['seed']}": ("does not hop" if not r.get("hops") else
                                                       f"return {r['return']:.0f} < {MIN_RETURN:g}")
                                     for r in every if not counted(r)},
                        "mean_states": {d: (float(np.mean(v)) if v and None not in v else None)
                                        for d, v in sizes.items()},
-                       "lower_bound_mean": {d: float(np.mean(v)) for d, v in capped.items() if v},
+                       "lower_bound_mean": {d: float(np.mean([n for n, _, _ in v])) for d, v in meshes.items() if v},
                        "median_states": {d: _median(v) for d, v in sizes.items()},
                        # a small mesh can also mean a policy that falls: count the meshes with a failing push
-                       "meshes_with_failures": {d: sum(m["transitions_to_failure"] > 0 for r in rows
-                                                       for m in r.get("meshes", []) if f"{m['box_size']:g}" == d)
-                                                for d in sizes},
+                       "meshes_with_failures": {d: sum(f > 0 for _, _, f in v) for d, v in meshes.items()},
                        "states": sizes}
     return out
 
