@@ -26,8 +26,9 @@ Pushes follow the thesis: at every step with probability 0.2 (the thesis' rate) 
 magnitude at a uniform random angle in the x-z plane on the torso; the magnitude is searched.
 HalfCheetah-v5 never terminates (no failure to count). No Walker2d-v5 seed walked at Chapter 4's
 scale (README, Table 4.1); ``--env Walker2d-v5`` takes the seeds ``walker_seeds.py`` trained with
-Mania et al.'s Walker2d settings (150 identity epochs, then 40 with each variant; grids hold the
-thesis' walker levels 0.15 / 0.03 / 1 N) and writes ``table44-walker2d.json``.
+Mania et al.'s Walker2d settings (150 identity epochs, or more for a seed ``walker_seeds.py`` extended,
+then 40 with each variant; grids hold the thesis' walker levels 0.15 / 0.03 / 1 N) and writes
+``table44-walker2d.json``.
 
 usage: .venv/bin/python notebooks/data/ch4/table44.py --seeds 1 2 3 4 [--env Walker2d-v5] [--episodes 25]
        [--grid-episodes 10] [--train-only]
@@ -80,6 +81,14 @@ ENVS = {
         "work": "notebooks/data/ch4/walker_runs", "epochs": [150, 40], "out": "table44-walker2d.json"},
 }
 TARGET = 0.2
+
+
+def pretrain_epochs(work: Path, seed: int, epochs: int) -> int:
+    """The identity epochs a seed's continuations start from: ``epochs``, or more where its pretrain was
+    extended (``walker_seeds.py --train 250`` for a seed that fell at 150), so that every variant of the
+    seed continues the same checkpoint for the same ``C`` epochs."""
+    progress = work / f"s{seed}" / "pretrain-plain" / "final" / "progress.json"
+    return max(epochs, json.loads(progress.read_text())["epoch"]) if progress.is_file() else epochs
 
 
 def condition(kind: str, level: float) -> dict:
@@ -198,18 +207,19 @@ def main() -> int:
               "episode_steps": 10_000, "push_rate": PUSH_RATE, "env": args.env,
               f"thesis_{args.env.split('-')[0].lower()}": profile["thesis"],
               "training": f"ARS {args.env}, {', '.join(table51.ARS_SETTINGS[args.env])}, {args.epochs[0]} identity "
-                          f"epochs + {args.epochs[1]} with the variant's post-processor (thesis 750 + 250, N 50 / b 20)",
+                          f"epochs (or the seed's extended pretrain: runs/*/pretrain_epochs) + {args.epochs[1]} with the variant's post-processor (thesis 750 + 250, N 50 / b 20)",
               "runs": {}}
     agents = {v: {} for v in VARIANTS}
     for seed in args.seeds:
+        pretrain = pretrain_epochs(work, seed, args.epochs[0])
         for variant, (folder, post) in VARIANTS.items():
-            final = table51.train_regime(hc, seed, work, folder, "plain", post, *args.epochs, env=args.env)
+            final = table51.train_regime(hc, seed, work, folder, "plain", post, pretrain, args.epochs[1], env=args.env)
             agent = ARS.load(final, backend="serial")
             evaluation = json.loads((final.parent / "eval.json").read_text())
             progress = json.loads((final / "progress.json").read_text())
             record["runs"][f"s{seed}/{variant}"] = {
                 "policy": str(final.relative_to(ROOT)) if final.is_relative_to(ROOT) else str(final),
-                "return": evaluation["mean_return"], "epochs": progress["epoch"],
+                "return": evaluation["mean_return"], "pretrain_epochs": pretrain, "epochs": progress["epoch"],
                 "env_steps": progress["env_steps"], "train_wall_time_s": progress["wall_time"]}
             agents[variant][seed] = agent
         log(f"seed {seed}: " + ", ".join(f"{v} {record['runs'][f's{seed}/{v}']['return']:.0f}" for v in VARIANTS))

@@ -64,7 +64,7 @@ def main() -> int:
         table51.train_pretrain(hc, seed, Path(args.work), "plain", args.train, ENV)
     runs = sorted(Path(args.work).glob("s*/pretrain-plain/eval.json"), key=lambda p: int(p.parts[-3][1:]))
     if not runs:
-        parser.error(f"no finished runs under {args.work} (run notebooks/data/ch4/run_walker_seeds.sh first)")
+        parser.error(f"no finished runs under {args.work}: train some first with --train 150 --seeds 1 2 3")
     seeds = {p.parts[-3][1:]: seed_row(p.parent, args.min_return) for p in runs}
     record = {"command": " ".join(["python", "notebooks/data/ch4/walker_seeds.py", *sys.argv[1:]]),
               "ars": {"env": ENV, "settings": table51.ARS_SETTINGS[ENV]},
