@@ -47,6 +47,15 @@ def seed_row(run: Path, min_return: float) -> dict:
                                                     "reward_shift")}}
 
 
+def previous_commands(out: Path) -> list[str]:
+    """The commands of the record at ``out`` (its ``commands``, or its one ``command``): seeds trained by
+    parallel processes or in earlier sessions stay on the record's history."""
+    if not out.is_file():
+        return []
+    old = json.loads(out.read_text())
+    return old.get("commands", [old["command"]] if "command" in old else [])
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--work", default=str(Path(__file__).with_name("walker_runs")))
@@ -66,7 +75,8 @@ def main() -> int:
     if not runs:
         parser.error(f"no finished runs under {args.work}: train some first with --train 150 --seeds 1 2 3")
     seeds = {p.parts[-3][1:]: seed_row(p.parent, args.min_return) for p in runs}
-    record = {"command": " ".join(["python", "notebooks/data/ch4/walker_seeds.py", *sys.argv[1:]]),
+    command = " ".join(["python", "notebooks/data/ch4/walker_seeds.py", *sys.argv[1:]])
+    record = {"command": command, "commands": previous_commands(Path(args.out)) + [command],
               "ars": {"env": ENV, "settings": table51.ARS_SETTINGS[ENV]},
               "machine": machine_info(), "min_return": args.min_return, "seeds": seeds,
               "walking": [s for s, r in seeds.items() if r["walks"]]}
