@@ -59,6 +59,7 @@ EXPECTED_LINES = {
         "MuJoCo record: notebooks/data/ch4/results.json",   # the shipped Table 4.1 / 4.4 record is read
         "Table 4.4 record: notebooks/data/ch4/table44.json",   # the grid-searched failure rates (issue 16)
         "Walker2d seeds record: notebooks/data/ch4/walker_seeds.json",   # the walker seeds for Table 4.4
+        "Table 4.4 record: notebooks/data/ch4/table44-walker2d.json",   # the walker's grid-searched failure rates
     ],
 }
 
