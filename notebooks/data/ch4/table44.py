@@ -30,15 +30,23 @@ Mania et al.'s Walker2d settings (150 identity epochs, or more for a seed ``walk
 then 40 with each variant; grids hold the thesis' walker levels 0.15 / 0.03 / 1 N) and writes
 ``table44-walker2d.json``.
 
+Every per-seed measurement (one policy, one condition, one episode count, one env seed) is kept in
+``WORK/table44.cache.json``, next to the policies, as soon as it is made: a run that is cut off resumes
+where it stopped, and a run with more seeds reuses the cells it shares with an earlier one. A cell is
+reused only for the same policy weights (a hash of ``model.pt`` and ``normalization.json``).
+``--fresh`` ignores the cache.
+
 usage: .venv/bin/python notebooks/data/ch4/table44.py --seeds 1 2 3 4 [--env Walker2d-v5] [--episodes 25]
-       [--grid-episodes 10] [--train-only]
+       [--grid-episodes 10] [--train-only] [--fresh]
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import importlib.util
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -96,26 +104,69 @@ def condition(kind: str, level: float) -> dict:
     return {"push": (PUSH_RATE, level)} if kind == "push" else {kind: level}
 
 
-def pooled(agents: dict, cond: dict, episodes: int, seed: int, workers: int) -> dict:
-    """Failures of each seed's policy under one condition, and the pooled rate with its interval."""
+def policy_fingerprint(final: Path) -> str:
+    """A short hash of a saved policy's weights and normalisation statistics: cached cells of a policy
+    that was retrained since do not match."""
+    digest = hashlib.sha256()
+    for name in ("model.pt", "normalization.json"):
+        digest.update((final / name).read_bytes())
+    return digest.hexdigest()[:16]
+
+
+class CellCache:
+    """Per-seed failure counts already measured, on disk at ``path`` (rewritten atomically after each
+    cell), keyed by the policy's fingerprint, the condition, the episode count and the env seed."""
+
+    def __init__(self, path: Path | None):
+        self.path = path
+        self.cells = json.loads(path.read_text()) if path is not None and path.is_file() else {}
+
+    @staticmethod
+    def key(policy: str, cond: dict, episodes: int, seed: int) -> str:
+        return json.dumps([policy, cond, episodes, seed], sort_keys=True)
+
+    def get(self, key: str) -> dict | None:
+        return self.cells.get(key)
+
+    def put(self, key: str, value: dict) -> None:
+        self.cells[key] = value
+        if self.path is not None:
+            tmp = self.path.with_name(self.path.name + ".tmp")
+            tmp.write_text(json.dumps(self.cells, indent=0) + "\n")
+            os.replace(tmp, self.path)
+
+
+def pooled(agents: dict, cond: dict, episodes: int, seed: int, workers: int, cache: CellCache | None = None,
+           fingerprints: dict | None = None) -> dict:
+    """Failures of each seed's policy under one condition, and the pooled rate with its interval.
+
+    ``agents`` maps a training seed to its policy; with a ``cache`` (and each seed's policy fingerprint
+    in ``fingerprints``) a cell measured before is read back instead of run again."""
     per_seed = {}
     for s, agent in agents.items():
-        r = failure_rates(agent, conditions={"c": cond}, episodes=episodes, episode_steps=10_000,
-                          seed=seed + 1000 * s, backend="serial", workers=workers)["c"]
-        per_seed[str(s)] = {"failures": r["failures"], "mean_steps": r["mean_steps"], "mean_return": r["mean_return"]}
+        key = CellCache.key(fingerprints[s], cond, episodes, seed + 1000 * s) if cache is not None else None
+        cell = cache.get(key) if cache is not None else None
+        if cell is None:
+            r = failure_rates(agent, conditions={"c": cond}, episodes=episodes, episode_steps=10_000,
+                              seed=seed + 1000 * s, backend="serial", workers=workers)["c"]
+            cell = {"failures": r["failures"], "mean_steps": r["mean_steps"], "mean_return": r["mean_return"]}
+            if cache is not None:
+                cache.put(key, cell)
+        per_seed[str(s)] = cell
     failures, n = sum(v["failures"] for v in per_seed.values()), episodes * len(agents)
     return {"failures": failures, "episodes": n, "failure_rate": failures / n,
             "interval95": wilson_interval(failures, n), "per_seed": per_seed}
 
 
-def grid_search(agents: dict, kind: str, grid: list, episodes: int, seed: int, workers: int, log) -> dict:
+def grid_search(agents: dict, kind: str, grid: list, episodes: int, seed: int, workers: int, log,
+                cache: CellCache | None = None, fingerprints: dict | None = None) -> dict:
     """Coarse grid, then three geometric points inside the bracket of 20 %; keep the closest level."""
     tried = {}
 
     def run(level):
         if level not in tried:
             t = time.time()
-            tried[level] = pooled(agents, condition(kind, level), episodes, seed, workers)
+            tried[level] = pooled(agents, condition(kind, level), episodes, seed, workers, cache, fingerprints)
             log(f"  grid {kind} {level:g}: {tried[level]['failures']}/{tried[level]['episodes']} "
                 f"({time.time() - t:.0f} s)")
         return tried[level]["failure_rate"]
@@ -186,6 +237,8 @@ def main() -> int:
     parser.add_argument("--workers", type=int, default=1, help="MuJoCo threads of the batched stepper")
     parser.add_argument("--train-only", action="store_true",
                         help="train (or resume) the seeds' variants and stop: no grid search, no record")
+    parser.add_argument("--fresh", action="store_true",
+                        help="measure every cell again (default: reuse WORK/table44.cache.json, same policy weights only)")
     parser.add_argument("--work", help="default: the env's (ENVS)")
     parser.add_argument("--out", help="default: table44.json (hopper) or table44-walker2d.json here")
     args = parser.parse_args()
@@ -210,6 +263,8 @@ def main() -> int:
                           f"epochs (or the seed's extended pretrain: runs/*/pretrain_epochs) + {args.epochs[1]} with the variant's post-processor (thesis 750 + 250, N 50 / b 20)",
               "runs": {}}
     agents = {v: {} for v in VARIANTS}
+    prints = {v: {} for v in VARIANTS}   # variant -> seed -> policy fingerprint (the cache's key)
+    cache = CellCache(work / "table44.cache.json" if not args.fresh else None)
     for seed in args.seeds:
         pretrain = pretrain_epochs(work, seed, args.epochs[0])
         for variant, (folder, post) in VARIANTS.items():
@@ -222,6 +277,7 @@ def main() -> int:
                 "return": evaluation["mean_return"], "pretrain_epochs": pretrain, "epochs": progress["epoch"],
                 "env_steps": progress["env_steps"], "train_wall_time_s": progress["wall_time"]}
             agents[variant][seed] = agent
+            prints[variant][seed] = policy_fingerprint(final)
         log(f"seed {seed}: " + ", ".join(f"{v} {record['runs'][f's{seed}/{v}']['return']:.0f}" for v in VARIANTS))
     if args.train_only:
         return 0
@@ -229,7 +285,7 @@ def main() -> int:
     for s in args.seeds:
         if record["runs"][f"s{s}/identity"]["return"] >= args.min_return:
             record["undisturbed_identity"][str(s)] = pooled({s: agents["identity"][s]}, {}, args.grid_episodes, 1,
-                                                            args.workers)["failures"]
+                                                            args.workers, cache, prints["identity"])["failures"]
     counted = [s for s in args.seeds if record["runs"][f"s{s}/identity"]["return"] >= args.min_return
                and record["undisturbed_identity"][str(s)] <= 0.1 * args.grid_episodes]
     record["seeds"] = counted
@@ -246,7 +302,8 @@ def main() -> int:
     record["grid"] = {}
     for kind, grid in profile["grids"].items():
         log(f"grid search {kind}")
-        record["grid"][kind] = grid_search(agents["identity"], kind, grid, args.grid_episodes, 1, args.workers, log)
+        record["grid"][kind] = grid_search(agents["identity"], kind, grid, args.grid_episodes, 1, args.workers, log,
+                                           cache, prints["identity"])
         out.write_text(json.dumps(record, indent=1) + "\n")
     conditions = {"none": {}}
     for kind, g in record["grid"].items():
@@ -258,7 +315,8 @@ def main() -> int:
         record["evaluation"][cname] = {}
         for variant in VARIANTS:
             t = time.time()
-            r = pooled(agents[variant], cond, args.episodes, 2, args.workers)   # eval seeds differ from the grid's
+            # eval env seeds (2) differ from the grid's (1)
+            r = pooled(agents[variant], cond, args.episodes, 2, args.workers, cache, prints[variant])
             record["evaluation"][cname][variant] = {"condition": cond, **r}
             log(f"{cname} {variant}: {r['failures']}/{r['episodes']} "
                 f"{[v['failures'] for v in r['per_seed'].values()]} ({time.time() - t:.0f} s)")
