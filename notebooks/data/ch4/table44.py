@@ -46,7 +46,6 @@ import argparse
 import hashlib
 import importlib.util
 import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -57,6 +56,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[3]
 sys.path.insert(0, str(ROOT))
 from benchmarks.common import machine_info  # noqa: E402
+from hybridctl.io import write_json  # noqa: E402
 from hybridctl.learn import failure_rates  # noqa: E402
 from hybridctl.learn.ars import ARS  # noqa: E402
 from hybridctl.learn.robustness import wilson_interval  # noqa: E402
@@ -115,7 +115,8 @@ def policy_fingerprint(final: Path) -> str:
 
 class CellCache:
     """Per-seed failure counts already measured, on disk at ``path`` (rewritten atomically after each
-    cell), keyed by the policy's fingerprint, the condition, the episode count and the env seed."""
+    cell; ``None``: in memory only), keyed by the policy's fingerprint, the condition, the episode
+    count and the env seed."""
 
     def __init__(self, path: Path | None):
         self.path = path
@@ -131,27 +132,24 @@ class CellCache:
     def put(self, key: str, value: dict) -> None:
         self.cells[key] = value
         if self.path is not None:
-            tmp = self.path.with_name(self.path.name + ".tmp")
-            tmp.write_text(json.dumps(self.cells, indent=0) + "\n")
-            os.replace(tmp, self.path)
+            write_json(self.path, self.cells, indent=0)
 
 
-def pooled(agents: dict, cond: dict, episodes: int, seed: int, workers: int, cache: CellCache | None = None,
-           fingerprints: dict | None = None) -> dict:
+def pooled(agents: dict, cond: dict, episodes: int, seed: int, workers: int, cache: CellCache,
+           fingerprints: dict) -> dict:
     """Failures of each seed's policy under one condition, and the pooled rate with its interval.
 
-    ``agents`` maps a training seed to its policy; with a ``cache`` (and each seed's policy fingerprint
-    in ``fingerprints``) a cell measured before is read back instead of run again."""
+    ``agents`` maps a training seed to its policy and ``fingerprints`` to that policy's
+    ``policy_fingerprint``; a cell already in ``cache`` is read back instead of run again."""
     per_seed = {}
     for s, agent in agents.items():
-        key = CellCache.key(fingerprints[s], cond, episodes, seed + 1000 * s) if cache is not None else None
-        cell = cache.get(key) if cache is not None else None
+        key = CellCache.key(fingerprints[s], cond, episodes, seed + 1000 * s)
+        cell = cache.get(key)
         if cell is None:
             r = failure_rates(agent, conditions={"c": cond}, episodes=episodes, episode_steps=10_000,
                               seed=seed + 1000 * s, backend="serial", workers=workers)["c"]
             cell = {"failures": r["failures"], "mean_steps": r["mean_steps"], "mean_return": r["mean_return"]}
-            if cache is not None:
-                cache.put(key, cell)
+            cache.put(key, cell)
         per_seed[str(s)] = cell
     failures, n = sum(v["failures"] for v in per_seed.values()), episodes * len(agents)
     return {"failures": failures, "episodes": n, "failure_rate": failures / n,
@@ -159,7 +157,7 @@ def pooled(agents: dict, cond: dict, episodes: int, seed: int, workers: int, cac
 
 
 def grid_search(agents: dict, kind: str, grid: list, episodes: int, seed: int, workers: int, log,
-                cache: CellCache | None = None, fingerprints: dict | None = None) -> dict:
+                cache: CellCache, fingerprints: dict) -> dict:
     """Coarse grid, then three geometric points inside the bracket of 20 %; keep the closest level."""
     tried = {}
 
@@ -251,6 +249,7 @@ def main() -> int:
     torch.set_num_threads(1)
     hc = str(Path(sys.executable).with_name("hybridctl"))
     work, out, start = Path(args.work), Path(args.out), time.time()
+    out.parent.mkdir(parents=True, exist_ok=True)
 
     def log(msg):
         print(f"[{time.time() - start:6.0f} s] {msg}", flush=True)
@@ -304,7 +303,7 @@ def main() -> int:
         log(f"grid search {kind}")
         record["grid"][kind] = grid_search(agents["identity"], kind, grid, args.grid_episodes, 1, args.workers, log,
                                            cache, prints["identity"])
-        out.write_text(json.dumps(record, indent=1) + "\n")
+        write_json(out, record, indent=1)
     conditions = {"none": {}}
     for kind, g in record["grid"].items():
         name = f"push {g['chosen']:g} N at rate {PUSH_RATE:g}" if kind == "push" else \
@@ -320,10 +319,10 @@ def main() -> int:
             record["evaluation"][cname][variant] = {"condition": cond, **r}
             log(f"{cname} {variant}: {r['failures']}/{r['episodes']} "
                 f"{[v['failures'] for v in r['per_seed'].values()]} ({time.time() - t:.0f} s)")
-        out.write_text(json.dumps(record, indent=1) + "\n")
+        write_json(out, record, indent=1)
     record["table"] = summary(record)
     record["wall_time_s"] = time.time() - start
-    out.write_text(json.dumps(record, indent=1) + "\n")
+    write_json(out, record, indent=1)
     figure(record, out.with_suffix(".png"))
     log(f"wrote {out}")
     return 0
