@@ -23,3 +23,19 @@ def one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(previous)
+
+
+@pytest.fixture
+def cli_error(capsys):
+    """Run ``hybridctl ARGV`` in-process and return its stderr, asserting the bad-input contract:
+    exit code 2 and no traceback. Use: ``assert "--duration" in cli_error([...])``."""
+    from hybridctl.cli import main
+
+    def run(argv):
+        with pytest.raises(SystemExit) as stop:
+            main([str(a) for a in argv])
+        err = capsys.readouterr().err
+        assert stop.value.code == 2, err
+        assert "Traceback" not in err, err
+        return err
+    return run

@@ -2,6 +2,7 @@
 
 Rooms, bottom to top (one level per line; rooms on one level never import each other):
 
+    limits
     io, parallel
     systems
     analysis
@@ -27,7 +28,7 @@ import pytest
 import hybridctl
 
 PACKAGE_DIR = Path(hybridctl.__file__).resolve().parent
-LEVELS = {"io": 0, "parallel": 0, "systems": 1, "analysis": 2, "viz": 3, "drake": 4, "envs": 4, "learn": 5,
+LEVELS = {"limits": -1, "io": 0, "parallel": 0, "systems": 1, "analysis": 2, "viz": 3, "drake": 4, "envs": 4, "learn": 5,
           "experiments": 6, "cli": 7}
 
 

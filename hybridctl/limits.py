@@ -1,0 +1,113 @@
+"""Every upper limit hybridctl puts on a size, count or duration, stated once.
+
+The bottom room, beside ``io`` and ``parallel``: it imports nothing from the package.
+A limit is checked before any work starts, with a one-line error that names the argument
+(a flag, or a file and its key) and the limit. Limits derived from the machine read its
+memory and cores when they are asked for; the others are stated caps, chosen so that the
+largest run a user may want passes and a typo (``--duration 1e9``) does not start a run
+that cannot end. Where a user may truly want more, the command has ``--force`` (the Python
+API: ``force=True``), which lifts the caps but never the machine-derived memory limits.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+
+__all__ = ["LimitError", "memory_bytes", "cpu_count", "memory_budget", "check_at_most", "check_fits_memory",
+           "MAX_SIMULATION_STEPS", "MAX_TOTAL_STEPS", "MAX_GRID", "MAX_DISTURBANCES", "MAX_MONTE_CARLO",
+           "MAX_HIDDEN_UNITS", "MAX_NUM_ENVS", "MAX_ZIP_ENTRY_BYTES", "MAX_ZIP_ENTRIES", "MAX_JSON_BYTES",
+           "MAX_SPEC_BYTES", "MIN_DT", "MEMORY_FRACTION"]
+
+
+class LimitError(ValueError):
+    """A size, count or duration above its limit (a ValueError: the CLI prints it as one line, exit 2)."""
+
+
+# --------------------------------------------------------------------------- stated caps
+MAX_SIMULATION_STEPS = 10_000_000
+"""Time steps of one simulated trajectory (``--duration`` / the spec's ``dt``): 1e7 steps of the
+acrobot's 4 states and 1 input are 0.4 GB recorded; at dt = 0.01 s it is 27 hours of motion."""
+MAX_TOTAL_STEPS = 10_000_000_000
+"""Time steps of all simulations of one command together (a balance map: grid^2 x steps):
+about an hour of the torch engine on one core (measured order: 3e6 steps/s)."""
+MAX_GRID = 1001
+"""Points per axis of a balance map (``--grid``): 1e6 initial states."""
+MAX_DISTURBANCES = 100_000
+"""Disturbance samples per state of a reachable-state mesh (``--disturbances``)."""
+MAX_MONTE_CARLO = 10_000_000
+"""Monte Carlo runs of a first-passage estimate (``--monte-carlo``)."""
+MAX_HIDDEN_UNITS = 65_536
+"""Units of one hidden layer of a learner's network (``--hidden-size``); memory is checked too."""
+MAX_NUM_ENVS = 1_000_000
+"""Environments of one batched torch env (``--num-envs``); memory is checked too."""
+MIN_DT = 1e-6
+"""The smallest time step a spec may set (``dt``, ``control.period``): one microsecond."""
+
+# --------------------------------------------------------------------------- files we read
+MAX_ZIP_ENTRY_BYTES = 1 << 30
+"""Decompressed bytes of one entry of a zip we read (an SB3 ``model.zip``); read in chunks and
+stopped at the limit, so a zip bomb never inflates past it."""
+MAX_ZIP_ENTRIES = 1_000
+"""Entries of one zip we read."""
+MAX_JSON_BYTES = 64 << 20
+"""Bytes of one JSON file or zip entry parsed as JSON (``config.json``, an SB3 ``data`` entry)."""
+MAX_SPEC_BYTES = 1 << 20
+"""Bytes of one spec file (``systems/NAME.toml``, ``--spec FILE``)."""
+
+MEMORY_FRACTION = 0.5
+"""The share of the machine's memory one allocation we can size in advance may take."""
+
+
+# --------------------------------------------------------------------------- the machine
+def memory_bytes() -> int:
+    """The machine's physical memory in bytes (from ``os.sysconf``; 8 GiB where it cannot be read)."""
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):  # pragma: no cover - platforms without sysconf
+        return 8 << 30
+
+
+def cpu_count() -> int:
+    """The cores this process may run on (its affinity where the OS tells it, else ``os.cpu_count()``)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):  # pragma: no cover - macOS, Windows
+        return max(1, os.cpu_count() or 1)
+
+
+def memory_budget() -> int:
+    """Bytes one allocation sized in advance may take: :data:`MEMORY_FRACTION` of the memory."""
+    return int(memory_bytes() * MEMORY_FRACTION)
+
+
+def _shown(value: float) -> str:
+    return f"{value:,}" if isinstance(value, int) else f"{value:g}"
+
+
+def check_at_most(name: str, value: float, limit: float, force: bool = False, why: str = "",
+                  force_flag: str | None = "--force") -> None:
+    """Raise :class:`LimitError` if ``value`` > ``limit`` (or is not finite) unless ``force``.
+
+    ``name`` is the argument as the user wrote it (``"--duration"``, ``"config.json: num_envs"``);
+    ``why`` says what the limit protects (``"steps of one trajectory"``). ``force_flag`` names the
+    escape in the message (None: there is none, ``force`` is ignored).
+    """
+    if isinstance(value, float) and not math.isfinite(value):
+        raise LimitError(f"{name} must be finite, got {value}")
+    if value <= limit or (force and force_flag is not None):
+        return
+    what = f" ({why})" if why else ""
+    escape = f"; pass {force_flag} to allow more" if force_flag is not None else ""
+    raise LimitError(f"{name} is {_shown(value)}, above its limit of {_shown(limit)}{what}{escape}")
+
+
+def check_fits_memory(name: str, nbytes: float, what: str) -> None:
+    """Raise :class:`LimitError` if ``nbytes`` (what ``name`` asks to allocate) exceeds :func:`memory_budget`.
+
+    No ``--force`` lifts it: past the machine's memory a run is killed, it does not finish.
+    """
+    budget = memory_budget()
+    if not math.isfinite(nbytes) or nbytes > budget:
+        raise LimitError(f"{name} needs {nbytes / 2**30:.3g} GiB for {what}, more than "
+                         f"{MEMORY_FRACTION:.0%} of this machine's {memory_bytes() / 2**30:.3g} GiB")
