@@ -24,9 +24,13 @@ from __future__ import annotations
 
 import ast
 import concurrent.futures as cf
+import ctypes
 import multiprocessing as mp
 import os
+import signal
 import sys
+import threading
+import time
 from typing import Any, Callable, Sequence
 
 BACKENDS = ("serial", "processes", "ray")
@@ -39,6 +43,45 @@ def cached_env(key: Any, make: Callable[[], Any]) -> Any:
     if key not in _ENV_CACHE:
         _ENV_CACHE[key] = make()
     return _ENV_CACHE[key]
+
+
+PR_SET_PDEATHSIG = 1
+"""Linux prctl(2) option: the signal a process gets when the thread that created it ends."""
+PARENT_POLL_S = 0.5
+"""How often a worker's watcher thread checks that its parent still lives (the portable fallback)."""
+
+
+def die_with_parent(parent: int, pdeathsig: bool = True) -> None:
+    """Worker initializer: end this process when its parent ``parent`` (a pid) dies, even by kill -9.
+
+    A worker outliving its parent blocks forever on its task queue, holding memory and the
+    caller's stdout. On Linux the kernel kills it (``prctl(PR_SET_PDEATHSIG, SIGKILL)``; with
+    ``pdeathsig`` only, as the kernel ties it to the creating *thread*: pass False where the
+    pool may be grown from a thread that ends early). Everywhere, a daemon thread also polls
+    ``os.getppid()`` and exits the process once the worker has been handed to another parent.
+    """
+    if pdeathsig and sys.platform.startswith("linux"):
+        try:
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+        except (OSError, AttributeError):  # pragma: no cover - a libc without prctl
+            pass
+    if os.getppid() != parent:  # the parent died before the signal was armed
+        os._exit(1)
+    threading.Thread(target=_exit_when_orphaned, args=(parent,), name="hybridctl-parent-watch",
+                     daemon=True).start()
+
+
+def _exit_when_orphaned(parent: int) -> None:
+    """Poll the parent pid; exit this process at once (no cleanup: the parent is gone) when it changes."""
+    while os.getppid() == parent:
+        time.sleep(PARENT_POLL_S)
+    os._exit(1)
+
+
+def worker_initializer() -> tuple[Callable[..., None], tuple]:
+    """(initializer, initargs) for a pool of worker processes created by this thread: :func:`die_with_parent`."""
+    return die_with_parent, (os.getpid(), threading.current_thread() is threading.main_thread())
 
 
 def _is_main_guard(node: ast.stmt) -> bool:
@@ -128,7 +171,9 @@ class ProcessBackend(SerialBackend):
     def _executor(self) -> cf.ProcessPoolExecutor:
         if self._pool is None:
             require_main_guard()
-            self._pool = cf.ProcessPoolExecutor(self.workers, mp_context=mp.get_context("spawn"))
+            initializer, initargs = worker_initializer()   # no orphan survives a kill -9 of this process
+            self._pool = cf.ProcessPoolExecutor(self.workers, mp_context=mp.get_context("spawn"),
+                                                initializer=initializer, initargs=initargs)
         return self._pool
 
     def map(self, fn: Callable, tasks: Sequence) -> list:
@@ -201,7 +246,12 @@ class RayBackend(SerialBackend):
 
 
 def make_backend(name: str = "processes", workers: int | None = None, address: str | None = None):
-    """A rollout backend by name: "serial", "processes" (default) or "ray" (``address`` for a cluster)."""
+    """A rollout backend by name: "serial", "processes" (default) or "ray" (``address`` for a cluster).
+
+    An ``address`` with a local backend is refused (ValueError): it would be silently ignored.
+    """
+    if address is not None and name in ("serial", "processes"):
+        raise ValueError(f"address {address!r} (--address) applies to backend 'ray' only, not {name!r}")
     if name == "serial":
         return SerialBackend()
     if name == "processes":

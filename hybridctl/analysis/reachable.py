@@ -37,6 +37,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..io import atomic_write
+from ..limits import MAX_DISTURBANCES, MAX_MONTE_CARLO, check_at_most, check_fits_memory
 from ..parallel import make_backend
 from .markov import MFPTResult, _krylov_solve, absorbing_mfpt, states_that_can_fail_surely
 from .mesh import box_keys
@@ -238,11 +239,19 @@ def _undo_row(marks: tuple[int, int], mesh_states: list, owners: list, counts: l
         del keys.ids[key]
 
 
+def check_disturbances(count: int, max_states: int, samples_per_box: int = 1, force: bool = False) -> None:
+    """Raise LimitError when a mesh of ``count`` disturbances is too large to start (see :func:`build_mesh`)."""
+    check_at_most("disturbances (--disturbances)", count, MAX_DISTURBANCES, force,
+                  why="disturbance samples per mesh state")
+    check_fits_memory("disturbances (--disturbances) x max_states (--max-states)",
+                      8.0 * count * max_states * samples_per_box, "the mesh's successor table")
+
+
 def build_mesh(section_map: SectionMap, seeds, disturbances, box_size: float, mean=None, std=None,
                max_states: int = 1_000_000, backend: str = "serial", workers: int | None = None,
                batch_size: int = 256, checkpoint: str | os.PathLike | None = None, checkpoint_every: int = 20,
                resume: bool = False, progress: bool = True, checkpoint_minutes: float = 5.0,
-               samples_per_box: int = 1) -> ReachableMesh:
+               samples_per_box: int = 1, force: bool = False) -> ReachableMesh:
     """Reachable-state mesh of ``section_map`` from ``seeds`` under ``disturbances`` (thesis Alg. 7).
 
     ``disturbances``: a :class:`FiniteDisturbances`, anything with ``finite_set()`` (e.g.
@@ -259,6 +268,10 @@ def build_mesh(section_map: SectionMap, seeds, disturbances, box_size: float, me
     ``samples_per_box``: how many of the states that reach a box are kept and expanded (1: the
     thesis' one representative per box; k > 1: the first k arrivals, the box's row being the mean
     of theirs). ``max_states`` counts boxes, not samples.
+
+    Before any work, more than :data:`~hybridctl.limits.MAX_DISTURBANCES` disturbances raise
+    LimitError (``force`` lifts it), and so does a successor table of ``max_states`` x
+    disturbances ids beyond the memory budget (nothing lifts that).
     """
     from tqdm.auto import tqdm
 
@@ -270,8 +283,12 @@ def build_mesh(section_map: SectionMap, seeds, disturbances, box_size: float, me
     if not (isinstance(samples_per_box, (int, np.integer)) and samples_per_box >= 1):
         raise ValueError(f"samples_per_box must be an integer >= 1, got {samples_per_box!r}")
     samples_per_box = int(samples_per_box)
+    count = getattr(disturbances, "count", None) if hasattr(disturbances, "finite_set") else len(disturbances)
+    if isinstance(count, (int, np.integer)):  # before a Gaussian's quantiles are computed
+        check_disturbances(int(count), max_states, samples_per_box, force)
     finite = disturbances.finite_set() if hasattr(disturbances, "finite_set") else FiniteDisturbances(list(disturbances))
     values, weights = list(finite.values), np.asarray(finite.weights)
+    check_disturbances(len(values), max_states, samples_per_box, force)
     seeds = np.atleast_2d(np.asarray(seeds, dtype=np.float64))
     if seeds.size == 0 or not np.all(np.isfinite(seeds)):
         raise ValueError("seeds must be a non-empty array of finite states (one per row)")
@@ -416,7 +433,7 @@ class MonteCarloResult:
 
 def monte_carlo_mfpt(section_map: SectionMap, starts, disturbances, episodes: int = 1000, max_steps: int = 100_000,
                      seed: int = 0, chunks: int = 1, backend: str = "serial", workers: int | None = None,
-                     progress: bool = False) -> MonteCarloResult:
+                     progress: bool = False, force: bool = False) -> MonteCarloResult:
     """Steps until failure on the true map, each step's disturbance drawn from ``disturbances``
     (``sample(rng, n)``: a Gaussian model draws continuous values, a finite set draws from the set).
 
@@ -425,12 +442,18 @@ def monte_carlo_mfpt(section_map: SectionMap, starts, disturbances, episodes: in
     episodes advance together through ``section_map.step_many``. Groups run on ``backend``
     ("serial", "processes", "ray"), so for simulator-backed maps use several chunks and
     processes; the result depends on ``seed`` and ``chunks`` only, not on the backend.
+
+    Before any work, more than :data:`~hybridctl.limits.MAX_MONTE_CARLO` episodes raise
+    LimitError (``force`` lifts it), and so do their states beyond the memory budget.
     """
     if episodes < 2 or max_steps < 1:
         raise ValueError(f"episodes must be >= 2 and max_steps >= 1, got {episodes} and {max_steps}")
+    check_at_most("episodes (--monte-carlo)", episodes, MAX_MONTE_CARLO, force, why="Monte Carlo runs")
     if not (isinstance(chunks, int) and 1 <= chunks <= episodes):
         raise ValueError(f"chunks must be an integer in [1, episodes={episodes}], got {chunks!r}")
     starts = np.atleast_2d(np.asarray(starts, dtype=np.float64))
+    # per episode: its state, the next one, its step count and its index (float64 / int64)
+    check_fits_memory("episodes (--monte-carlo)", 8.0 * episodes * (2 * starts.shape[1] + 2), "the episodes' states")
     sizes = [len(part) for part in np.array_split(np.arange(episodes), chunks)]
     streams = [np.random.default_rng(seed)] if chunks == 1 else \
         [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(chunks)]

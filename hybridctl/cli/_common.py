@@ -17,6 +17,7 @@ from typing import Callable
 
 import gymnasium
 
+from .. import limits
 from ..io import FileFormatError
 from ..learn.checkpoint import CheckpointError
 from ..systems.spec import SpecError
@@ -111,13 +112,17 @@ class CommandParser(argparse.ArgumentParser):
     argparse hands a sub-command's unknown arguments up to the top-level parser, which
     reports them under the top-level usage; this parser reports them at once, under the
     sub-command's usage, followed by ``unknown_flag_hint(flag)`` for each unknown flag
-    (e.g. "--epochs applies to ars only").
+    (e.g. "--epochs applies to ars only"). It never accepts an abbreviated flag
+    (``allow_abbrev=False``, on every sub-parser too).
     """
 
     unknown_flag_hint: Callable[[str], str | None] | None = None
 
     def __init__(self, *args, **kwargs):
         kwargs.setdefault("formatter_class", DefaultsHelpFormatter)
+        # no abbreviations: `--init 0.5` must not set --init-std, nor `--over` act as --overwrite;
+        # sub-parsers are made by their parent's class, so every parser of the command gets it
+        kwargs["allow_abbrev"] = False
         super().__init__(*args, **kwargs)
 
     def parse_known_args(self, args=None, namespace=None):
@@ -147,11 +152,48 @@ def non_negative(kind: type) -> Callable[[str], float | int]:
 def _bounded(kind: type, accept: Callable, rule: str) -> Callable[[str], float | int]:
     def parse(text: str):
         value = kind(text)
-        if not math.isfinite(value) or not accept(value):
-            raise argparse.ArgumentTypeError(f"must be a finite number {rule}, got {text}")
+        # an int is always finite (and math.isfinite overflows on one of 400 digits)
+        if not (isinstance(value, int) or math.isfinite(value)) or not accept(value):
+            raise argparse.ArgumentTypeError(f"must be a finite number{' ' + rule if rule else ''}, got {text}")
         return value
     parse.__name__ = kind.__name__  # argparse names the type in "invalid int value"
     return parse
+
+
+def finite(kind: type) -> Callable[[str], float | int]:
+    """An argparse type: ``kind(text)``, rejected unless finite ("must be a finite number, got inf")."""
+    return _bounded(kind, lambda v: True, "")
+
+
+def _limit_lines() -> dict[str, str]:
+    """One line per flag that has a limit, its numbers read from :mod:`hybridctl.limits`."""
+    return {
+        "duration": f"--duration: at most {limits.MAX_SIMULATION_STEPS:,} time steps of the spec's dt per run",
+        "grid": f"--grid: at most {limits.MAX_GRID:,} points per axis, and at most {limits.MAX_TOTAL_STEPS:,} "
+                "time steps of all runs together (grid x grid x duration / dt)",
+        "workers": f"--workers: local processes at most the cores this process may use ({limits.cpu_count()}), "
+                   "and never more than there are tasks",
+        "disturbances": f"--disturbances: at most {limits.MAX_DISTURBANCES:,}",
+        "monte-carlo": f"--monte-carlo: at most {limits.MAX_MONTE_CARLO:,} episodes",
+    }
+
+
+def limits_epilog(*flags: str) -> str:
+    """The ``--help`` epilog listing the limits on ``flags`` (keys of the limit lines: "duration", "grid", ...)
+    and the memory limit that ``--force`` does not lift."""
+    lines = _limit_lines()
+    budget = limits.memory_budget() / 2**30
+    return "\n".join(["limits, checked before any work (--force lifts them, except memory):",
+                      *(f"  {lines[f]}" for f in flags),
+                      f"  memory: what a run records or batches must fit in {limits.MEMORY_FRACTION:.0%} of this "
+                      f"machine's memory ({budget:.1f} GiB); nothing lifts it"])
+
+
+def add_force_flag(parser: argparse.ArgumentParser) -> None:
+    """``--force``: lift the stated caps (the epilog lists them); the memory limit stays."""
+    parser.add_argument("--force", action="store_true",
+                        help="lift the stated limits on sizes, counts and durations (listed below); "
+                             "never the memory limit")
 
 
 def add_debug_flag(parser: argparse.ArgumentParser, top_level: bool = False) -> None:

@@ -6,6 +6,7 @@ import argparse
 
 from ..experiments import run_demo
 from ..experiments.demo import DEMO_GRID
+from ..limits import MAX_GRID
 from ._common import add_debug_flag, add_quiet_flag, cli_errors, positive
 from .simulate import start_live_view
 
@@ -14,7 +15,9 @@ def add_parser(sub) -> None:
     """Register ``demo`` on the top-level sub-parsers."""
     p = sub.add_parser("demo", help="what `make demo` runs")
     p.add_argument("--out", default="runs/demo", help="output folder")
-    p.add_argument("--grid", type=positive(int), default=DEMO_GRID, help=f"balance-map grid (default {DEMO_GRID})")
+    p.add_argument("--grid", type=positive(int), default=DEMO_GRID,
+                   help=f"balance-map grid points per axis, 2 to {MAX_GRID:,} (default {DEMO_GRID}); checked "
+                        "before anything is simulated")
     p.add_argument("--meshcat", action="store_true", help="also show the run live in meshcat")
     add_quiet_flag(p)
     add_debug_flag(p)

@@ -6,15 +6,18 @@ import argparse
 
 from ..experiments import MESH_MAPS, mesh_report
 from ..parallel import BACKENDS
-from ._common import non_negative, USAGE_ERROR, add_debug_flag, add_quiet_flag, cli_errors, positive
+from ..limits import MAX_DISTURBANCES, MAX_MONTE_CARLO, check_at_most, cpu_count
+from ._common import (non_negative, USAGE_ERROR, add_debug_flag, add_force_flag, add_quiet_flag, cli_errors, finite,
+                      limits_epilog, positive)
 
 
 def add_parser(sub) -> None:
     """Register ``mesh`` on the top-level sub-parsers."""
-    p = sub.add_parser("mesh", help="reachable-state mesh and mean first passage time (thesis Ch. 5)")
+    p = sub.add_parser("mesh", help="reachable-state mesh and mean first passage time (thesis Ch. 5)",
+                       epilog=limits_epilog("disturbances", "monte-carlo", "workers"))
     p.add_argument("map", choices=sorted(MESH_MAPS), help="; ".join(f"{k}: {v}" for k, v in MESH_MAPS.items()))
     p.add_argument("--box-size", type=positive(float), default=1e-3, help="box side (default 1e-3)")
-    p.add_argument("--slope-mean", type=float, default=0.15, help="mean terrain slope, rad (default 0.15)")
+    p.add_argument("--slope-mean", type=finite(float), default=0.15, help="mean terrain slope, rad (default 0.15)")
     p.add_argument("--slope-std", type=positive(float), default=0.06, help="slope std, rad (default 0.06)")
     p.add_argument("--disturbances", type=positive(int), default=25, help="slope quantiles in the mesh (default 25)")
     p.add_argument("--max-states", type=positive(int), default=1_000_000, help="cap on mesh states")
@@ -23,7 +26,9 @@ def add_parser(sub) -> None:
     p.add_argument("--sizes", type=positive(float), nargs="*", help="also mesh at these box sizes (Table 5.1)")
     p.add_argument("--backend", choices=BACKENDS, default="serial",
                    help="where section-map steps run: this process, local worker processes, or Ray")
-    p.add_argument("--workers", type=positive(int), help="worker processes (default: all cores)")
+    p.add_argument("--workers", type=positive(int),
+                   help="worker processes (default: all cores; more than the cores are refused without --force, "
+                        "except on Ray)")
     p.add_argument("--resume", action="store_true", help="continue from out/mesh_checkpoint.npz")
     p.add_argument("--overwrite", action="store_true",
                    help="replace the run the --out folder holds (without it, or --resume, such a folder is refused)")
@@ -33,6 +38,7 @@ def add_parser(sub) -> None:
                    help="and at least every this many minutes of wall time, so a kill loses minutes at most "
                         "(0: by batches only; default 5)")
     p.add_argument("--out", default="runs/mesh", help="output folder")
+    add_force_flag(p)
     add_quiet_flag(p)
     add_debug_flag(p)
     p.set_defaults(func=run_mesh)
@@ -50,9 +56,20 @@ def result_line(report: dict) -> str:
     return line
 
 
+def check_mesh_arguments(args: argparse.Namespace) -> None:
+    """Refuse, before any work, counts above their limits (``--force`` lifts them): disturbances,
+    Monte Carlo episodes, local worker processes above the cores."""
+    check_at_most("--disturbances", args.disturbances, MAX_DISTURBANCES, args.force,
+                  why="slope samples per state of the mesh")
+    check_at_most("--monte-carlo", args.monte_carlo, MAX_MONTE_CARLO, args.force, why="episodes")
+    if args.workers is not None and args.backend != "ray":  # Ray workers are not bound by local cores
+        check_at_most("--workers", args.workers, cpu_count(), args.force, why="cores this process may use")
+
+
 @cli_errors
 def run_mesh(args: argparse.Namespace) -> int:
     """Build the mesh and write the MFPT report and figures; exit 2 when the mesh hit --max-states."""
+    check_mesh_arguments(args)
     report = mesh_report(args.map, args.out, box_size=args.box_size, slope_mean=args.slope_mean,
                          slope_std=args.slope_std, disturbances=args.disturbances, max_states=args.max_states,
                          monte_carlo=args.monte_carlo, sizes=args.sizes, backend=args.backend,

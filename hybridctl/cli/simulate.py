@@ -8,9 +8,10 @@ import math
 
 import numpy as np
 
+from ..drake.simulate import check_duration
 from ..experiments import CONTROLLERS, simulate_and_write
 from ..systems import System, load
-from ._common import add_system_argument, add_debug_flag, cli_errors, positive
+from ._common import add_system_argument, add_debug_flag, add_force_flag, cli_errors, limits_epilog, positive
 
 SUMMARY_KEYS = ("system", "balanced", "return", "diverged", "first_balance_time", "wall_time_s")
 """The summary fields ``simulate`` prints."""
@@ -25,8 +26,12 @@ def parse_state(text: str | None, system: System) -> np.ndarray | None:
     """``--x0`` text ("-1.57,0,0,0") -> a state of ``system``; None stays None (the default start)."""
     if text is None:
         return None
+    fields = text.replace(" ", "").split(",")
+    if "" in fields:  # "1,,0" is a typo, not the two numbers 1 and 0
+        raise ValueError(f"--x0 has an empty field at position {fields.index('') + 1}: it needs {system.n_states} "
+                         f"comma-separated numbers ({', '.join(system.state_names)}), got {text!r}")
     try:
-        values = [float(v) for v in text.replace(" ", "").split(",") if v]
+        values = [float(v) for v in fields]
     except ValueError:
         raise ValueError(f"--x0 must be {system.n_states} comma-separated numbers "
                          f"({', '.join(system.state_names)}), got {text!r}") from None
@@ -40,7 +45,8 @@ def parse_state(text: str | None, system: System) -> np.ndarray | None:
 
 def add_parser(sub) -> None:
     """Register ``simulate`` on the top-level sub-parsers."""
-    p = sub.add_parser("simulate", help="simulate one run of a system under a controller")
+    p = sub.add_parser("simulate", help="simulate one run of a system under a controller",
+                       epilog=limits_epilog("duration"))
     add_system_argument(p)
     p.add_argument("--controller", default="energy", help=controller_help())
     p.add_argument("--x0", help="initial state, comma-separated; write --x0=-1.57,0,0,0 when it starts "
@@ -49,6 +55,7 @@ def add_parser(sub) -> None:
     p.add_argument("--out", default="runs/simulate", help="output folder (default: runs/simulate)")
     p.add_argument("--no-html", action="store_true", help="skip the replay.html")
     p.add_argument("--meshcat", action="store_true", help="also show it live in meshcat (localhost)")
+    add_force_flag(p)
     add_debug_flag(p)
     p.set_defaults(func=run_simulate)
 
@@ -67,9 +74,12 @@ def run_simulate(args: argparse.Namespace) -> int:
     """Simulate, write trajectory.npz, summary.json, plot.png (and replay.html), print the summary."""
     system = load(args.system)
     x0 = parse_state(args.x0, system)
+    check_duration(system, args.duration, args.force)  # before meshcat starts or anything is built
     live = start_live_view() if args.meshcat else None
     summary = simulate_and_write(system, args.controller, args.out, x0=x0, duration=args.duration,
-                                 html=not args.no_html, meshcat=live, command=args.command_line)
+                                 html=not args.no_html, meshcat=live, command=args.command_line, force=args.force)
     print(json.dumps({k: summary[k] for k in SUMMARY_KEYS}, indent=1))
-    print(f"wrote {args.out}/trajectory.npz, summary.json, plot.png" + ("" if args.no_html else ", replay.html"))
+    print(f"wrote {args.out}/" + ", ".join(summary["written"]))
+    if "plot.png" not in summary["written"]:
+        print("no plot.png or replay.html: the run diverged within its first step")
     return 0

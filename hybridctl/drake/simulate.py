@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -11,6 +12,7 @@ import numpy as np
 from pydrake.systems.analysis import ResetIntegratorFromFlags, Simulator
 
 from .. import io
+from ..limits import MAX_SIMULATION_STEPS, check_at_most, check_fits_memory
 from ..systems import System
 from ..systems.control import DIVERGENCE_BOUND
 from ..systems.success import decision_indices, episode_return, is_balanced
@@ -149,7 +151,36 @@ def _first_diverged(x: np.ndarray) -> int | None:
     return int(bad[0]) if len(bad) else None
 
 
-def simulate(diagram, x0, duration: float | None = None, realtime_rate: float = 0.0) -> Trajectory:
+RECORDED_BYTES_PER_VALUE = 3 * 8
+"""Bytes one recorded float64 takes while a run is simulated: Drake's logs grow by doubling (up to
+twice the samples), and the Trajectory copies them out once."""
+
+
+def check_duration(system: System, duration: float | None, force: bool = False, name: str = "--duration") -> float:
+    """The duration of one run (default: the spec's episode), checked before any work.
+
+    Raises ValueError (``name`` in one line) for a duration that is not a finite number > 0 or
+    is shorter than one time step ``dt`` (nothing would be recorded); LimitError for one of
+    more than :data:`~hybridctl.limits.MAX_SIMULATION_STEPS` steps (``force`` lifts that cap)
+    or whose recorded trajectory would not fit in memory (nothing lifts that).
+    """
+    duration = system.episode_duration if duration is None else float(duration)
+    if not (math.isfinite(duration) and duration > 0):
+        raise ValueError(f"{name} must be a finite number of seconds > 0, got {duration:g}")
+    if duration < system.dt * (1 - 1e-9):
+        raise ValueError(f"{name} {duration:g} s is shorter than one time step of {system.name} "
+                         f"(dt = {system.dt:g} s): nothing would be simulated")
+    check_at_most(name, duration, MAX_SIMULATION_STEPS * system.dt, force,
+                  why=f"seconds of one run: {MAX_SIMULATION_STEPS:,} steps of dt = {system.dt:g} s")
+    steps = duration / system.dt
+    # the four logs: state (n), command (m), mode and probability, each with its sample times
+    values = (system.n_states + 1) + (system.n_actions + 1) + 2 + 2
+    check_fits_memory(name, steps * values * RECORDED_BYTES_PER_VALUE, f"the recorded run of {steps:,.0f} steps")
+    return duration
+
+
+def simulate(diagram, x0, duration: float | None = None, realtime_rate: float = 0.0,
+             force: bool = False) -> Trajectory:
     """Simulate a hybrid diagram from ``x0`` (spec convention) for ``duration`` seconds.
 
     Uses the spec's integrator as a Drake fixed-step integrator of step ``dt``
@@ -160,6 +191,8 @@ def simulate(diagram, x0, duration: float | None = None, realtime_rate: float = 
     simulation itself may run a few steps past it). ``realtime_rate`` > 0 paces the
     simulation (e.g. 1.0 to watch in meshcat). One Context and Simulator per diagram are
     kept and reset for every call, so repeated runs (balance maps) do not rebuild them.
+    A duration is refused before any work as :func:`check_duration` says (``force`` lifts the
+    step cap, not the memory limit).
     """
     system: System = getattr(diagram, "system", None)
     if system is None:
@@ -167,9 +200,7 @@ def simulate(diagram, x0, duration: float | None = None, realtime_rate: float = 
     if not diagram.loggers:
         raise ValueError("diagram was built with log=False; rebuild with log=True to simulate into a Trajectory")
     x0 = _validate_x0(x0, system.n_states)
-    duration = system.episode_duration if duration is None else float(duration)
-    if not np.isfinite(duration) or duration <= 0:
-        raise ValueError(f"duration must be a finite number > 0, got {duration}")
+    duration = check_duration(system, duration, force, name="duration")
 
     runner = _runner(diagram)
     runner.reset(diagram, x0, realtime_rate)

@@ -16,10 +16,15 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
+from ..limits import check_fits_memory
 from ..systems import System
 from ..systems.compiled import LazyCompiled, check_compile_mode
 from ..systems.success import is_balanced
 from .single import STATE_BOUND, advance, check_state, decision_schedule, resolve_system
+
+STEP_TEMPORARIES = 8
+"""State-sized tensors per env a step holds at once besides the history (state, observation, final
+observation, sub-step intermediates): what the memory check of ``num_envs`` counts."""
 
 
 def _autoreset_mode(mode) -> AutoresetMode:
@@ -97,6 +102,9 @@ class TorchVectorEnv(VectorEnv):
         if seed is not None:
             self._np_random, self._np_random_seed = seeding.np_random(seed)
         N, b = self.num_envs, self.system.success_lookback
+        # the state history (b states per env) and a few state-sized temporaries of a step
+        check_fits_memory("num_envs (--num-envs)", N * (b + STEP_TEMPORARIES) * n * (8 if dtype == torch.float64 else 4),
+                          f"{N:,} environments")
         self._state = torch.zeros(N, n, dtype=dtype, device=self.device)
         self._history = torch.full((N, b, n), torch.nan, dtype=dtype, device=self.device)
         self._t = torch.zeros(N, dtype=torch.long, device=self.device)

@@ -29,8 +29,10 @@ import torch
 
 from .. import io
 from ..drake import energy_swingup, simulate
+from ..drake.simulate import check_duration
 from ..envs import SwitchedVectorEnv
-from ..parallel import require_main_guard
+from ..limits import MAX_GRID, MAX_TOTAL_STEPS, check_at_most, check_fits_memory, cpu_count
+from ..parallel import require_main_guard, worker_initializer
 from ..systems import System, control, load
 from ..systems.success import decision_indices, episode_return, is_balanced
 from ..viz import plot_balance_map
@@ -130,13 +132,45 @@ def _simulate_chunk(args) -> tuple[list[tuple[int, bool, float, bool]], float]:
     results and the CPU seconds this process spent on them."""
     cpu = time.process_time()
     torch.set_num_threads(1)
-    spec_name, overrides, controller, duration, starts = args
+    spec_name, overrides, controller, duration, force, starts = args
     diagram = _worker_diagram(spec_name, overrides, controller)
     results = []
     for index, x0 in starts:
-        traj = simulate(diagram, x0, duration)
+        traj = simulate(diagram, x0, duration, force=force)
         results.append((index, traj.balanced, traj.episode_return, traj.diverged))
     return results, time.process_time() - cpu
+
+
+TORCH_BYTES_PER_VALUE = 3 * 8
+"""Bytes per float64 of a state the torch engine records: the list of decision states, their stacked
+copy and the decision-rate states cut from it."""
+
+
+def check_balance_map(system: System, grid: int, duration: float | None, engine: str = "drake",
+                      workers: int | None = None, force: bool = False) -> tuple[float, int | None]:
+    """Check a balance map's size before any work; returns (duration, workers) as they will be used.
+
+    Refuses (one line naming the flag and its limit): a grid outside [2, MAX_GRID], a duration as
+    :func:`hybridctl.drake.simulate.check_duration` does, more than MAX_TOTAL_STEPS time steps of
+    all runs together, local ``workers`` above the cores this process may use (``force`` lifts
+    these), and batched arrays of the torch engine beyond the memory budget (nothing lifts that).
+    """
+    if not (isinstance(grid, (int, np.integer)) and grid >= 2):
+        raise ValueError(f"--grid must be an integer >= 2, got {grid!r}")
+    check_at_most("--grid", int(grid), MAX_GRID, force, why="points per axis")
+    duration = check_duration(system, duration, force)
+    runs, steps = int(grid) ** 2, duration / system.dt
+    check_at_most(f"--grid {grid} x {grid} runs of --duration {duration:g} s", round(runs * steps),
+                  MAX_TOTAL_STEPS, force, why=f"time steps of all runs together, dt = {system.dt:g} s")
+    check_fits_memory("--grid", runs * system.n_states * 8.0, "the grid of starts")
+    if engine == "torch":
+        # states at every decision of the fastest swing-up period (control.period); see torch_rollouts
+        decisions = duration / min(system.control_period, system.swingup_period) + 1
+        check_fits_memory("--grid and --duration", runs * decisions * system.n_states * TORCH_BYTES_PER_VALUE,
+                          "the torch engine's batched states")
+    elif workers is not None:
+        check_at_most("--workers", int(workers), cpu_count(), force, why="cores this process may use")
+    return duration, workers
 
 
 def _grid_starts(system: System, grid: int, axes, ranges):
@@ -245,7 +279,8 @@ def torch_rollouts(system: System, controller: str, starts, duration: float | No
 
 def balance_map(system: System | str, controller: str = "energy", grid: int = 41, duration: float | None = None,
                 axes: tuple[int, int] | None = None, ranges=None, workers: int | None = None,
-                progress: bool = True, overrides: dict | None = None, engine: str = "drake") -> BalanceMap:
+                progress: bool = True, overrides: dict | None = None, engine: str = "drake",
+                force: bool = False) -> BalanceMap:
     """Simulate ``controller`` from every start of a ``grid`` x ``grid`` rest-state grid.
 
     Each start is the spec's nominal state with the two ``axes`` coordinates set
@@ -257,6 +292,10 @@ def balance_map(system: System | str, controller: str = "energy", grid: int = 41
     (:func:`torch_rollouts`; ``workers`` is ignored). The map's ``meta`` records the engine,
     the workers and, for Drake, the workers' CPU seconds (``cpu_s``) and the load average
     at the end: on a shared machine the wall time alone says little.
+
+    The size is checked before any work (:func:`check_balance_map`: grid, duration, all steps
+    together, workers, memory); ``force`` lifts the stated caps, not the memory limit. Never
+    more worker processes start than there are tasks.
     """
     if engine not in ENGINES:
         raise ValueError(f"engine must be one of {ENGINES}, got {engine!r}")
@@ -265,9 +304,7 @@ def balance_map(system: System | str, controller: str = "energy", grid: int = 41
     elif overrides:
         raise ValueError("pass overrides only with a system name; a loaded System already carries its own")
     overrides = dict(system.spec.overrides)
-    duration = system.episode_duration if duration is None else float(duration)
-    if duration <= 0:
-        raise ValueError(f"duration must be > 0, got {duration}")
+    duration, workers = check_balance_map(system, grid, duration, engine, workers, force)
     (a1, a2), values1, values2, grid_states = _grid_starts(system, grid, axes, ranges)
     names = (system.state_names[a1], system.state_names[a2])
     start_time = time.perf_counter()
@@ -278,10 +315,11 @@ def balance_map(system: System | str, controller: str = "energy", grid: int = 41
                           time.perf_counter() - start_time, meta={"engine": "torch", "workers": 1})
     build_named_diagram(system, controller, log=False)  # bad names/checkpoints fail here, not in a worker
     starts = list(enumerate(grid_states))
-    workers = max(1, min(os.cpu_count() or 1, len(starts)) if workers is None else int(workers))
+    workers = max(1, min(cpu_count() if workers is None else int(workers), len(starts)))
     chunk = max(1, min(25, len(starts) // (4 * workers) or 1))
-    jobs = [(str(system.spec.path), overrides, controller, duration, starts[k:k + chunk])
+    jobs = [(str(system.spec.path), overrides, controller, duration, force, starts[k:k + chunk])
             for k in range(0, len(starts), chunk)]
+    workers = min(workers, len(jobs))  # a worker without a task would only cost its start-up
     balanced = np.zeros(grid * grid, dtype=bool)
     returns = np.zeros(grid * grid)
     diverged = np.zeros(grid * grid, dtype=bool)
@@ -292,7 +330,8 @@ def balance_map(system: System | str, controller: str = "energy", grid: int = 41
     else:
         # spawn: a forked child would inherit torch/OpenMP thread state from the parent.
         require_main_guard()
-        pool = mp.get_context("spawn").Pool(workers)
+        initializer, initargs = worker_initializer()  # no orphan survives a kill -9 of this process
+        pool = mp.get_context("spawn").Pool(workers, initializer=initializer, initargs=initargs)
         results_iter = pool.imap_unordered(_simulate_chunk, jobs)
     cpu = 0.0
     try:

@@ -14,9 +14,11 @@ import time
 from pathlib import Path
 from typing import Callable
 
-from ..systems import load
+from ..io import read_json
+from ..learn.checkpoint import resolve_checkpoint_dir
+from ..systems import System, load
 from ..systems.spec import MODELS_DIR
-from .balance_map import balance_map
+from .balance_map import balance_map, check_balance_map
 from .simulation import simulate_and_write
 
 PRETRAINED_ACROBOT = MODELS_DIR / "policies" / "ssac-acrobot"
@@ -65,21 +67,18 @@ def run_demo(out: str | Path = "runs/demo", grid: int = DEMO_GRID, checkpoint: s
     """
     report = report or _silent
     out = Path(out)
+    acrobot_system, cartpole_system, method = check_demo_arguments(out, grid, checkpoint, cartpole_checkpoint)
     start = time.perf_counter()
     acrobot = _run_and_map(
-        load(DEMO_SYSTEM), f"ssac:{checkpoint}", checkpoint, out / "acrobot", out / "balance_map", grid,
+        acrobot_system, f"ssac:{checkpoint}", checkpoint, out / "acrobot", out / "balance_map", grid,
         "hybridctl demo: acrobot (thesis Ch. 3) in Drake: learned SSAC swing-up (TorchPolicy) + learned gate "
         "(Gate, hysteresis) + Drake LQR",
         lambda summary: f"return={summary['return']:.1f} (thesis max 100), ",
         "of rest states", " (thesis: every start of a 41 x 41 grid)", meshcat, progress, command, report)
     cartpole = None
-    if cartpole_checkpoint is not None:
-        from ..io import read_json
-        from ..learn.checkpoint import resolve_checkpoint_dir
-
-        method = read_json(resolve_checkpoint_dir(cartpole_checkpoint) / "config.json")["method"]
+    if cartpole_system is not None:
         cartpole = _run_and_map(
-            load("cartpole"), f"{method}:{cartpole_checkpoint}", cartpole_checkpoint, out / "cartpole",
+            cartpole_system, f"{method}:{cartpole_checkpoint}", cartpole_checkpoint, out / "cartpole",
             out / "cartpole_balance_map", grid,
             f"cart-pole (thesis Ch. 7 + Ch. 3) in Drake: {method.upper()} swing-up (RecurrentTorchPolicy) + "
             "cost-to-go gate (Gate, hysteresis) + Drake LQR",
@@ -88,6 +87,27 @@ def run_demo(out: str | Path = "runs/demo", grid: int = DEMO_GRID, checkpoint: s
     wall = time.perf_counter() - start
     report(f"demo done in {wall:.0f} s; outputs under {out}/")
     return {**acrobot, "cartpole": cartpole, "out": out, "wall_time_s": wall}
+
+
+def check_demo_arguments(out: Path, grid: int, checkpoint, cartpole_checkpoint) -> tuple[System, System | None,
+                                                                                         str | None]:
+    """Check every demo argument before anything is simulated: ``out`` is not a file, the balance-map
+    ``grid`` (as :func:`check_balance_map`, for each system), the checkpoints exist. Returns the
+    acrobot, the cart-pole (None without its checkpoint) and the cart-pole checkpoint's method."""
+    if out.exists() and not out.is_dir():
+        raise NotADirectoryError(f"--out {out} is a file; outputs go into a folder")
+    acrobot = load(DEMO_SYSTEM)
+    check_balance_map(acrobot, grid, None)
+    resolve_checkpoint_dir(checkpoint)
+    if cartpole_checkpoint is None:
+        return acrobot, None, None
+    cartpole = load("cartpole")
+    check_balance_map(cartpole, grid, None)
+    config = read_json(resolve_checkpoint_dir(cartpole_checkpoint) / "config.json")
+    method = config.get("method") if isinstance(config, dict) else None
+    if not isinstance(method, str):
+        raise ValueError(f"{cartpole_checkpoint}/config.json has no 'method' naming its learner")
+    return acrobot, cartpole, method
 
 
 def _run_and_map(system, controller: str, checkpoint, run_dir: Path, map_dir: Path, grid: int, headline: str,

@@ -14,13 +14,14 @@ import numpy as np
 
 from .. import io
 from ..drake import simulate
+from ..drake.simulate import check_duration
 from ..systems import System, load
 from ..viz import plot_trajectory, replay_html
 from .controllers import build_named_diagram
 
 def simulate_and_write(system: System | str, controller: str = "energy", out: str | Path = "runs/simulate",
                        x0=None, duration: float | None = None, html: bool = True, meshcat=None,
-                       command: str | None = None) -> dict:
+                       command: str | None = None, force: bool = False) -> dict:
     """Simulate ``controller`` (a name from ``CONTROLLERS``, e.g. ``"energy"`` or ``"ssac:PATH"``)
     on ``system`` and write ``trajectory.npz``, ``summary.json``, ``plot.png`` and (with
     ``html``) ``replay.html`` into ``out``.
@@ -31,26 +32,33 @@ def simulate_and_write(system: System | str, controller: str = "energy", out: st
         duration: seconds (default: the spec's episode duration).
         meshcat: a running Meshcat (``viz.start_meshcat()``) to show the run live at real time.
         command: the command line that asked for the run, recorded in ``summary.json``.
+        force: lift the stated cap on the steps of one run (not the memory limit); the duration
+            is checked before anything is built or written (``drake.simulate.check_duration``).
 
     Returns:
-        The run's summary (``Trajectory.summary``: balanced, return, diverged, ...).
+        The run's summary (``Trajectory.summary``: balanced, return, diverged, ...), plus
+        ``written``: the names of the files written into ``out`` (a run that diverged within
+        its first step has no plot or replay).
     """
     import matplotlib.pyplot as plt
 
     system = load(system) if isinstance(system, str) else system
+    duration = check_duration(system, duration, force)
     start = system.nudged_nominal_state() if x0 is None else np.asarray(x0, dtype=float)
     out = io.output_folder(out)
     diagram = build_named_diagram(system, controller, meshcat=meshcat)
-    traj = simulate(diagram, start, duration, realtime_rate=1.0 if meshcat is not None else 0.0)
+    traj = simulate(diagram, start, duration, realtime_rate=1.0 if meshcat is not None else 0.0, force=force)
     traj.meta["controller"] = controller
     if command is not None:
         traj.meta["command"] = command
     summary = traj.save(out)
-    if len(traj.t) < 2:  # diverged within the first step: nothing to draw, the summary says why
-        return summary
-    fig = plot_trajectory(traj.t, traj.x, traj.u, traj.gate, system, path=out / "plot.png",
-                          title=f"{system.name}, {controller}: balanced={summary['balanced']}")
-    plt.close(fig)
-    if html and len(traj.t) > 1:
-        replay_html(system, traj.t, traj.x, path=out / "replay.html")
-    return summary
+    written = ["trajectory.npz", "summary.json"]
+    if len(traj.t) >= 2:  # else it diverged within the first step: nothing to draw, the summary says why
+        fig = plot_trajectory(traj.t, traj.x, traj.u, traj.gate, system, path=out / "plot.png",
+                              title=f"{system.name}, {controller}: balanced={summary['balanced']}")
+        plt.close(fig)
+        written.append("plot.png")
+        if html:
+            replay_html(system, traj.t, traj.x, path=out / "replay.html")
+            written.append("replay.html")
+    return {**summary, "written": written}

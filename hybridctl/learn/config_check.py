@@ -1,8 +1,12 @@
-"""Type checks for the learners' config dataclasses, read from their annotations.
+"""Type and limit checks for the learners' config dataclasses, read from their annotations and field names.
 
 Every learner's ``validate()`` calls :func:`check_types` first, so a value of the wrong type
 (``lr="fast"``, ``seed=1.5``, ``hidden=None``) or a non-finite number (``reward_shift=nan``)
-is named before any work starts; each ``validate()`` then checks its ranges.
+is named before any work starts; each ``validate()`` then checks its ranges. :func:`check_types`
+also applies the upper limits of :mod:`hybridctl.limits` by field name, the same for every
+config (``torch_threads``, ``num_envs``, hidden sizes and their networks' memory, ``seed``), and
+refuses a Ray address with a local backend. A message names the field and the command-line
+flag ``hybridctl train`` makes of it (``SACConfig.torch_threads (--torch-threads)``).
 """
 
 from __future__ import annotations
@@ -14,7 +18,23 @@ import typing
 
 import numpy as np
 
-__all__ = ["check_types", "describe_type"]
+from ..limits import MAX_HIDDEN_UNITS, MAX_NUM_ENVS, check_at_most, check_fits_memory, cpu_count
+
+__all__ = ["check_types", "check_limits", "describe_type", "MAX_SEED"]
+
+MAX_SEED = 2**63 - 1
+"""The largest seed: torch.manual_seed and numpy's generators take a 64-bit integer."""
+NETWORK_BYTES_PER_PARAMETER = 14 * 4
+"""Bytes one float32 weight of a learner's hidden layers costs in training: SAC's actor, two critics
+and their two targets (5 copies), gradients of the three trained networks (3) and Adam's two
+moments of each (6)."""
+FIELD_LIMITS: dict[str, tuple[typing.Callable[[], int], str]] = {
+    "torch_threads": (cpu_count, "cores this process may use"),
+    "num_envs": (lambda: MAX_NUM_ENVS, "environments of one batched env"),
+    "hidden_size": (lambda: MAX_HIDDEN_UNITS, "units of one hidden layer"),
+    "seed": (lambda: MAX_SEED, "the largest 64-bit seed"),
+}
+"""Upper limits by config field name (every learner's config): (limit(), what it bounds)."""
 
 
 def describe_type(hint) -> str:
@@ -52,10 +72,46 @@ def _matches(value, hint) -> bool:
 
 def check_types(config) -> None:
     """Raise ValueError naming the first field of a config dataclass whose value does not match
-    its annotation (floats must also be finite)."""
+    its annotation (floats must also be finite); then :func:`check_limits`."""
     hints = typing.get_type_hints(type(config))
     cls = type(config).__name__
     for f in dataclasses.fields(config):
         value = getattr(config, f.name)
         if not _matches(value, hints.get(f.name, typing.Any)):
             raise ValueError(f"{cls}.{f.name} must be {describe_type(hints[f.name])}, got {value!r}")
+    check_limits(config)
+
+
+def field_name(config, name: str) -> str:
+    """How a message names a config field: ``SACConfig.num_envs (--num-envs)``, the flag of ``hybridctl train``."""
+    return f"{type(config).__name__}.{name} (--{name.replace('_', '-')})"
+
+
+def _integer(value) -> bool:
+    return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
+
+
+def check_limits(config) -> None:
+    """Raise LimitError naming the first field of ``config`` above its limit (:data:`FIELD_LIMITS`,
+    hidden widths at most MAX_HIDDEN_UNITS, hidden layers whose training memory exceeds the
+    memory budget), or ValueError for a Ray address with a local backend. Fields a config does
+    not have, and values of the wrong type (reported by :func:`check_types`), are skipped."""
+    values = {f.name: getattr(config, f.name) for f in dataclasses.fields(config)}
+    for name, (limit, why) in FIELD_LIMITS.items():
+        if _integer(values.get(name)):
+            check_at_most(field_name(config, name), int(values[name]), limit(), why=why, force_flag=None)
+    for name, widths in values.items():
+        if name.split("_")[-1] == "hidden" and isinstance(widths, (tuple, list)) and all(map(_integer, widths)):
+            for width in widths:
+                check_at_most(field_name(config, name), int(width), MAX_HIDDEN_UNITS, why="units of one hidden "
+                              "layer", force_flag=None)
+            weights = sum(int(a) * int(b) for a, b in zip(widths, widths[1:]))
+            check_fits_memory(field_name(config, name), weights * NETWORK_BYTES_PER_PARAMETER, "the network")
+    if _integer(values.get("hidden_size")) and _integer(values.get("hidden_layers")):
+        weights = int(values["hidden_layers"]) * int(values["hidden_size"]) ** 2
+        check_fits_memory(f"{field_name(config, 'hidden_size')} x {field_name(config, 'hidden_layers')}",
+                          weights * NETWORK_BYTES_PER_PARAMETER, "the networks in training")
+    for name in ("address", "ray_address"):
+        backend = values.get("backend")
+        if values.get(name) is not None and isinstance(backend, str) and backend != "ray":
+            raise ValueError(f"{field_name(config, name)} applies to backend 'ray' only, not {backend!r}")
