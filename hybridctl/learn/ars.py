@@ -57,6 +57,7 @@ from ..systems import known_systems
 from ..systems import load as load_system
 from . import checkpoint as ckpt
 from .config_check import check_types
+from .env_ids import recorded_env_id, recorded_env_kwargs
 from .run import PROGRESS_FILE, EvalResult, Learner, Saved, check_fields, check_finite, seeded, set_torch_threads
 
 
@@ -693,7 +694,11 @@ class ARS(Learner):
         ckpt.check_algorithm(folder, meta.get("algorithm") or "(no algorithm)", (cls.algorithm_name,),
                              cls.algorithm_name, force)
         config = ckpt.config_from_meta(ARSConfig, meta, overrides)
-        agent = cls(env if env is not None else meta["env"], config, env_kwargs=meta.get("env_kwargs"), policy=policy)
+        # the recorded env is data: an id with a 'module:' part would import code (env= is the caller's own)
+        if env is None:
+            env = recorded_env_id(meta["env"], folder / ckpt.CONFIG_FILE)
+        env_kwargs = recorded_env_kwargs(meta.get("env_kwargs"), folder / ckpt.CONFIG_FILE)
+        agent = cls(env, config, env_kwargs=env_kwargs, policy=policy)
         if (agent.policy.obs_dim, agent.policy.act_dim) != (meta["obs_dim"], meta["act_dim"]):
             raise ckpt.CheckpointError(
                 f"{folder} was trained on {meta['env']} with {meta['obs_dim']} observations and {meta['act_dim']} "

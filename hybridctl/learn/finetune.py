@@ -52,6 +52,7 @@ from ..systems import load as load_system
 from . import checkpoint as ckpt
 from .ars import make_env as _make_env
 from .config_check import check_types
+from .env_ids import recorded_env_id, recorded_env_kwargs
 from .robustness import wilson_interval
 from .run import PROGRESS_FILE, EvalResult, Learner, Saved, check_fields, check_finite, set_torch_threads
 
@@ -759,8 +760,14 @@ class FineTune(Learner):
         ckpt.check_algorithm(folder, meta.get("algorithm") or "(no algorithm)", (cls.algorithm_name,),
                              cls.algorithm_name, force)
         config = ckpt.config_from_meta(FineTuneConfig, meta, overrides)
+        file = folder / ckpt.CONFIG_FILE
         source = policy if policy is not None else meta["source"]
-        tuner = cls(env if env is not None else meta["env"], source, config, env_kwargs=meta.get("env_kwargs"),
-                    trust=trust)
+        if not isinstance(source, (str, TunablePolicy, torch.nn.Module)):
+            raise ckpt.CheckpointError(f"{file}: 'source' must be a string KIND:PATH with KIND one of {SOURCE_KINDS}, "
+                                       f"got {type(source).__name__}")
+        # the recorded env is data: an id with a 'module:' part would import code (env= is the caller's own)
+        if env is None:
+            env = recorded_env_id(meta.get("env"), file)
+        tuner = cls(env, source, config, env_kwargs=recorded_env_kwargs(meta.get("env_kwargs"), file), trust=trust)
         tuner.checkpointer.restore(folder, force=force)
         return tuner

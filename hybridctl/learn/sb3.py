@@ -28,11 +28,14 @@ without stable-baselines3 installed. :meth:`SB3Agent.save_zip` writes the zip ba
 
 from __future__ import annotations
 
+import base64
 import io
 import json
 import math
+import pickle
 import re
 import zipfile
+import zlib
 from pathlib import Path
 from typing import Any
 
@@ -42,6 +45,7 @@ import torch
 from torch import nn
 
 from .. import io as _io
+from .. import limits
 from .checkpoint import CheckpointError
 
 SB3_ALGORITHMS = ("ppo", "a2c", "sac", "td3", "ddpg", "tqc")
@@ -65,6 +69,38 @@ ACTIVATIONS = {"Tanh": nn.Tanh, "ReLU": nn.ReLU, "ELU": nn.ELU, "LeakyReLU": nn.
 DATA_ENTRY = "data"
 POLICY_ENTRY = "policy.pth"
 VERSION_ENTRY = "_stable_baselines3_version"
+SYSTEM_INFO_ENTRY = "system_info.txt"
+VARIABLES_ENTRY = "pytorch_variables.pth"
+OPTIMIZER_ENTRIES = ("policy.optimizer.pth", "actor.optimizer.pth", "critic.optimizer.pth", "ent_coef_optimizer.pth")
+"""The optimizer state dicts SB3 writes (PPO/A2C: policy; SAC/TQC/TD3/DDPG: actor, critic; SAC/TQC: ent_coef)."""
+TEXT_ENTRIES = (DATA_ENTRY, VERSION_ENTRY, SYSTEM_INFO_ENTRY)
+"""Entries read as text, bounded by :data:`hybridctl.limits.MAX_JSON_BYTES` (the others by MAX_ZIP_ENTRY_BYTES)."""
+PYTORCH_VARIABLES = ("log_ent_coef", "ent_coef_tensor")
+"""The names SB3 stores in ``pytorch_variables.pth`` (SAC/TQC's entropy coefficient); no other is read."""
+MAX_SPACE_ELEMENTS = 1_000_000
+"""Elements of an observation or action Box read from a zip (``_shape``); an MlpPolicy of more is not
+readable within :data:`hybridctl.limits.MAX_ZIP_ENTRY_BYTES` anyway (stated here: limits.py has no cap for it)."""
+
+POLICY_CLASSES = {"ppo": ("stable_baselines3.common.policies", "ActorCriticPolicy"),
+                  "a2c": ("stable_baselines3.common.policies", "ActorCriticPolicy"),
+                  "sac": ("stable_baselines3.sac.policies", "SACPolicy"),
+                  "td3": ("stable_baselines3.td3.policies", "TD3Policy"),
+                  "ddpg": ("stable_baselines3.td3.policies", "TD3Policy"),
+                  "tqc": ("sb3_contrib.tqc.policies", "TQCPolicy")}
+"""The ``MlpPolicy`` class of each algorithm (module, name): the only ``policy_class`` modules a zip may name,
+and the class :meth:`SB3Agent.save_zip` writes (by name; nothing of the input's pickle is kept)."""
+POLICY_MODULES = tuple(sorted({module for module, _ in POLICY_CLASSES.values()}))
+
+OPTIMIZERS = {"Adam": torch.optim.Adam, "AdamW": torch.optim.AdamW, "RMSprop": torch.optim.RMSprop,
+              "SGD": torch.optim.SGD}
+"""Optimizer classes a zip's ``policy_kwargs['optimizer_class']`` may name (A2C's default is RMSprop)."""
+EXTRACTORS = ("FlattenExtractor",)
+"""Features extractors a zip's ``policy_kwargs['features_extractor_class']`` may name (MlpPolicy's)."""
+CLASS_KWARGS = {"activation_fn": ("torch.nn.modules.activation", ACTIVATIONS),
+                "optimizer_class": ("torch.optim", OPTIMIZERS),
+                "features_extractor_class": ("stable_baselines3.common.torch_layers", EXTRACTORS)}
+"""The ``policy_kwargs`` entries that name a class, with the module prefix and names accepted for each.
+Any other entry must be plain JSON (a class or function there is refused)."""
 NORMALIZER_NPZ = "vecnormalize.npz"
 NORMALIZER_PKL = "vecnormalize.pkl"
 NPZ_KEYS = ("mean", "var", "count", "clip_obs", "epsilon")
@@ -173,15 +209,58 @@ class Normalizer:
 
 # --- the policy --------------------------------------------------------------------------------------
 
+def _class_name(key: str, text: Any, where: str) -> str:
+    """The class named by SB3's text ``<class 'torch.nn.modules.activation.ReLU'>`` (or a bare name) of
+    ``policy_kwargs[key]``, if it is one of the known classes of :data:`CLASS_KWARGS` (nothing is imported)."""
+    prefix, known = CLASS_KWARGS[key]
+    match = re.fullmatch(r"\s*(?:<class '([A-Za-z_][\w.]*)'>|([A-Za-z_]\w*))\s*", text) if isinstance(text, str) else None
+    dotted = (match.group(1) or match.group(2)) if match else ""
+    module, _, name = dotted.rpartition(".")
+    if name in known and (not module or module == prefix or module.startswith(prefix + ".")):
+        return name
+    raise CheckpointError(f"{where}: policy_kwargs[{key!r}] is {str(text)[:80]!r}, not one of {sorted(known)} "
+                          f"(of {prefix})")
+
+
 def _activation_name(text: str | None, algo: str, source: str) -> str:
     """The activation class name in SB3's text ``<class 'torch.nn.modules.activation.ReLU'>`` (None: default)."""
-    if text is None:
-        return DEFAULT_ACTIVATION[algo]
-    match = re.search(r"([A-Za-z_][A-Za-z0-9_]*)'?>?\s*$", str(text))
-    name = match.group(1) if match else str(text)
-    if name not in ACTIVATIONS:
-        raise CheckpointError(f"{source}: policy_kwargs activation_fn {text!r} is not one of {sorted(ACTIVATIONS)}")
-    return name
+    return DEFAULT_ACTIVATION[algo] if text is None else _class_name("activation_fn", text, source)
+
+
+def _strip(value: Any) -> Any:
+    """``value`` with every key starting with ':' (":serialized:", ":type:") removed, at any depth."""
+    if isinstance(value, dict):
+        return {key: _strip(item) for key, item in value.items() if not str(key).startswith(":")}
+    if isinstance(value, list):
+        return [_strip(item) for item in value]
+    return value
+
+
+def _policy_kwargs(data: dict, where: str) -> tuple[dict, dict[str, str]]:
+    """(the plain ``policy_kwargs`` fields, {key: known class name} for the class-valued ones).
+
+    A class or function named anywhere else (SB3 writes its text, ``<class ...>`` / ``<function ...>``)
+    is refused: we would have to unpickle it to use it.
+    """
+    kwargs = _strip(data.get("policy_kwargs") or {})
+    if not isinstance(kwargs, dict):
+        raise CheckpointError(f"{where}: data['policy_kwargs'] is not an object")
+    classes = {}
+    for key, value in kwargs.items():
+        if key in CLASS_KWARGS:
+            classes[key] = _class_name(key, value, where)
+        elif isinstance(value, str) and value.lstrip().startswith("<"):
+            raise CheckpointError(f"{where}: policy_kwargs[{key!r}] is {value[:80]!r}, an object that cannot be "
+                                  f"read without unpickling; only {sorted(CLASS_KWARGS)} may name classes")
+    return {k: v for k, v in kwargs.items() if k not in classes}, classes
+
+
+def _number(value: Any, where: str, positive: bool = False) -> float:
+    """``value`` as a finite float (``positive``: > 0); CheckpointError naming ``where`` otherwise."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
+            or (positive and value <= 0):
+        raise CheckpointError(f"{where} must be a finite {'positive ' if positive else ''}number, got {value!r:.60}")
+    return float(value)
 
 
 def _linear_indices(state: dict[str, torch.Tensor], prefix: str) -> list[int]:
@@ -380,7 +459,7 @@ def _parse_array(text: Any, shape: tuple[int, ...], dtype: np.dtype, where: str)
     """A numpy ``str()`` of an array (``'[-1. -1. -8.]'``, nested for 2-d, ``inf``) parsed back."""
     if isinstance(text, (int, float)):
         return np.full(shape, text, dtype=dtype)
-    if not isinstance(text, str) or "..." in text:
+    if isinstance(text, bool) or not isinstance(text, str) or "..." in text:
         raise CheckpointError(f"{where} is {text!r}: not a full array repr (summarised reprs cannot be read back)")
     try:
         values = np.array([float(token) for token in text.replace("[", " ").replace("]", " ").split()])
@@ -403,13 +482,24 @@ def _box_from_json(data: dict, field: str, source: str) -> gym.spaces.Box:
     if "spaces.box.Box" not in kind:
         raise CheckpointError(f"{where} is a {kind or 'non-space'}; only Box spaces are supported")
     try:
-        shape = tuple(int(n) for n in entry["_shape"])
-        dtype = np.dtype(entry.get("dtype", "float32"))
+        shape = entry["_shape"]
+        if not isinstance(shape, list) or not all(isinstance(n, int) and not isinstance(n, bool) and n >= 0
+                                                  for n in shape) or math.prod(shape) > MAX_SPACE_ELEMENTS:
+            raise CheckpointError(f"{where}['_shape'] is {str(shape)[:60]}: it must be a list of sizes >= 0 with at "
+                                  f"most {MAX_SPACE_ELEMENTS:,} elements in all")
+        shape = tuple(shape)
+        dtype = entry.get("dtype", "float32")
+        if dtype not in ("float16", "float32", "float64"):
+            raise CheckpointError(f"{where}['dtype'] is {str(dtype)[:40]!r}, not float16, float32 or float64")
+        dtype = np.dtype(dtype)
         low = _parse_array(entry["low"], shape, dtype, f"{where}['low']")
         high = _parse_array(entry["high"], shape, dtype, f"{where}['high']")
-    except (KeyError, TypeError) as exc:
+    except KeyError as exc:
         raise CheckpointError(f"{where} lacks the plain field {exc} (needs _shape, dtype, low, high)") from exc
-    return gym.spaces.Box(low=low, high=high, shape=shape, dtype=dtype)
+    try:
+        return gym.spaces.Box(low=low, high=high, shape=shape, dtype=dtype)
+    except (ValueError, TypeError, AssertionError) as exc:
+        raise CheckpointError(f"{where} is not a valid Box: {exc}") from exc
 
 
 def _policy_module(data: dict) -> str | None:
@@ -445,6 +535,109 @@ def _detect_algo(data: dict, state: dict[str, torch.Tensor]) -> tuple[str | None
     return None, "nothing recognised"
 
 
+_ZIP_ERRORS = (zipfile.BadZipFile, zlib.error, EOFError, OSError, NotImplementedError, RuntimeError, ValueError)
+"""What zipfile raises for a damaged, encrypted or oddly compressed entry (CRC, truncation, method)."""
+
+
+def _read_entry(archive: zipfile.ZipFile, info: zipfile.ZipInfo, path: Path, limit: int) -> bytes:
+    """One entry's bytes, read in chunks and stopped past ``limit`` (a zip bomb never inflates further)."""
+    chunks, size = [], 0
+    try:
+        with archive.open(info) as stream:
+            while chunk := stream.read(1 << 20):
+                size += len(chunk)
+                if size > limit:
+                    raise CheckpointError(f"{path}: entry {info.filename!r} inflates past {limit:,} bytes (hybridctl."
+                                          f"limits: MAX_JSON_BYTES for text, MAX_ZIP_ENTRY_BYTES for other entries "
+                                          f"and the whole zip); it is damaged or a zip bomb")
+                chunks.append(chunk)
+    except _ZIP_ERRORS as exc:
+        raise CheckpointError(f"{path}: entry {info.filename!r} cannot be read: {exc}") from exc
+    return b"".join(chunks)
+
+
+def _read_entries(path: Path) -> dict[str, bytes]:
+    """Every entry of the zip at ``path`` (name -> bytes), each bounded, all read before anything is used.
+
+    Text entries (:data:`TEXT_ENTRIES`) are bounded by ``limits.MAX_JSON_BYTES``, the others by
+    ``limits.MAX_ZIP_ENTRY_BYTES``, all together by ``MAX_ZIP_ENTRY_BYTES`` too; at most
+    ``limits.MAX_ZIP_ENTRIES`` entries, each name once.
+    """
+    try:
+        archive = zipfile.ZipFile(path)
+    except (zipfile.BadZipFile, OSError, ValueError) as exc:
+        raise CheckpointError(f"{path} is not a zip file (an SB3 checkpoint is the .zip of model.save): {exc}") from exc
+    entries: dict[str, bytes] = {}
+    with archive:
+        infos = archive.infolist()
+        if len(infos) > limits.MAX_ZIP_ENTRIES:
+            raise CheckpointError(f"{path} holds {len(infos):,} entries, above the limit of "
+                                  f"{limits.MAX_ZIP_ENTRIES:,} (an SB3 zip holds about 8)")
+        total = 0
+        for info in infos:
+            if info.filename in entries:
+                raise CheckpointError(f"{path} holds the entry {info.filename!r} twice: the zip is damaged")
+            limit = limits.MAX_JSON_BYTES if info.filename in TEXT_ENTRIES else limits.MAX_ZIP_ENTRY_BYTES
+            entries[info.filename] = _read_entry(archive, info, path, min(limit, limits.MAX_ZIP_ENTRY_BYTES - total))
+            total += len(entries[info.filename])
+    return entries
+
+
+def _torch_entry(entries: dict[str, bytes], name: str, path: Path) -> Any:
+    """``torch.load(weights_only=True)`` of one entry (tensors and plain containers only; nothing else unpickles)."""
+    try:
+        return torch.load(io.BytesIO(entries[name]), map_location="cpu", weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - torch raises many kinds for a damaged file
+        raise CheckpointError(f"{path}: entry {name!r} is not readable with torch.load(weights_only=True): "
+                              f"{str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from exc
+
+
+def _state_dict(entries: dict[str, bytes], path: Path) -> dict[str, torch.Tensor]:
+    """The policy state dict: string keys to real floating-point tensors (no bool, integer or complex)."""
+    state = _torch_entry(entries, POLICY_ENTRY, path)
+    source = f"{path}: entry {POLICY_ENTRY!r}"
+    if not isinstance(state, dict) or not all(isinstance(k, str) and isinstance(v, torch.Tensor)
+                                              for k, v in state.items()):
+        raise CheckpointError(f"{source} is not a dict of tensors")
+    for key, value in state.items():
+        if not value.is_floating_point():
+            raise CheckpointError(f"{source}: tensor {key!r} has dtype {value.dtype}; a policy's weights are "
+                                  f"real floating point (float16, bfloat16, float32, float64)")
+    return state
+
+
+def _variables(entries: dict[str, bytes], path: Path) -> dict[str, torch.Tensor] | None:
+    """``pytorch_variables.pth`` (SAC/TQC's entropy coefficient) if present: known names, float tensors."""
+    if VARIABLES_ENTRY not in entries:
+        return None
+    found = _torch_entry(entries, VARIABLES_ENTRY, path)
+    if not isinstance(found, dict) or not all(k in PYTORCH_VARIABLES and isinstance(v, torch.Tensor)
+                                              and v.is_floating_point() for k, v in found.items()):
+        raise CheckpointError(f"{path}: entry {VARIABLES_ENTRY!r} must map names of {PYTORCH_VARIABLES} to "
+                              f"floating-point tensors, got {str(found)[:80]}")
+    return found
+
+
+def _optimizers(entries: dict[str, bytes], path: Path) -> dict[str, dict]:
+    """The optimizer state dicts present (``{"state": {...}, "param_groups": [...]}``), checked and kept."""
+    found = {}
+    for name in OPTIMIZER_ENTRIES:
+        if name in entries:
+            state = _torch_entry(entries, name, path)
+            if not (isinstance(state, dict) and isinstance(state.get("state"), dict)
+                    and isinstance(state.get("param_groups"), list)
+                    and all(isinstance(group, dict) for group in state["param_groups"])):
+                raise CheckpointError(f"{path}: entry {name!r} is not an optimizer state dict (state, param_groups)")
+            found[name] = state
+    return found
+
+
+def _version(entries: dict[str, bytes]) -> str | None:
+    """The SB3 version text if it looks like a version (``2.9.2``), else None."""
+    text = entries.get(VERSION_ENTRY, b"").decode("utf-8", "replace").strip()
+    return text if re.fullmatch(r"[0-9][0-9A-Za-z.+-]{0,39}", text) else None
+
+
 class SB3Agent:
     """An SB3 checkpoint read without unpickling: the policy module, the normaliser, the spaces.
 
@@ -458,10 +651,10 @@ class SB3Agent:
     """
 
     def __init__(self, path: Path, algo: str, policy: SB3Policy, normalizer: Normalizer | None,
-                 observation_space: gym.spaces.Box, action_space: gym.spaces.Box, meta: dict, zip_bytes: bytes):
+                 observation_space: gym.spaces.Box, action_space: gym.spaces.Box, meta: dict, parts: dict):
         self.path, self.algo, self.policy, self.normalizer = path, algo, policy, normalizer
         self.observation_space, self.action_space, self.meta = observation_space, action_space, meta
-        self._zip_bytes = zip_bytes
+        self._parts = parts  # what was parsed from the zip: data (JSON), variables, optimizers, version
 
     def predict(self, obs: np.ndarray, deterministic: bool = True) -> tuple[np.ndarray, None]:
         """``(action, None)`` for raw env observations (one or a batch), like SB3's ``model.predict``.
@@ -500,20 +693,121 @@ class SB3Agent:
                                  f"{mine.low}, high {mine.high}) of {self.path}")
 
     def save_zip(self, out_path: str | Path) -> Path:
-        """Write the original zip with ``policy.pth`` replaced by ``policy.sb3_state_dict()`` (atomically).
+        """Write an SB3 zip of this agent (atomically), built from what was parsed, never copied from the input.
 
-        Every other entry is copied byte for byte; SB3's own ``PPO.load(out_path)`` etc. reads it.
+        The entries are a fixed list with names chosen here: ``data`` (:meth:`sb3_data`: the plain JSON
+        fields, every ":serialized:" payload of the input dropped, the classes and spaces SB3 needs
+        re-serialised from known names and the parsed Boxes), ``pytorch_variables.pth`` and the
+        optimizer states (if the input had them; re-saved from their ``weights_only`` load),
+        ``policy.pth`` (``torch.save`` of ``policy.sb3_state_dict()``) and the SB3 version. SB3's own
+        ``PPO.load(out_path)`` etc. reads it and predicts this agent's actions.
         """
-        buffer = io.BytesIO()
-        torch.save(self.policy.sb3_state_dict(), buffer)
-        new_policy = buffer.getvalue()
+        entries = {DATA_ENTRY: json.dumps(self.sb3_data(), indent=4).encode("utf-8")}
+        if self._parts["variables"] is not None:
+            entries[VARIABLES_ENTRY] = _torch_bytes(self._parts["variables"])
+        entries[POLICY_ENTRY] = _torch_bytes(self.policy.sb3_state_dict())
+        for name, state in self._parts["optimizers"].items():
+            entries[name] = _torch_bytes(state)
+        if self._parts["version"] is not None:
+            entries[VERSION_ENTRY] = self._parts["version"].encode("ascii")
 
         def write(f):
-            with zipfile.ZipFile(io.BytesIO(self._zip_bytes)) as zin, zipfile.ZipFile(f, "w") as zout:
-                for info in zin.infolist():
-                    zout.writestr(info, new_policy if info.filename == POLICY_ENTRY else zin.read(info))
+            with zipfile.ZipFile(f, "w", zipfile.ZIP_DEFLATED) as zout:
+                for name, payload in entries.items():
+                    zout.writestr(name, payload)
 
         return _io.atomic_write(out_path, write)
+
+    def sb3_data(self) -> dict:
+        """The ``data`` JSON of :meth:`save_zip`.
+
+        Kept: the input's plain JSON fields (with ":"-keys stripped at any depth), except ``env``
+        (SB3 would ``gym.make`` it) and the ``*_class`` fields (SB3 picks its defaults). A serialized
+        constant schedule (``ConstantSchedule(val=0.2)``) becomes its number, a pickled ``target_entropy``
+        (SB3's "auto") ``-prod(action shape)``; other pickled fields are dropped (SB3 keeps its defaults,
+        e.g. ``train_freq``, and rebuilds buffers on ``learn``). Rebuilt by us:
+        ``policy_class`` (:data:`POLICY_CLASSES`), the two Boxes and ``policy_kwargs`` (its plain fields
+        and the known classes of :data:`CLASS_KWARGS`), each pickled from objects made here.
+        """
+        data = {}
+        for key, value in self._parts["data"].items():
+            if key == "env" or key.endswith("_class") or key in _REBUILT:
+                continue
+            if isinstance(value, dict) and ":serialized:" in value:
+                constant = _constant_schedule(value)
+                if key == "target_entropy":  # only SB3's "auto" is stored pickled (a numpy float): -act_dim
+                    constant = -float(math.prod(self.action_space.shape))
+                if constant is not None:
+                    data[key] = constant
+                continue
+            data[key] = _strip(value)
+        module, name = POLICY_CLASSES[self.algo]
+        data["policy_class"] = _serialized(_ClassRef(module, name), "<class 'abc.ABCMeta'>", {"__module__": module})
+        for key, box in (("observation_space", self.observation_space), ("action_space", self.action_space)):
+            data[key] = _serialized(box, str(type(box)), _box_fields(box))
+        kwargs = dict(self.meta["policy_kwargs"])
+        classes = self.meta["policy_kwargs_classes"]
+        objects = {key: CLASS_OBJECTS[key][name] for key, name in classes.items() if key != "features_extractor_class"}
+        if objects:  # FlattenExtractor is MlpPolicy's default: not written
+            shown = {**kwargs, **{key: str(obj) for key, obj in objects.items()}}
+            data["policy_kwargs"] = _serialized({**kwargs, **objects}, "<class 'dict'>", shown)
+        else:
+            data["policy_kwargs"] = kwargs
+        return data
+
+
+_REBUILT = ("policy_class", "observation_space", "action_space", "policy_kwargs")
+"""``data`` fields :meth:`SB3Agent.sb3_data` writes itself."""
+CLASS_OBJECTS = {"activation_fn": ACTIVATIONS, "optimizer_class": OPTIMIZERS}
+"""The classes written for the class-valued ``policy_kwargs`` (by reference: a module and a name)."""
+
+
+class _ClassRef:
+    """A class named by module and name, pickled as a bare reference (SB3 need not be installed to write it)."""
+
+    def __init__(self, module: str, name: str):
+        self.module, self.name = module, name
+
+
+class _Pickler(pickle._Pickler):  # the pure-Python pickler: its dispatch table can take _ClassRef
+    """Pickles plain values, numpy arrays, Boxes and classes by reference; a :class:`_ClassRef` as GLOBAL."""
+
+    dispatch = pickle._Pickler.dispatch.copy()
+
+    def _save_class_ref(self, obj: _ClassRef) -> None:
+        self.write(pickle.GLOBAL + f"{obj.module}\n{obj.name}\n".encode("ascii"))
+
+    dispatch[_ClassRef] = _save_class_ref
+
+
+def _serialized(obj: Any, type_text: str, plain: dict) -> dict:
+    """SB3's JSON form of a non-JSON value: ``{":type:", ":serialized:" (base64 pickle), plain fields}``."""
+    buffer = io.BytesIO()
+    _Pickler(buffer, protocol=4).dump(obj)
+    return {":type:": type_text, ":serialized:": base64.b64encode(buffer.getvalue()).decode("ascii"), **plain}
+
+
+def _box_fields(box: gym.spaces.Box) -> dict:
+    """The plain fields of a Box, as SB3 writes them for humans and :func:`_box_from_json` reads them."""
+    def text(array):
+        return np.array2string(array, threshold=array.size + 1, floatmode="unique", max_line_width=1 << 30)
+    return {"dtype": str(box.dtype), "_shape": list(box.shape), "low": text(box.low), "high": text(box.high)}
+
+
+def _constant_schedule(entry: dict) -> float | None:
+    """The value of a serialized ``FloatSchedule(ConstantSchedule(val=x))`` from its plain text, else None."""
+    match = re.fullmatch(r"ConstantSchedule\(val=([-+0-9.eE]+)\)", str(entry.get("value_schedule", "")))
+    try:
+        value = float(match.group(1)) if match else None
+    except ValueError:
+        return None
+    return value if value is not None and math.isfinite(value) else None
+
+
+def _torch_bytes(obj: Any) -> bytes:
+    buffer = io.BytesIO()
+    torch.save(obj, buffer)
+    return buffer.getvalue()
 
 
 def _read_normalizer(path: Path, normalizer: str | Path | Normalizer | None, trust: bool) -> Normalizer | None:
@@ -555,31 +849,24 @@ def load_sb3(path: str | Path, normalizer: str | Path | Normalizer | None = None
         raise ValueError(f"algo {algo!r} is not one of {SB3_ALGORITHMS}")
     if not path.is_file():
         raise CheckpointError(f"{path}: no such file (an SB3 .zip written by model.save)")
-    zip_bytes = path.read_bytes()
+    entries = _read_entries(path)  # every entry, bounded, before anything is built or trained
+    for entry in (DATA_ENTRY, POLICY_ENTRY):
+        if entry not in entries:
+            raise CheckpointError(f"{path} has no {entry!r} entry (entries: {sorted(entries)[:10]})")
     try:
-        archive = zipfile.ZipFile(io.BytesIO(zip_bytes))
-    except zipfile.BadZipFile as exc:
-        raise CheckpointError(f"{path} is not a zip file (an SB3 checkpoint is the .zip of model.save): {exc}") from exc
-    with archive:
-        names = archive.namelist()
-        for entry in (DATA_ENTRY, POLICY_ENTRY):
-            if entry not in names:
-                raise CheckpointError(f"{path} has no {entry!r} entry (entries: {names})")
-        try:
-            data = json.loads(archive.read(DATA_ENTRY).decode("utf-8"))
-        except (ValueError, UnicodeDecodeError, zipfile.BadZipFile) as exc:
-            raise CheckpointError(f"{path}: entry {DATA_ENTRY!r} is not valid JSON: {exc}") from exc
-        if not isinstance(data, dict):
-            raise CheckpointError(f"{path}: entry {DATA_ENTRY!r} is not a JSON object")
-        try:
-            state = torch.load(io.BytesIO(archive.read(POLICY_ENTRY)), map_location="cpu", weights_only=True)
-        except Exception as exc:  # noqa: BLE001 - torch raises many kinds for a damaged file
-            raise CheckpointError(f"{path}: entry {POLICY_ENTRY!r} is not a state dict readable with "
-                                  f"torch.load(weights_only=True): {exc}") from exc
-        version = archive.read(VERSION_ENTRY).decode("utf-8", "replace").strip() if VERSION_ENTRY in names else None
+        data = json.loads(entries[DATA_ENTRY].decode("utf-8"))
+    except (ValueError, UnicodeDecodeError, RecursionError) as exc:
+        raise CheckpointError(f"{path}: entry {DATA_ENTRY!r} is not valid JSON: {str(exc)[:120]}") from exc
+    if not isinstance(data, dict):
+        raise CheckpointError(f"{path}: entry {DATA_ENTRY!r} is not a JSON object")
+    state = _state_dict(entries, path)
+    parts = {"variables": _variables(entries, path), "optimizers": _optimizers(entries, path),
+             "version": _version(entries)}
     source = f"{path}: entry {POLICY_ENTRY!r}"
-    if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
-        raise CheckpointError(f"{source} is not a dict of tensors")
+    module = _policy_module(data)
+    if module is not None and module not in POLICY_MODULES:
+        raise CheckpointError(f"{path}: entry {DATA_ENTRY!r} key 'policy_class' names module {module[:80]!r}, not "
+                              f"one of {POLICY_MODULES} (an MlpPolicy of {', '.join(SB3_ALGORITHMS)})")
     found, how = _detect_algo(data, state)
     if algo is None:
         if found is None:
@@ -588,27 +875,29 @@ def load_sb3(path: str | Path, normalizer: str | Path | Normalizer | None = None
         algo = found
     else:
         how = "algo= argument"
+    where = f"{path}: entry {DATA_ENTRY!r}"
     observation_space = _box_from_json(data, "observation_space", str(path))
     action_space = _box_from_json(data, "action_space", str(path))
-    policy_kwargs = _plain(data.get("policy_kwargs") or {})
-    if not isinstance(policy_kwargs, dict):
-        raise CheckpointError(f"{path}: data['policy_kwargs'] is not an object")
-    extractor = policy_kwargs.get("features_extractor_class")
-    if extractor is not None and "FlattenExtractor" not in str(extractor):
-        raise CheckpointError(f"{path}: features_extractor_class {extractor!r} is not supported (MlpPolicy only)")
-    activation = _activation_name(policy_kwargs.get("activation_fn"), algo, str(path))
-    squash = bool(policy_kwargs.get("squash_output", False)) if FAMILY[algo] == "actor_critic" else True
+    policy_kwargs, classes = _policy_kwargs(data, where)
+    if classes.get("features_extractor_class", "FlattenExtractor") not in EXTRACTORS:  # pragma: no cover - checked
+        raise CheckpointError(f"{where}: features_extractor_class is not supported (MlpPolicy only)")
+    activation = classes.get("activation_fn", DEFAULT_ACTIVATION[algo])
+    squash = policy_kwargs.get("squash_output", False) if FAMILY[algo] == "actor_critic" else True
+    if not isinstance(squash, bool):
+        raise CheckpointError(f"{where}: policy_kwargs['squash_output'] must be true or false, got {squash!r:.60}")
+    clip_mean = _number(policy_kwargs.get("clip_mean", 2.0), f"{where}: policy_kwargs['clip_mean']", positive=True)
     obs_dim = int(math.prod(observation_space.shape))
     policy = SB3Policy(state, algo, obs_dim, action_space.low, action_space.high, activation=activation,
-                       squash_output=squash, clip_mean=float(policy_kwargs.get("clip_mean", 2.0)), source=source)
+                       squash_output=squash, clip_mean=clip_mean, source=source)
     norm = _read_normalizer(path, normalizer, trust)
     if norm is not None and norm.norm_obs and norm.shape != observation_space.shape:
         raise CheckpointError(f"the normalisation statistics have shape {norm.shape} but {path} observes "
                               f"{observation_space.shape}")
-    meta = {"algo": algo, "algo_from": how, "sb3_version": version,
-            "policy_module": _policy_module(data),
-            "policy_kwargs": policy_kwargs, "activation": activation, "use_sde": data.get("use_sde"),
+    meta = {"algo": algo, "algo_from": how, "sb3_version": parts["version"],
+            "policy_module": module, "policy_kwargs": policy_kwargs, "policy_kwargs_classes": classes,
+            "activation": activation, "use_sde": data.get("use_sde"),
             "squash_output": squash, "num_timesteps": data.get("num_timesteps"),
             "net_arch": policy.net_arch,
-            "observation_space": _plain(data["observation_space"]), "action_space": _plain(data["action_space"])}
-    return SB3Agent(path, algo, policy, norm, observation_space, action_space, meta, zip_bytes)
+            "observation_space": _strip(data["observation_space"]), "action_space": _strip(data["action_space"])}
+    parts["data"] = data
+    return SB3Agent(path, algo, policy, norm, observation_space, action_space, meta, parts)
