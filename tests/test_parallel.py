@@ -67,3 +67,81 @@ def test_no_check_outside_scripts():
     """)
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "None"  # python -c: no script file to re-import
+
+
+# --------------------------------------------------------------------------- workers die with their parent
+POOL_PARENT = """\
+import sys, time
+from hybridctl.parallel import ProcessBackend
+
+if __name__ == "__main__":
+    backend = ProcessBackend(workers=2)
+    backend.map(abs, [-1, -2, -3, -4])
+    print(*backend._pool._processes, flush=True)   # the worker pids
+    time.sleep(600)                                # blocked, as a run killed mid-way
+"""
+
+WATCHED_PARENT = """\
+import multiprocessing as mp, os, sys, time
+from hybridctl.parallel import die_with_parent
+
+def child(parent, pdeathsig):
+    die_with_parent(parent, pdeathsig)
+    time.sleep(600)
+
+if __name__ == "__main__":
+    worker = mp.get_context("spawn").Process(target=child, args=(os.getpid(), sys.argv[1] == "1"))
+    worker.start()
+    time.sleep(1.0)                                # the initializer has run
+    print(worker.pid, flush=True)
+    time.sleep(600)
+"""
+
+
+def _alive(pid: int) -> bool:
+    """Whether ``pid`` runs (a zombie left for a reaper that never comes counts as dead)."""
+    try:
+        with open(f"/proc/{pid}/stat") as stat:
+            return stat.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+def _kill_parent_and_watch(tmp_path, source: str, *args: str, within: float = 5.0) -> list[int]:
+    """Run ``source`` as a parent script, read its workers' pids, kill -9 it; return the pids still alive
+    ``within`` seconds later."""
+    import os
+    import signal
+    import time
+
+    script = tmp_path / "parent.py"
+    script.write_text(source)
+    parent = subprocess.Popen([sys.executable, str(script), *args], stdout=subprocess.PIPE, text=True, cwd=tmp_path)
+    try:
+        pids = [int(p) for p in parent.stdout.readline().split()]
+        assert pids and all(_alive(p) for p in pids), pids
+    finally:
+        os.kill(parent.pid, signal.SIGKILL)
+        parent.wait()
+    deadline = time.monotonic() + within
+    while time.monotonic() < deadline and any(_alive(p) for p in pids):
+        time.sleep(0.05)
+    alive = [p for p in pids if _alive(p)]
+    for p in alive:  # do not leave them behind when the test fails
+        os.kill(p, signal.SIGKILL)
+    return alive
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+@pytest.mark.timeout(60)
+def test_process_workers_die_with_a_killed_parent(tmp_path):
+    """kill -9 of a run with --backend processes left a ~470 MB worker behind, blocked for ever."""
+    assert _kill_parent_and_watch(tmp_path, POOL_PARENT) == []
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("pdeathsig", ["1", "0"], ids=["prctl", "watcher-thread"])
+def test_each_way_of_dying_with_the_parent_works_alone(tmp_path, pdeathsig):
+    """The kernel's parent-death signal, and the portable fallback (a thread polling getppid)."""
+    assert _kill_parent_and_watch(tmp_path, WATCHED_PARENT, pdeathsig) == []

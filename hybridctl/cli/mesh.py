@@ -6,7 +6,8 @@ import argparse
 
 from ..experiments import MESH_MAPS, mesh_report
 from ..parallel import BACKENDS
-from ..limits import MAX_DISTURBANCES, MAX_MONTE_CARLO, check_at_most, cpu_count
+from ..analysis.reachable import check_disturbances
+from ..limits import MAX_MONTE_CARLO, check_at_most, cpu_count
 from ._common import (non_negative, USAGE_ERROR, add_debug_flag, add_force_flag, add_quiet_flag, cli_errors, finite,
                       limits_epilog, positive)
 
@@ -57,10 +58,10 @@ def result_line(report: dict) -> str:
 
 
 def check_mesh_arguments(args: argparse.Namespace) -> None:
-    """Refuse, before any work, counts above their limits (``--force`` lifts them): disturbances,
-    Monte Carlo episodes, local worker processes above the cores."""
-    check_at_most("--disturbances", args.disturbances, MAX_DISTURBANCES, args.force,
-                  why="slope samples per state of the mesh")
+    """Refuse, before any work, counts above their limits (``--force`` lifts them): disturbances (and
+    their successor table's memory, which nothing lifts), Monte Carlo episodes, local worker
+    processes above the cores."""
+    check_disturbances(args.disturbances, args.max_states, force=args.force)
     check_at_most("--monte-carlo", args.monte_carlo, MAX_MONTE_CARLO, args.force, why="episodes")
     if args.workers is not None and args.backend != "ray":  # Ray workers are not bound by local cores
         check_at_most("--workers", args.workers, cpu_count(), args.force, why="cores this process may use")

@@ -93,6 +93,10 @@ class TorchVectorEnv(VectorEnv):
         self.set_compile(compile)
         self.metadata = {**self.metadata, "autoreset_mode": self.autoreset_mode}
         n, m, limit = self.system.n_states, self.system.n_actions, self.system.action_limit
+        # before the batched spaces and states are made: the state history (success_lookback states
+        # per env) and a few state-sized temporaries of a step
+        check_fits_memory("num_envs (--num-envs)", self.num_envs * (self.system.success_lookback + STEP_TEMPORARIES)
+                          * n * (8 if dtype == torch.float64 else 4), f"{self.num_envs:,} environments")
         np_dtype = np.float64 if dtype == torch.float64 else np.float32
         self.single_observation_space = spaces.Box(-STATE_BOUND, STATE_BOUND, (n,), np_dtype)
         self.single_action_space = spaces.Box(-limit, limit, (m,), np.float32)
@@ -102,9 +106,6 @@ class TorchVectorEnv(VectorEnv):
         if seed is not None:
             self._np_random, self._np_random_seed = seeding.np_random(seed)
         N, b = self.num_envs, self.system.success_lookback
-        # the state history (b states per env) and a few state-sized temporaries of a step
-        check_fits_memory("num_envs (--num-envs)", N * (b + STEP_TEMPORARIES) * n * (8 if dtype == torch.float64 else 4),
-                          f"{N:,} environments")
         self._state = torch.zeros(N, n, dtype=dtype, device=self.device)
         self._history = torch.full((N, b, n), torch.nan, dtype=dtype, device=self.device)
         self._t = torch.zeros(N, dtype=torch.long, device=self.device)
