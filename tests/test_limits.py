@@ -53,7 +53,7 @@ CLI_CASES = [
      r"SACConfig.num_envs \(--num-envs\) is 1,000,000,000,000, above its limit of 1,000,000"),
     (["train", "ssac", "acrobot", "--seed", "1e23"], r"SSACConfig.seed \(--seed\) is .*, above its limit of "
                                                      r"9,223,372,036,854,775,807"),
-    (["demo", "--grid", "1"], r"--grid must be an integer >= 2, got 1"),
+    (["demo", "--grid", "1"], r"--grid must be >= 2 \(an integer\), got 1"),
     (["demo", "--grid", "5000"], r"--grid is 5,000, above its limit of 1,001"),
     # items 5-6: a Ray address with a local backend, flag abbreviations
     (["train", "ars", "Pendulum-v1", "--address", "auto"],
@@ -128,7 +128,7 @@ def _env(num_envs):
 API_CASES = [
     ("simulate duration", _simulate_huge, LimitError, r"--duration is 1e\+09"),
     ("balance_map grid", lambda: _balance_map(grid=100_000), LimitError, r"--grid is 100,000"),
-    ("balance_map grid 1", lambda: _balance_map(grid=1), ValueError, r"--grid must be an integer >= 2"),
+    ("balance_map grid 1", lambda: _balance_map(grid=1), ValueError, r"--grid must be >= 2 \(an integer\)"),
     ("balance_map steps", lambda: _balance_map(grid=1001, duration=1000.0), LimitError,
      r"time steps of all runs together"),
     ("balance_map workers", lambda: _balance_map(grid=2, workers=10**6), LimitError, r"--workers is 1,000,000"),
@@ -266,7 +266,7 @@ def test_simulate_says_what_it_wrote(tmp_path, capsys):
 def test_demo_checks_its_arguments_before_simulating(tmp_path):
     from hybridctl.experiments import run_demo
 
-    with pytest.raises(ValueError, match="--grid must be an integer >= 2"):
+    with pytest.raises(ValueError, match="--grid must be >= 2 \\(an integer\\)"):
         run_demo(tmp_path / "demo", grid=1, report=None)
     with pytest.raises(Exception, match="no checkpoint directory"):
         run_demo(tmp_path / "demo", checkpoint=tmp_path / "missing", report=None)

@@ -26,7 +26,7 @@ def parse_state(text: str | None, system: System) -> np.ndarray | None:
     """``--x0`` text ("-1.57,0,0,0") -> a state of ``system``; None stays None (the default start)."""
     if text is None:
         return None
-    fields = text.replace(" ", "").split(",")
+    fields = text.replace(" ", "").split(",") if text.strip() else []  # "--x0=": no values at all
     if "" in fields:  # "1,,0" is a typo, not the two numbers 1 and 0
         raise ValueError(f"--x0 has an empty field at position {fields.index('') + 1}: it needs {system.n_states} "
                          f"comma-separated numbers ({', '.join(system.state_names)}), got {text!r}")

@@ -166,7 +166,7 @@ def check_duration(system: System, duration: float | None, force: bool = False, 
     """
     duration = system.episode_duration if duration is None else float(duration)
     if not (math.isfinite(duration) and duration > 0):
-        raise ValueError(f"{name} must be a finite number of seconds > 0, got {duration:g}")
+        raise ValueError(f"{name} must be a finite number > 0 (seconds), got {duration:g}")
     if duration < system.dt * (1 - 1e-9):
         raise ValueError(f"{name} {duration:g} s is shorter than one time step of {system.name} "
                          f"(dt = {system.dt:g} s): nothing would be simulated")

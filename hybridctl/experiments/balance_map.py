@@ -156,7 +156,7 @@ def check_balance_map(system: System, grid: int, duration: float | None, engine:
     these), and batched arrays of the torch engine beyond the memory budget (nothing lifts that).
     """
     if not (isinstance(grid, (int, np.integer)) and grid >= 2):
-        raise ValueError(f"--grid must be an integer >= 2, got {grid!r}")
+        raise ValueError(f"--grid must be >= 2 (an integer), got {grid!r}")
     check_at_most("--grid", int(grid), MAX_GRID, force, why="points per axis")
     duration = check_duration(system, duration, force)
     runs, steps = int(grid) ** 2, duration / system.dt
