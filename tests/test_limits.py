@@ -38,6 +38,8 @@ CLI_CASES = [
      r"disturbances \(--disturbances\) is 100,000,000, above its limit of 100,000"),
     (["mesh", "rimless-wheel", "--disturbances", "200000", "--force"],
      r"disturbances \(--disturbances\) x max_states \(--max-states\) needs .* GiB for the mesh's successor table"),
+    (["mesh", "rimless-wheel", "--max-states", "1000000000000"],
+     r"disturbances \(--disturbances\) x max_states \(--max-states\) needs .* GiB"),
     (["mesh", "rimless-wheel", "--monte-carlo", "1000000000"], r"--monte-carlo is 1,000,000,000, above its limit"),
     (["mesh", "rimless-wheel", "--workers", "1000000"], r"--workers is 1,000,000, above its limit of \d+"),
     (["mesh", "rimless-wheel", "--slope-mean", "inf"], r"argument --slope-mean: must be a finite number, got inf"),

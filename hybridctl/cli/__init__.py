@@ -8,7 +8,9 @@
     hybridctl finetune Pendulum-v1 --policy sb3:models/policies/ppo-pendulum/model.zip --updates 200
     hybridctl demo --out runs/demo
 
-Add --debug to see the traceback of an error.
+Add --debug to see the traceback of an error. Sizes, counts and durations have limits
+(hybridctl.limits, listed in each command's --help), checked before any work; --force on
+simulate, balance-map and mesh lifts the stated caps, never the memory limit.
 """
 
 from __future__ import annotations
