@@ -10,7 +10,9 @@ in task order, so the same seed gives the same result on every backend::
 * ``processes``: a ``concurrent.futures`` pool of spawned local processes. A worker
   that dies (killed, out of memory, a segfault in a simulator) breaks only the
   current map: the pool is rebuilt and the unfinished tasks are run again, up to
-  ``retries`` times, so a long job loses nothing that had finished.
+  ``retries`` times, so a long job loses nothing that had finished. Workers die with
+  their parent, even after a kill -9 of it (:func:`die_with_parent`): no orphan is left
+  blocked on its queue.
 * ``ray``: Ray tasks, on a local Ray instance (``address=None``) or a cluster
   (``address="ray://host:10001"`` or ``"auto"``). Needs the optional ``ray`` extra.
   A local instance is started on 127.0.0.1 without its dashboard, and its workers get
