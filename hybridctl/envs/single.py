@@ -81,6 +81,63 @@ def check_state(name: str, value, system: System, batch: int | None = None) -> n
     return x
 
 
+RENDER_MODES = ("rgb_array",)
+"""The render modes of :class:`SwingupEnv` (live viewing lives in ``hybridctl.viz``: meshcat, HTML replays)."""
+RENDER_SIZE = 256
+"""Height and width in pixels of a ``render_mode="rgb_array"`` frame."""
+_BACKGROUND, _RAIL, _LINK, _JOINT, _CART = (255, 255, 255), (150, 150, 150), (40, 90, 200), (20, 20, 20), (110, 110, 110)
+
+
+def chain_points(system: System, state) -> np.ndarray:
+    """(n_links + 1, 2) points (horizontal, height) of the chain of ``state``: the pivot (on the cart, if
+    any), then each link's far end; the height is measured from the pivot, as ``tip_position``."""
+    x = np.asarray(state, dtype=float)
+    phi, base = system.dynamics.absolute_angles(x[: system.n_states // 2])
+    lengths = np.asarray(system.chain.link_length, dtype=float)
+    pivot = np.array([float(base[0]) if base is not None else 0.0, 0.0])
+    steps = np.stack([lengths * np.sin(phi), -lengths * np.cos(phi)], axis=-1)
+    return np.vstack([pivot, pivot + np.cumsum(steps, axis=0)])
+
+
+def _paint_segment(frame: np.ndarray, a, b, radius: float, color) -> None:
+    """Colour the pixels within ``radius`` of the segment a-b (pixel coordinates: column, row)."""
+    rows, cols = np.mgrid[0:frame.shape[0], 0:frame.shape[1]]
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    ab = b - a
+    t = np.clip(((cols - a[0]) * ab[0] + (rows - a[1]) * ab[1]) / max(float(ab @ ab), 1e-12), 0.0, 1.0)
+    frame[(cols - a[0] - t * ab[0]) ** 2 + (rows - a[1] - t * ab[1]) ** 2 <= radius ** 2] = color
+
+
+def render_frame(system: System, state, size: int = RENDER_SIZE) -> np.ndarray:
+    """An RGB uint8 frame (size, size, 3) of the chain in ``state``, drawn with numpy only.
+
+    The view is centred on the pivot (a cart's pivot moves with it: the rail's ticks, 0.5 total link
+    lengths apart, are fixed in the world, so cart motion shows), the chain fills 90 % of it.
+    """
+    points = chain_points(system, state)
+    reach = float(np.sum(system.chain.link_length))
+    scale = 0.45 * size / reach
+    centre = points[0]
+    pixels = np.column_stack([(points[:, 0] - centre[0]) * scale + size / 2,
+                              size / 2 - (points[:, 1] - centre[1]) * scale])
+    frame = np.empty((size, size, 3), dtype=np.uint8)
+    frame[:] = _BACKGROUND
+    if system.chain.has_cart:
+        rail = size / 2
+        _paint_segment(frame, (0, rail), (size - 1, rail), 1.0, _RAIL)
+        spacing = 0.5 * reach
+        for k in np.arange(np.ceil((centre[0] - reach) / spacing), np.floor((centre[0] + reach) / spacing) + 1):
+            tick = (k * spacing - centre[0]) * scale + size / 2
+            _paint_segment(frame, (tick, rail - 4), (tick, rail + 4), 1.0, _RAIL)
+        half = 0.06 * size
+        frame[int(rail - half / 2):int(rail + half / 2), int(size / 2 - half):int(size / 2 + half)] = _CART
+    for a, b in zip(pixels[:-1], pixels[1:]):
+        _paint_segment(frame, a, b, max(2.0, size / 80), _LINK)
+    for point in pixels:
+        _paint_segment(frame, point, point, max(3.0, size / 60), _JOINT)
+    return frame
+
+
 def env_id(system_name: str) -> str:
     """The gymnasium id registered for a system, e.g. 'hybridctl/DoubleCartpoleSwingup-v0'."""
     return f"hybridctl/{''.join(part.capitalize() for part in system_name.split('_'))}Swingup-v0"
@@ -93,7 +150,9 @@ class SwingupEnv(gym.Env):
         system: a name from ``hybridctl.systems.known_systems()`` or a loaded System.
         decision_period: seconds each action is held (a multiple of ``dt`` dividing the
             episode duration); default ``system.swingup_period`` (acrobot: 0.2 s).
-        render_mode: only None (viewing lives in ``hybridctl.viz``).
+        render_mode: None or ``"rgb_array"`` (:meth:`render` returns an RGB uint8 frame of the chain,
+            :data:`RENDER_SIZE` square; what Stable-Baselines3 asks for when it builds an env by id).
+            There is no "human" mode: live viewing lives in ``hybridctl.viz`` (meshcat, HTML replays).
         **spec_overrides: passed to ``hybridctl.systems.load`` (with a system name only).
 
     Observation: the state in the spec's convention (angles not wrapped), float64,
@@ -111,21 +170,24 @@ class SwingupEnv(gym.Env):
     starts from x0 instead of the spec's initial distribution.
     """
 
-    metadata = {"render_modes": []}
+    metadata = {"render_modes": list(RENDER_MODES)}
 
     def __init__(self, system: str | System, decision_period: float | None = None,
                  render_mode: str | None = None, **spec_overrides: Any):
-        if render_mode is not None:
-            raise ValueError(f"render_mode must be None (no render modes), got {render_mode!r}")
+        if render_mode is not None and render_mode not in RENDER_MODES:
+            raise ValueError(f"render_mode must be None or one of {list(RENDER_MODES)} (live viewing is in "
+                             f"hybridctl.viz), got {render_mode!r}")
         self.system = resolve_system(system, **spec_overrides)
         self.decision_period, self.substeps, self.max_decisions = decision_schedule(self.system, decision_period)
+        self.metadata = {**type(self).metadata, "render_fps": 1.0 / self.decision_period}
         n, m, limit = self.system.n_states, self.system.n_actions, self.system.action_limit
         self.observation_space = spaces.Box(-STATE_BOUND, STATE_BOUND, (n,), np.float64)
         self.action_space = spaces.Box(-limit, limit, (m,), np.float32)
-        self.render_mode = None
+        self.render_mode = render_mode
         # How to build this env again (gymnasium.make replaces it with the registry's spec).
+        shown = {"render_mode": render_mode} if render_mode is not None else {}
         self.spec = EnvSpec(env_id(self.system.name), entry_point="hybridctl.envs.single:SwingupEnv",
-                            kwargs={"system": system, "decision_period": decision_period, **spec_overrides})
+                            kwargs={"system": system, "decision_period": decision_period, **shown, **spec_overrides})
         self._state: list[float] | None = None   # the state, plain floats (System.step_single)
         self._history: deque = deque(maxlen=self.system.success_lookback)
         self._t = 0
@@ -176,6 +238,14 @@ class SwingupEnv(gym.Env):
             self._done = True
             info["success"] = truncated and bool(is_balanced(np.array(self._history), system))
         return np.array(x), reward, terminated, truncated, info
+
+    def render(self) -> np.ndarray | None:
+        """The current state drawn as an RGB uint8 array (:data:`RENDER_SIZE` square) with
+        ``render_mode="rgb_array"``; None (with gymnasium's warning) without a render mode."""
+        if self.render_mode is None:
+            gym.logger.warn("SwingupEnv.render() was called without a render_mode; pass render_mode='rgb_array'")
+            return None
+        return render_frame(self.system, self.state)
 
     @property
     def state(self) -> np.ndarray:

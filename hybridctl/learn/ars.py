@@ -57,7 +57,6 @@ from ..systems import known_systems
 from ..systems import load as load_system
 from . import checkpoint as ckpt
 from .config_check import check_types
-from .env_ids import recorded_env_id, recorded_env_kwargs
 from .run import PROGRESS_FILE, EvalResult, Learner, Saved, check_fields, check_finite, seeded, set_torch_threads
 
 
@@ -231,6 +230,53 @@ class FrozenPolicy:
 
 
 # ----------------------------------------------------------------------------- one rollout (runs in workers)
+
+# An env id read from a FILE (a checkpoint's config.json) is data, never an import:
+# gymnasium.make("module:Env-v0") imports `module` before it looks the id up. An id the user passes
+# directly (ARS("mymod:Env-v0"), an env on the command line) is the user's own choice and is not checked.
+ACCEPTED_IDS = ("a hybridctl system name or an id already registered in gymnasium.registry, "
+                "without a 'module:' part")
+"""What :func:`recorded_env_id` accepts, as the error messages say it."""
+
+
+def _shown_value(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+def recorded_env_id(value: Any, file: str | Path, key: str = "env") -> str:
+    """``value`` (``file``'s ``key``) if it is a safe env id to hand to ``gymnasium.make``.
+
+    Accepted: a hybridctl system name or an id already in ``gymnasium.registry`` (a dict lookup:
+    nothing is imported, neither ``gym.make`` nor ``gym.spec`` is called), without a ``module:``
+    part. Raises :class:`~hybridctl.learn.checkpoint.CheckpointError` naming the file, the key and
+    what is accepted otherwise (a non-string too).
+    """
+    if not isinstance(value, str):
+        raise ckpt.CheckpointError(f"{file}: {key!r} must be a string ({ACCEPTED_IDS}), got "
+                                   f"{type(value).__name__} {_shown_value(value)}")
+    if ":" in value:
+        raise ckpt.CheckpointError(f"{file}: {key!r} is {_shown_value(value)}, whose 'module:' part would import "
+                                   f"code named by a file; accepted: {ACCEPTED_IDS} (pass such an id yourself, "
+                                   f"e.g. env=..., if you trust its module)")
+    if value in known_systems(strict=False) or value in gym.registry:
+        return value
+    raise ckpt.CheckpointError(f"{file}: {key!r} is {_shown_value(value)}, not {ACCEPTED_IDS} (pass env=... to "
+                               f"use another env)")
+
+
+def recorded_env_kwargs(value: Any, file: str | Path, key: str = "env_kwargs") -> dict | None:
+    """``value`` (``file``'s ``key``) if it is None or an object with string keys (the env's keyword arguments).
+
+    Raises :class:`~hybridctl.learn.checkpoint.CheckpointError` naming the file and the key otherwise.
+    """
+    if value is None:
+        return None
+    if not isinstance(value, dict) or not all(isinstance(k, str) for k in value):
+        raise ckpt.CheckpointError(f"{file}: {key!r} must be null or an object of keyword arguments, got "
+                                   f"{type(value).__name__} {_shown_value(value)}")
+    return value
+
 
 def make_env(env: str | Callable[[], gym.Env], env_kwargs: dict | None = None,
              max_steps: int | None = None) -> gym.Env:

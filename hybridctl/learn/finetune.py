@@ -51,8 +51,8 @@ from ..systems import known_systems
 from ..systems import load as load_system
 from . import checkpoint as ckpt
 from .ars import make_env as _make_env
+from .ars import recorded_env_id, recorded_env_kwargs
 from .config_check import check_types
-from .env_ids import recorded_env_id, recorded_env_kwargs
 from .robustness import wilson_interval
 from .run import PROGRESS_FILE, EvalResult, Learner, Saved, check_fields, check_finite, set_torch_threads
 

@@ -539,20 +539,19 @@ _ZIP_ERRORS = (zipfile.BadZipFile, zlib.error, EOFError, OSError, NotImplemented
 """What zipfile raises for a damaged, encrypted or oddly compressed entry (CRC, truncation, method)."""
 
 
-def _read_entry(archive: zipfile.ZipFile, info: zipfile.ZipInfo, path: Path, limit: int) -> bytes:
+def _read_entry(archive: zipfile.ZipFile, info: zipfile.ZipInfo, path: Path, limit: int, what: str) -> bytes:
     """One entry's bytes, read in chunks and stopped past ``limit`` (a zip bomb never inflates further)."""
     chunks, size = [], 0
     try:
         with archive.open(info) as stream:
-            while chunk := stream.read(1 << 20):
+            while (chunk := stream.read(1 << 20)) and size <= limit:
                 size += len(chunk)
-                if size > limit:
-                    raise CheckpointError(f"{path}: entry {info.filename!r} inflates past {limit:,} bytes (hybridctl."
-                                          f"limits: MAX_JSON_BYTES for text, MAX_ZIP_ENTRY_BYTES for other entries "
-                                          f"and the whole zip); it is damaged or a zip bomb")
                 chunks.append(chunk)
     except _ZIP_ERRORS as exc:
         raise CheckpointError(f"{path}: entry {info.filename!r} cannot be read: {exc}") from exc
+    if size > limit:
+        raise CheckpointError(f"{path}: entry {info.filename!r} inflates past {limit:,} bytes, {what}; the zip is "
+                              f"damaged or a zip bomb")
     return b"".join(chunks)
 
 
@@ -577,8 +576,15 @@ def _read_entries(path: Path) -> dict[str, bytes]:
         for info in infos:
             if info.filename in entries:
                 raise CheckpointError(f"{path} holds the entry {info.filename!r} twice: the zip is damaged")
-            limit = limits.MAX_JSON_BYTES if info.filename in TEXT_ENTRIES else limits.MAX_ZIP_ENTRY_BYTES
-            entries[info.filename] = _read_entry(archive, info, path, min(limit, limits.MAX_ZIP_ENTRY_BYTES - total))
+            text = info.filename in TEXT_ENTRIES
+            limit = limits.MAX_JSON_BYTES if text else limits.MAX_ZIP_ENTRY_BYTES
+            what = ("the limit of one text entry (hybridctl.limits.MAX_JSON_BYTES)" if text
+                    else "the limit of one entry (hybridctl.limits.MAX_ZIP_ENTRY_BYTES)")
+            if limits.MAX_ZIP_ENTRY_BYTES - total < limit:
+                limit, what = limits.MAX_ZIP_ENTRY_BYTES - total, (
+                    f"what is left of the limit of {limits.MAX_ZIP_ENTRY_BYTES:,} bytes for all entries together "
+                    f"(hybridctl.limits.MAX_ZIP_ENTRY_BYTES)")
+            entries[info.filename] = _read_entry(archive, info, path, limit, what)
             total += len(entries[info.filename])
     return entries
 
