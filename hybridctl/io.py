@@ -2,28 +2,38 @@
 
 The bottom room of hybridctl: it imports nothing from the package. Every output a
 run leaves (trajectories, summaries, checkpoints, meshes, records) goes through
-here, so a crash leaves either the old file or the new one, never a torn one.
+here, so a crash leaves either the old file or the new one, never a torn one. The
+lock of a run folder lives here too (:func:`locked_folder`), so that training,
+fine-tuning and meshing refuse a folder another run is writing by one mechanism.
 """
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
 import math
 import os
 import shutil
 import tempfile
+import time
 import uuid
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
 __all__ = ["atomic_write", "atomic_write_text", "write_json", "read_json", "to_jsonable", "atomic_directory",
-           "output_folder", "FileFormatError"]
+           "output_folder", "folder_argument", "locked_folder", "LOCK_FILE", "FileFormatError", "RunFolderError"]
 
 
 class FileFormatError(ValueError):
     """A file exists but cannot be read as what it should be (e.g. not valid JSON)."""
+
+
+class RunFolderError(ValueError):
+    """A folder a command cannot write its outputs into: empty, a file, holding a run or an input of the
+    command, a checkpoint, or locked by another run (a ValueError: the CLI prints it as one line, exit 2)."""
 
 
 def to_jsonable(value: Any) -> Any:
@@ -85,13 +95,83 @@ def read_json(path: str | os.PathLike) -> Any:
         raise FileFormatError(f"{path} is not valid JSON: {exc}") from exc
 
 
+def folder_argument(path: str | os.PathLike | None, name: str = "--out") -> Path:
+    """``path`` (the argument ``name``) as a Path, refusing an empty one.
+
+    ``Path("")`` is the current folder: ``--out ""`` would write a run's outputs next to the
+    user's own files, so it raises :class:`RunFolderError` naming ``name`` instead.
+    """
+    if path is None or not str(path).strip():
+        raise RunFolderError(f"{name} is empty: give the folder for the outputs (e.g. {name} runs/NAME)")
+    return Path(path)
+
+
 def output_folder(path: str | os.PathLike, name: str = "--out") -> Path:
-    """``path`` as a folder for outputs: created if missing; NotADirectoryError naming ``name`` if it is a file."""
-    path = Path(path)
+    """``path`` as a folder for outputs: created if missing; NotADirectoryError naming ``name`` if it is a
+    file, :class:`RunFolderError` if it is empty (:func:`folder_argument`)."""
+    path = folder_argument(path, name)
     if path.exists() and not path.is_dir():
         raise NotADirectoryError(f"{name} {path} is a file; outputs go into a folder")
     path.mkdir(parents=True, exist_ok=True)
     return path
+
+
+LOCK_FILE = ".hybridctl.lock"
+"""The lock file :func:`locked_folder` holds in a run folder (it keeps the holder's pid)."""
+
+_HELD: dict[Path, tuple[int, int]] = {}
+"""Folders this process holds locked: resolved path -> (pid that took the lock, nesting depth)."""
+
+
+def _lock_holder(fd: int) -> str:
+    """The pid written in a lock file held by another process ("unknown" while it has not written it yet)."""
+    for _ in range(20):  # the holder writes its pid right after taking the lock: wait a moment for it
+        text = os.pread(fd, 32, 0).decode(errors="replace").strip()
+        if text:
+            return text
+        time.sleep(0.005)
+    return "unknown"
+
+
+@contextlib.contextmanager
+def locked_folder(path: str | os.PathLike, name: str = "--out") -> Iterator[Path]:
+    """Hold the folder ``path`` (created if missing) locked while the ``with`` block writes it.
+
+    The lock is an OS file lock (``fcntl.flock``) on :data:`LOCK_FILE` in the folder, which
+    holds the pid of its holder. A second holder, in another process, is refused at once with a
+    :class:`RunFolderError` "``name`` PATH is locked by pid N ...". The OS drops the lock when its
+    process ends, however it ends (kill -9 too), so no stale lock is left to clear by hand; the
+    lock file itself stays (removing it would let a late opener lock an unlinked file). Within
+    one process the lock nests: a ``with`` inside another on the same folder passes (training
+    locks its run folder and the learner's loop locks its log folder). Worker processes forked
+    while it is held share it, and it lasts until they end too (they die with their parent).
+    """
+    path = output_folder(path, name)
+    key = path.resolve()
+    pid, depth = _HELD.get(key, (None, 0))
+    if pid == os.getpid():  # this process holds it already (a fork child inherits the table: pid differs)
+        _HELD[key] = (pid, depth + 1)
+        try:
+            yield path
+        finally:
+            _HELD[key] = (pid, depth)
+        return
+    fd = os.open(path / LOCK_FILE, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        holder = _lock_holder(fd)
+        os.close(fd)
+        raise RunFolderError(f"{name} {path} is locked by pid {holder}: another run is writing it; wait until it "
+                             f"ends or choose another {name}") from None
+    try:
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        _HELD[key] = (os.getpid(), 1)
+        yield path
+    finally:
+        _HELD.pop(key, None)
+        os.close(fd)  # closing the last descriptor releases the flock
 
 
 def _fsync_file(path: Path) -> None:

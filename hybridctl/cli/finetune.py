@@ -62,7 +62,8 @@ def run_finetune(args: argparse.Namespace) -> int:
                             seed=args.seed, backend=args.backend, workers=args.workers, address=args.address,
                             chunk_size=args.chunk_size, eval_episodes=args.eval_episodes,
                             checkpoint_every=args.checkpoint_every)
-    out = args.out or f"runs/finetune/{args.env}-{args.policy.partition(':')[0]}"
+    # an empty --out is refused by finetune_and_report, not replaced by the default
+    out = args.out if args.out is not None else f"runs/finetune/{args.env}-{args.policy.partition(':')[0]}"
     report = finetune_and_report(args.env, args.policy, out, config, resume=args.resume, overwrite=args.overwrite,
                                  trust=args.trust, normalizer=args.normalizer, progress=not args.quiet,
                                  command=args.command_line)

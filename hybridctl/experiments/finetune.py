@@ -20,12 +20,14 @@ from pathlib import Path
 
 
 from ..io import read_json, write_json
-from ..learn.finetune import FineTune, FineTuneConfig
+from ..learn.finetune import FineTune, FineTuneConfig, parse_source
 from ..parallel import make_backend
-from .training import machine, prepare_run_folder
+from .training import machine, open_run_folder
 
 FINETUNE_MARKERS = ("checkpoint", "final", "progress.csv", "before.json", "after.json", "report.json")
 """What makes a folder hold a fine-tuning run."""
+FINETUNE_OUTPUTS = ("before.json", "after.json", "report.json", "finetune.png")
+"""What ``overwrite`` removes besides the run outputs every run has (checkpoints, progress.csv)."""
 
 SUMMARY_KEYS = ("episodes", "seed", "mean_return", "std_return", "min_return", "success_rate", "failures",
                 "failure_rate", "failure_interval", "mean_dimension", "std_dimension", "nonfinite")
@@ -43,16 +45,27 @@ def finetune_and_report(env: str, policy: str, out: str | Path, config: FineTune
     """Evaluate the pretrained ``policy`` on ``env``, fine-tune it, evaluate again, write the report.
 
     ``resume`` continues the run in ``out`` from its newest checkpoint (the "before" evaluation
-    is kept); ``overwrite`` replaces the run ``out`` holds. ``eval_episodes``: deterministic
-    episodes per evaluation (default ``config.eval_episodes``, the thesis' 100), the same
-    initial conditions (``eval_seed``) before and after. Returns the report dict.
+    is kept); ``overwrite`` replaces the run ``out`` holds (removed once the policy is read). An
+    ``out`` that is, holds or lies inside the policy or ``normalizer`` file is refused (the
+    output ``model.zip`` would replace its own source), and the folder is locked while the
+    run writes it (:func:`~hybridctl.experiments.training.open_run_folder`).
+    ``eval_episodes``: deterministic episodes per evaluation (default ``config.eval_episodes``,
+    the thesis' 100), the same initial conditions (``eval_seed``) before and after. Returns the
+    report dict.
     """
     config = config or FineTuneConfig()
-    out = prepare_run_folder(out, resume=resume, overwrite=overwrite, markers=FINETUNE_MARKERS)
-    for name in ("before.json", "after.json", "report.json", "finetune.png"):
-        if overwrite and (out / name).exists():
-            (out / name).unlink()
-    tuner = FineTune(env, policy, config, trust=trust, normalizer=normalizer)
+    inputs = {"--policy": parse_source(policy)[1], "--normalizer": normalizer}
+    with open_run_folder(out, resume=resume, overwrite=overwrite, markers=FINETUNE_MARKERS, inputs=inputs) as folder:
+        tuner = FineTune(env, policy, config, trust=trust, normalizer=normalizer)
+        folder.clear(FINETUNE_OUTPUTS)   # --overwrite: only now that the policy is read
+        return _finetune_in(folder.path, env, policy, tuner, config, resume, eval_episodes, eval_seed, progress,
+                            command, figures)
+
+
+def _finetune_in(out: Path, env: str, policy: str, tuner: FineTune, config: FineTuneConfig, resume: bool,
+                 eval_episodes: int | None, eval_seed: int, progress: bool, command: str | None,
+                 figures: bool) -> dict:
+    """The body of :func:`finetune_and_report` in its locked run folder ``out``."""
     episodes = int(eval_episodes or config.eval_episodes)
     start = time.perf_counter()
     with make_backend(config.backend, config.workers, config.address) as backend:

@@ -19,7 +19,7 @@ from .. import io, viz
 from ..analysis import (GaussianDisturbance, RimlessWheel, build_mesh, mesh_sizes, monte_carlo_mfpt,
                         reachable_dimension)
 from ..drake import DrakeRimlessWheelMap
-from .training import MESH_MARKERS, prepare_run_folder
+from .training import MESH_MARKERS, open_run_folder
 
 MESH_MAPS = {"rimless-wheel": "analytic rimless wheel on rough terrain (Byl & Tedrake 2009)",
              "drake-rimless-wheel": "Drake's RimlessWheel, apex found by a witness function"}
@@ -57,7 +57,8 @@ def mesh_report(map_name: str = "rimless-wheel", out: str | Path = "runs/mesh", 
         resume: continue the mesh from ``out/mesh_checkpoint.npz``.
         overwrite: replace the run ``out`` holds. Without it (or ``resume``) a folder that
             already holds a run (``mesh.npz``, ``mfpt.json``, a mesh checkpoint, a training
-            run) raises :class:`~hybridctl.experiments.RunFolderError`.
+            run) raises :class:`~hybridctl.experiments.RunFolderError`, as does a folder that
+            another run holds locked (naming its pid).
         checkpoint_every, checkpoint_minutes: the mesh checkpoint's cadence in batches and in
             minutes of wall time (at least every 5 minutes by default; 0: by batches only).
 
@@ -73,7 +74,18 @@ def mesh_report(map_name: str = "rimless-wheel", out: str | Path = "runs/mesh", 
     seed = RimlessWheel().fixed_point(slope_mean)
     if not math.isfinite(seed):
         raise ValueError(f"--slope-mean {slope_mean} has no rolling gait to seed the mesh from")
-    out = prepare_run_folder(out, resume, overwrite, markers=MESH_MARKERS)
+    with open_run_folder(out, resume, overwrite, markers=MESH_MARKERS) as folder:
+        folder.clear()   # --overwrite: the mesh reads no input files
+        return _mesh_report_in(folder.path, map_name, section_map, slopes, seed, box_size, slope_mean, slope_std,
+                               disturbances, max_states, monte_carlo, sizes, backend, workers, resume, progress,
+                               command, checkpoint_every, checkpoint_minutes)
+
+
+def _mesh_report_in(out: Path, map_name: str, section_map, slopes, seed: float, box_size: float, slope_mean: float,
+                    slope_std: float, disturbances: int, max_states: int, monte_carlo: int,
+                    sizes: Sequence[float] | None, backend: str, workers: int | None, resume: bool, progress: bool,
+                    command: str | None, checkpoint_every: int, checkpoint_minutes: float) -> dict:
+    """The body of :func:`mesh_report` in its locked run folder ``out``."""
     mesh = build_mesh(section_map, [[seed]], slopes, box_size, max_states=max_states, backend=backend,
                       workers=workers, checkpoint=out / "mesh_checkpoint.npz", resume=resume, progress=progress,
                       checkpoint_every=checkpoint_every, checkpoint_minutes=checkpoint_minutes)

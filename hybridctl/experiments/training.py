@@ -8,6 +8,7 @@ it with checkpoints and logs in a run folder, evaluate it and write ``eval.json`
 
 from __future__ import annotations
 
+import contextlib
 import inspect
 import os
 import platform
@@ -16,11 +17,12 @@ import time
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field, is_dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import torch
 
 from .. import io
+from ..io import RunFolderError
 from ..learn import APG, ARS, SAC, SSAC, ARSConfig, SACConfig, SSACConfig
 from ..learn.apg import METHODS as APG_METHODS
 from ..learn.apg import PRESETS as APG_PRESETS
@@ -103,10 +105,6 @@ def newest_run_checkpoint(out: str | Path, strict: bool = False) -> Path | None:
     return newest_checkpoint([out / "checkpoint", out / "final"], strict=strict)
 
 
-class RunFolderError(ValueError):
-    """A run folder that a new run would overwrite, or an ``--out`` that is not a folder."""
-
-
 TRAIN_MARKERS = ("checkpoint", "final", "progress.csv", "eval.json")
 """What makes a folder hold a training run."""
 MESH_MARKERS = ("mesh.npz", "mfpt.json", "mesh_checkpoint.npz", "transition_matrix.npz")
@@ -114,6 +112,10 @@ MESH_MARKERS = ("mesh.npz", "mfpt.json", "mesh_checkpoint.npz", "transition_matr
 RUN_OUTPUTS = (*TRAIN_MARKERS, *MESH_MARKERS, "tb", "training_curves.png", "sparsity.png", "cumulative_mass.png",
                "states.png", "mesh_sizes.png")
 """What ``overwrite`` removes from a run folder before a new run (nothing else is touched)."""
+CHECKPOINT_DIRS = ("checkpoint", "final")
+"""The checkpoint folders of a run folder."""
+CHECKPOINT_FILES = ("model.pt", "config.json")
+"""Files that make a folder a checkpoint (never a run folder: a run's outputs would mix with it)."""
 
 
 def _held_runs(out: Path) -> list[str]:
@@ -125,30 +127,92 @@ def _held_runs(out: Path) -> list[str]:
     return found
 
 
-def prepare_run_folder(out: str | Path, resume: bool = False, overwrite: bool = False,
-                       markers: tuple[str, ...] = TRAIN_MARKERS) -> Path:
-    """Check (and create) the folder of a new run, or of the run that ``resume`` continues.
+def _within(inner: Path, outer: Path) -> bool:
+    """Whether the resolved ``inner`` is ``outer`` or lies inside it."""
+    return inner == outer or outer in inner.parents
 
-    A folder that already holds a run (a checkpoint, ``final/``, ``progress.csv``, ``eval.json``,
-    ``mesh.npz``, ``mfpt.json``, ...) is refused unless ``resume`` (continue that run; it must
-    be a run of this kind, ``markers``) or ``overwrite`` (its run outputs, :data:`RUN_OUTPUTS`,
-    are removed first). Raises :class:`RunFolderError` naming the folder and both options, or
-    when ``out`` is a file.
+
+def check_inputs(out: Path, inputs: Mapping[str, str | Path | None] | None) -> None:
+    """Refuse an ``out`` that is, holds or lies inside one of the command's ``inputs`` ({flag: path}).
+
+    Paths are compared resolved (symlinks and ``..`` followed), so ``--out D`` with
+    ``--policy sb3:D/model.zip`` and ``--out R/final`` with ``--init R/final`` are both
+    caught: the run would overwrite (or ``--overwrite`` delete) what it reads.
     """
-    out = Path(out)
+    where = out.resolve()
+    for flag, given in (inputs or {}).items():
+        if given is None or not str(given):
+            continue
+        source = Path(given).resolve()
+        if source == where:
+            relation = "is"
+        elif _within(source, where):
+            relation = "holds"
+        elif _within(where, source):
+            relation = "lies inside"
+        else:
+            continue
+        raise RunFolderError(f"--out {out} {relation} the {flag} input {given}: the run would overwrite what it "
+                             f"reads; choose an --out outside it")
+
+
+def checkpoint_folder(out: Path) -> str | None:
+    """Why ``out`` is a checkpoint rather than a run folder (None if it is not one): it holds
+    model.pt or config.json, or it is the ``checkpoint/`` or ``final/`` of a run folder."""
+    for name in CHECKPOINT_FILES:
+        if (out / name).exists():
+            return f"holds {name}"
+    if out.name in CHECKPOINT_DIRS and _held_runs(out.resolve().parent):
+        return f"is the {out.name}/ checkpoint of the run in {out.parent}"
+    return None
+
+
+def _check_out(out: str | Path, resume: bool, overwrite: bool, inputs: Mapping | None) -> Path:
+    """The checks of :func:`prepare_run_folder` that need neither the folder nor its lock."""
+    out = io.folder_argument(out, "--out")
     if out.exists() and not out.is_dir():
         raise RunFolderError(f"--out {out} is a file, not a folder: give a folder for the run's outputs")
     if resume and overwrite:
         raise RunFolderError("--resume and --overwrite exclude each other: --resume continues the run in the folder, "
                              "--overwrite replaces it")
+    check_inputs(out, inputs)
+    reason = checkpoint_folder(out)
+    if reason is not None:
+        what = "--resume continues the run folder that holds it" if resume else "a run goes into a folder of its own"
+        raise RunFolderError(f"--out {out} {reason}: it is a checkpoint, not a run folder; {what} (e.g. --out "
+                             f"{out.parent if out.name in CHECKPOINT_DIRS else 'runs/NAME'})")
+    return out
+
+
+def clear_run_outputs(out: Path, extra: tuple[str, ...] = ()) -> None:
+    """Remove the run outputs (:data:`RUN_OUTPUTS`, their backups, and ``extra`` names) from ``out``."""
+    for name in (*RUN_OUTPUTS, *extra):
+        for path in [out / name, *out.glob(f"{name}.bak-*"), *out.glob(f"{name}.tmp-*")]:
+            if path.is_dir() and not path.is_symlink():
+                shutil.rmtree(path)
+            elif path.exists() or path.is_symlink():
+                path.unlink()
+
+
+def prepare_run_folder(out: str | Path, resume: bool = False, overwrite: bool = False,
+                       markers: tuple[str, ...] = TRAIN_MARKERS, inputs: Mapping[str, str | Path | None] | None = None,
+                       clear: bool = True) -> Path:
+    """Check (and create) the folder of a new run, or of the run that ``resume`` continues.
+
+    A folder that already holds a run (a checkpoint, ``final/``, ``progress.csv``, ``eval.json``,
+    ``mesh.npz``, ``mfpt.json``, ...) is refused unless ``resume`` (continue that run; it must
+    be a run of this kind, ``markers``) or ``overwrite`` (its run outputs, :data:`RUN_OUTPUTS`,
+    are removed, here if ``clear``, else by the caller once the run's inputs are read). Also
+    refused: an empty ``out``, a file, an ``out`` that is, holds or lies inside one of
+    ``inputs`` (:func:`check_inputs`), and a checkpoint folder (:func:`checkpoint_folder`).
+    Raises :class:`RunFolderError` naming the folder and what to do. It takes no lock: a run
+    writing the folder uses :func:`open_run_folder`.
+    """
+    out = _check_out(out, resume, overwrite, inputs)
     held = _held_runs(out) if out.is_dir() else []
     if held and overwrite:
-        for name in RUN_OUTPUTS:
-            for path in [out / name, *out.glob(f"{name}.bak-*"), *out.glob(f"{name}.tmp-*")]:
-                if path.is_dir() and not path.is_symlink():
-                    shutil.rmtree(path)
-                elif path.exists() or path.is_symlink():
-                    path.unlink()
+        if clear:
+            clear_run_outputs(out)
     elif held and resume:
         other = [name for name in held if name not in markers]
         if other and not any(name in markers for name in held):
@@ -159,6 +223,43 @@ def prepare_run_folder(out: str | Path, resume: bool = False, overwrite: bool = 
                              f"or --overwrite to replace it (or choose another --out)")
     out.mkdir(parents=True, exist_ok=True)
     return out
+
+
+@dataclass
+class RunFolder:
+    """A run folder held locked by :func:`open_run_folder`: ``path``, and ``clear`` for ``--overwrite``."""
+
+    path: Path
+    overwrite: bool = False
+
+    def clear(self, extra: tuple[str, ...] = ()) -> None:
+        """With ``overwrite``: remove the old run's outputs (and ``extra`` names); call it only once the
+        new run's inputs are read, so a failed start leaves the old run whole. Without: nothing."""
+        if self.overwrite:
+            clear_run_outputs(self.path, extra)
+            self.overwrite = False
+
+
+@contextlib.contextmanager
+def open_run_folder(out: str | Path, resume: bool = False, overwrite: bool = False,
+                    markers: tuple[str, ...] = TRAIN_MARKERS,
+                    inputs: Mapping[str, str | Path | None] | None = None) -> Iterator[RunFolder]:
+    """:func:`prepare_run_folder` under the folder's lock (:func:`hybridctl.io.locked_folder`), held
+    for the ``with`` block: a second run on the folder is refused at once, naming the holder's pid.
+
+    The checks run after the lock is taken, so of two runs started together one is refused by
+    the lock and the other sees the folder as it is. ``overwrite`` removes nothing here: the
+    caller calls :meth:`RunFolder.clear` after reading its inputs.
+    """
+    out = _check_out(out, resume, overwrite, inputs)   # before the folder is created or locked
+    with io.locked_folder(out, "--out"):
+        prepare_run_folder(out, resume, overwrite, markers, inputs, clear=False)
+        yield RunFolder(out, overwrite)
+
+
+def _input_file(text: str | Path | None) -> str | Path | None:
+    """``text`` where it names an existing file or folder (a spec file given as SYSTEM), else None."""
+    return text if text is not None and str(text) and Path(text).exists() else None
 
 
 def resume_settings(found: Path, recorded: dict, settings: dict, force: bool, report: Callable[[str], None]) -> dict:
@@ -204,7 +305,9 @@ def train_and_evaluate(algorithm: str, system: str, out: str | Path | None = Non
         out: the run folder (default :func:`default_run_dir`): ``progress.csv``, ``checkpoint/``,
             ``final/``, ``eval.json`` (and for SAC/SSAC ``training_curves.png``). A folder that
             already holds a run is refused unless ``resume`` or ``overwrite``
-            (:func:`prepare_run_folder`).
+            (:func:`prepare_run_folder`); so are an empty ``out``, a checkpoint folder and an
+            ``out`` that is, holds or lies inside ``init`` or a spec file given as ``system``.
+            The folder is locked while the run writes it (:func:`open_run_folder`).
         settings: config fields to change (see :func:`make_config`). On ``resume`` the run
             settings (:data:`~hybridctl.learn.run.RESUME_APPLIED`: total_steps / epochs,
             checkpoint and log cadence, eval episodes, tensorboard, threads, backend) are
@@ -223,7 +326,8 @@ def train_and_evaluate(algorithm: str, system: str, out: str | Path | None = Non
         report: called with each line of the run's account (default ``print``; None: silent).
         force: resume despite another algorithm or plant, changed math settings, or a missing
             replay / gate data file (each said in a warning or a report line).
-        overwrite: replace the run the folder holds (its run outputs are removed first).
+        overwrite: replace the run the folder holds (its run outputs are removed once the new
+            run's inputs are read: a start that fails leaves the old run whole).
         spec: SAC/SSAC only: system spec overrides for a new run (``{"reward.kind":
             "upright_centered"}``; keys as :func:`hybridctl.systems.load` takes them). The
             checkpoint records them; on resume, values other than the recorded ones refuse
@@ -250,45 +354,58 @@ def train_and_evaluate(algorithm: str, system: str, out: str | Path | None = Non
     system_name = load(system).name  # a clear error for an unknown system name, before any work
     plant = load(system, **spec) if spec else system  # a bad override fails here, naming the key
     config = make_config(algorithm, variant or "hybridctl", **settings)
-    out = Path(out) if out is not None else default_run_dir(algorithm, system, settings.get("seed", 0))
-    prepare_run_folder(out, resume, overwrite)
-    start = time.perf_counter()
+    out = _run_folder_of(out, algorithm, system, settings.get("seed", 0))
+    with open_run_folder(out, resume, overwrite, inputs={"SYSTEM spec": _input_file(system)}) as folder:
+        start = time.perf_counter()
+        agent = _sac_agent(algo, algorithm, system, system_name, plant, spec, config, settings, variant, out, resume,
+                           force, report)
+        folder.clear()   # --overwrite: only now that the new run's inputs are read
+        agent.learn(progress=progress, log_dir=out, resume=resume, force=force)
+        record = _as_record(agent.evaluate(episodes=eval_episodes or DEFAULT_EVAL_EPISODES[algorithm]))
+        if command is not None:
+            record["command"] = command
+        record.update({"env_steps": agent.num_timesteps, "train_wall_time_s": agent.wall_time,
+                       "session_wall_time_s": time.perf_counter() - start,
+                       "train_mean_return_last100": agent.mean_return,
+                       "train_success_rate_last100": agent.success_rate})
+        io.write_json(out / "eval.json", record)
+    return TrainingRun(agent, out, record)
+
+
+def _run_folder_of(out: str | Path | None, algorithm: str, system: str, seed: int) -> Path:
+    """The ``out`` argument as a Path (an empty one refused, naming --out), :func:`default_run_dir` if None."""
+    return default_run_dir(algorithm, system, seed) if out is None else io.folder_argument(out, "--out")
+
+
+def _sac_agent(algo, algorithm: str, system: str, system_name: str, plant, spec: dict, config, settings: dict,
+               variant: str | None, out: Path, resume: bool, force: bool, report: Callable[[str], None]):
+    """The SAC / SSAC learner a run starts with: resumed from ``out``'s newest checkpoint, or new."""
     found = newest_run_checkpoint(out, strict=not force) if resume else None
-    if found is not None:
-        recorded = read_json(found / "config.json")
-        trained_on = (recorded.get("system") or {}).get("name")
-        if trained_on != system_name and not force:
-            raise CheckpointError(f"cannot resume: checkpoint {found} was trained on system {trained_on!r}, not "
-                                  f"{system_name!r} (--force resumes it on its own system {trained_on!r})")
-        _check_spec_on_resume(found, recorded, plant, spec, force, report)
-        given = dict(settings)
-        if variant is not None and algorithm == "ssac":
-            run_variant = recorded.get("config", {}).get("variant_name", "hybridctl")
-            if variant != run_variant:  # the preset's fields, as if each were given
-                preset = asdict(SSACConfig.variant(variant))
-                base = asdict(SSACConfig.variant(run_variant)) if run_variant in SSAC_VARIANTS else {}
-                given = {**{k: v for k, v in preset.items() if base.get(k) != v}, **given}
-        applied = resume_settings(found, recorded.get("config", {}), given, force, report)
-        agent = algo.load(found, force=force, **applied)
-        agent.checkpointer.check_resumable(found, force)
-        report(f"resuming {found} at {agent.num_timesteps} env steps"
-               + (f", training to {agent.config.total_steps}" if "total_steps" in applied else ""))
-    else:
+    if found is None:
         if resume:
             report(f"--resume: no checkpoint under {out}; starting a new run")
         report(f"{algo.algorithm_name} on {system}: {config.total_steps} env steps, seed {config.seed}"
                + (" (warm-starting the gate first)" if algorithm == "ssac" else ""))
-        agent = algo(plant, config=config)
-    agent.learn(progress=progress, log_dir=out, resume=resume, force=force)
-    record = _as_record(agent.evaluate(episodes=eval_episodes or DEFAULT_EVAL_EPISODES[algorithm]))
-    if command is not None:
-        record["command"] = command
-    record.update({"env_steps": agent.num_timesteps, "train_wall_time_s": agent.wall_time,
-                   "session_wall_time_s": time.perf_counter() - start,
-                   "train_mean_return_last100": agent.mean_return,
-                   "train_success_rate_last100": agent.success_rate})
-    io.write_json(out / "eval.json", record)
-    return TrainingRun(agent, out, record)
+        return algo(plant, config=config)
+    recorded = read_json(found / "config.json")
+    trained_on = (recorded.get("system") or {}).get("name")
+    if trained_on != system_name and not force:
+        raise CheckpointError(f"cannot resume: checkpoint {found} was trained on system {trained_on!r}, not "
+                              f"{system_name!r} (--force resumes it on its own system {trained_on!r})")
+    _check_spec_on_resume(found, recorded, plant, spec, force, report)
+    given = dict(settings)
+    if variant is not None and algorithm == "ssac":
+        run_variant = recorded.get("config", {}).get("variant_name", "hybridctl")
+        if variant != run_variant:  # the preset's fields, as if each were given
+            preset = asdict(SSACConfig.variant(variant))
+            base = asdict(SSACConfig.variant(run_variant)) if run_variant in SSAC_VARIANTS else {}
+            given = {**{k: v for k, v in preset.items() if base.get(k) != v}, **given}
+    applied = resume_settings(found, recorded.get("config", {}), given, force, report)
+    agent = algo.load(found, force=force, **applied)
+    agent.checkpointer.check_resumable(found, force)
+    report(f"resuming {found} at {agent.num_timesteps} env steps"
+           + (f", training to {agent.config.total_steps}" if "total_steps" in applied else ""))
+    return agent
 
 
 def _check_spec_on_resume(found: Path, recorded: dict, plant, spec: dict, force: bool,
@@ -313,29 +430,31 @@ def _train_ars(env: str, out, settings: dict, variant: str, resume: bool, init, 
                overwrite: bool = False) -> TrainingRun:
     """:func:`train_and_evaluate` for ARS V2-t with optional dimension post-processing (thesis Ch. 4)."""
     make_config("ars", variant, **settings)  # bad settings fail before any checkpoint is read
-    out = Path(out) if out is not None else default_run_dir("ars", env, settings.get("seed", 0))
-    prepare_run_folder(out, resume, overwrite)
-    found = newest_run_checkpoint(out, strict=not force) if resume else None
-    if found is not None:
-        applied = resume_settings(found, read_json(found / "config.json").get("config", {}), settings, force, report)
-        agent = ARS.load(found, env=env, force=force, **applied)
-        report(f"resuming {found} at epoch {agent.epoch}")
-    elif init is not None:
-        agent = ARS.load(init, env=env, force=force, **settings)
-        report(f"starting from {init} (epoch {agent.epoch}); training to epoch {agent.config.epochs}")
-    else:
-        agent = ARS(env, ARSConfig(**settings))
-        report(f"ARS on {env}: {agent.config.epochs} epochs, seed {agent.config.seed}, "
-               f"post-processor {agent.config.postprocess}, backend {agent.config.backend}")
-    if _learn_accepts(agent, "resume"):
-        agent.learn(log_dir=out, progress=progress, resume=resume, force=force)
-    else:
-        agent.learn(log_dir=out, progress=progress)
-    record = _as_record(agent.evaluate(episodes=eval_episodes or agent.config.eval_episodes, measure=True))
-    if command is not None:
-        record["command"] = command
-    record.update({"epochs": agent.epoch, "env_steps": agent.env_steps, "train_wall_time_s": agent.wall_time})
-    io.write_json(out / "eval.json", record)
+    out = _run_folder_of(out, "ars", env, settings.get("seed", 0))
+    with open_run_folder(out, resume, overwrite, inputs={"--init": init, "ENV spec": _input_file(env)}) as folder:
+        found = newest_run_checkpoint(out, strict=not force) if resume else None
+        if found is not None:
+            applied = resume_settings(found, read_json(found / "config.json").get("config", {}), settings, force,
+                                      report)
+            agent = ARS.load(found, env=env, force=force, **applied)
+            report(f"resuming {found} at epoch {agent.epoch}")
+        elif init is not None:
+            agent = ARS.load(init, env=env, force=force, **settings)
+            report(f"starting from {init} (epoch {agent.epoch}); training to epoch {agent.config.epochs}")
+        else:
+            agent = ARS(env, ARSConfig(**settings))
+            report(f"ARS on {env}: {agent.config.epochs} epochs, seed {agent.config.seed}, "
+                   f"post-processor {agent.config.postprocess}, backend {agent.config.backend}")
+        folder.clear()   # --overwrite: only now that --init is read
+        if _learn_accepts(agent, "resume"):
+            agent.learn(log_dir=out, progress=progress, resume=resume, force=force)
+        else:
+            agent.learn(log_dir=out, progress=progress)
+        record = _as_record(agent.evaluate(episodes=eval_episodes or agent.config.eval_episodes, measure=True))
+        if command is not None:
+            record["command"] = command
+        record.update({"epochs": agent.epoch, "env_steps": agent.env_steps, "train_wall_time_s": agent.wall_time})
+        io.write_json(out / "eval.json", record)
     return TrainingRun(agent, out, record)
 
 
@@ -348,31 +467,38 @@ def _train_apg(method: str, system: str, out, settings: dict, preset: str | None
         raise ValueError(f"unknown preset {preset!r} for {method}; known: {', '.join(APG_PRESETS)}")
     system_name = load(system).name  # a clear error for an unknown system name, before any work
     config = make_config(method, preset or "thesis", **settings)
-    out = Path(out) if out is not None else default_run_dir(method, system, config.seed)
-    prepare_run_folder(out, resume, overwrite)
+    out = _run_folder_of(out, method, system, config.seed)
+    with open_run_folder(out, resume, overwrite, inputs={"SYSTEM spec": _input_file(system)}) as folder:
+        agent = _apg_agent(method, system, system_name, config, settings, preset, out, resume, force, report)
+        folder.clear()   # --overwrite: only now that the new run's inputs are read
+        agent.learn(log_dir=out, progress=progress)
+        record = _as_record(agent.evaluate(episodes=eval_episodes or agent.config.eval_episodes))
+        if command is not None:
+            record["command"] = command
+        record.update({"method": method, "epochs": agent.epoch, "iterations": agent.iterations,
+                       "env_steps": agent.env_steps, "nan_grads": agent.nan_grads, "large_grads": agent.large_grads,
+                       "train_wall_time_s": agent.wall_time})
+        io.write_json(out / "eval.json", record)
+    return TrainingRun(agent, out, record)
+
+
+def _apg_agent(method: str, system: str, system_name: str, config, settings: dict, preset: str | None, out: Path,
+               resume: bool, force: bool, report: Callable[[str], None]):
+    """The APG-family learner a run starts with: resumed from ``out``'s newest checkpoint, or new."""
     found = newest_run_checkpoint(out, strict=not force) if resume else None
-    if found is not None:
-        recorded = read_json(found / "config.json")
-        if recorded.get("system") != system_name and not force:
-            raise CheckpointError(f"cannot resume: checkpoint {found} was trained on system "
-                                  f"{recorded.get('system')!r}, not {system_name!r}")
-        given = dict(settings)
-        if preset is not None:  # the preset's fields, as if each were given
-            given = {**{k: v for k, v in asdict(APGConfig.preset(preset, method=method)).items()
-                        if recorded.get("config", {}).get(k, v) != v}, **given}
-        applied = resume_settings(found, recorded.get("config", {}), given, force, report)
-        agent = APG.load(found, force=force, **applied)
-        report(f"resuming {found} at epoch {agent.epoch}")
-    else:
-        agent = APG(system, config)
+    if found is None:
         report(f"{method} on {system}: {config.epochs} epochs of {config.population if method != 'apg' else 1} x "
                f"{config.batch} x {config.horizon} steps, seed {config.seed}")
-    agent.learn(log_dir=out, progress=progress)
-    record = _as_record(agent.evaluate(episodes=eval_episodes or agent.config.eval_episodes))
-    if command is not None:
-        record["command"] = command
-    record.update({"method": method, "epochs": agent.epoch, "iterations": agent.iterations,
-                   "env_steps": agent.env_steps, "nan_grads": agent.nan_grads, "large_grads": agent.large_grads,
-                   "train_wall_time_s": agent.wall_time})
-    io.write_json(out / "eval.json", record)
-    return TrainingRun(agent, out, record)
+        return APG(system, config)
+    recorded = read_json(found / "config.json")
+    if recorded.get("system") != system_name and not force:
+        raise CheckpointError(f"cannot resume: checkpoint {found} was trained on system "
+                              f"{recorded.get('system')!r}, not {system_name!r}")
+    given = dict(settings)
+    if preset is not None:  # the preset's fields, as if each were given
+        given = {**{k: v for k, v in asdict(APGConfig.preset(preset, method=method)).items()
+                    if recorded.get("config", {}).get(k, v) != v}, **given}
+    applied = resume_settings(found, recorded.get("config", {}), given, force, report)
+    agent = APG.load(found, force=force, **applied)
+    report(f"resuming {found} at epoch {agent.epoch}")
+    return agent

@@ -56,6 +56,7 @@ from typing import Any, Callable, Iterator
 import numpy as np
 import torch
 
+from ..io import locked_folder
 from . import checkpoint as ckpt
 from .checkpoint import CONFIG_FILE, MODEL_FILE, NORMALIZATION_FILE, PROGRESS_FILE, CheckpointError
 
@@ -800,10 +801,14 @@ class Learner:
             unit: str = "step", desc: str | None = None, force: bool = False) -> Iterator["Run"]:
         """The context of one ``learn`` call (see :class:`Run`).
 
-        On entry: torch threads, ``resume`` (restore the newest of ``log_dir/checkpoint``
-        and ``log_dir/final``; a warning and the learner's current state when there is
-        none; an incomplete or damaged one, or one of another algorithm or plant, is an
-        error unless ``force``), the run log, the progress bar, ``on_training_start``.
+        On entry: the lock of ``log_dir`` (:func:`hybridctl.io.locked_folder`: another process
+        writing it is refused, naming its pid), torch threads, ``resume`` (restore the newest of
+        ``log_dir/checkpoint`` and ``log_dir/final``; a warning and the learner's current state
+        when there is none; an incomplete or damaged one, one of another algorithm or plant, is an
+        error unless ``force``; so is a checkpoint whose counter is beyond the budget ``total``:
+        the run would "finish" untrained; the counters' type and range are checked as
+        progress.json is read, :data:`hybridctl.learn.checkpoint.SCHEMAS`), the run log, the
+        progress bar, ``on_training_start``.
         During the run: a checkpoint ``log_dir/checkpoint`` at least every
         ``config.checkpoint_minutes`` of wall time (:meth:`Run.checkpoint_if_due`; 0: by the
         learner's step cadence only). On a normal exit: the final checkpoint
@@ -812,19 +817,31 @@ class Learner:
         """
         log_dir = Path(log_dir) if log_dir is not None else None
         minutes = checkpoint_minutes(self.config)
-        previous_threads = set_torch_threads(getattr(self.config, "torch_threads", 1))
+        if resume and log_dir is None:
+            raise ValueError("learn(resume=True) needs the log_dir of the run to resume")
+        with contextlib.ExitStack() as held:
+            if log_dir is not None:  # another process writing the folder is refused (nests under train's lock)
+                held.enter_context(locked_folder(log_dir, "log_dir"))
+            previous_threads = set_torch_threads(getattr(self.config, "torch_threads", 1))
+            try:
+                yield from self._run(log_dir, resume, progress, callback, total, unit, desc, force, minutes)
+            finally:
+                torch.set_num_threads(previous_threads)
+
+    def _run(self, log_dir: Path | None, resume: bool, progress: bool, callback, total: int, unit: str,
+             desc: str | None, force: bool, minutes: float) -> Iterator["Run"]:
+        """The body of :meth:`run` in its locked log folder (a generator: it yields the :class:`Run` once)."""
         run = None
         try:
             if resume:
-                if log_dir is None:
-                    raise ValueError("learn(resume=True) needs the log_dir of the run to resume")
                 found = ckpt.newest_checkpoint([log_dir / "checkpoint", log_dir / "final"], self.log_key,
                                                strict=not force)
                 if found is None:
                     warnings.warn(f"resume=True but no checkpoint in {log_dir}; starting from the learner's current "
-                                  f"state ({self.log_key} {self.progress_count})", stacklevel=3)
+                                  f"state ({self.log_key} {self.progress_count})", stacklevel=4)
                 else:
                     self.checkpointer.restore(found, bulky=True, force=force)
+                    self.check_budget(found, total, unit)
             log = None
             if log_dir is not None:
                 log = RunLog(log_dir, self.log_columns, self.log_key, self.progress_count, self.log_int_columns,
@@ -841,7 +858,15 @@ class Learner:
         finally:
             if run is not None:
                 run.close()
-            torch.set_num_threads(previous_threads)
+
+    def check_budget(self, found: Path, total: int, unit: str) -> None:
+        """Refuse a resume whose checkpoint counted more than the run's budget ``total`` allows (one
+        round of ``num_envs`` env steps over it is a finished run): it would "finish" untrained."""
+        slack = int(getattr(self.config, "num_envs", 1) or 1) if self.log_key == "env_steps" else 0
+        if self.progress_count > int(total) + slack:
+            raise CheckpointError(f"{found / PROGRESS_FILE}: {self.log_key!r} is {self.progress_count:,}, beyond "
+                                  f"this run's budget of {int(total):,} {unit}s; resume with a larger budget or "
+                                  f"start a new run")
 
 
 CURVES_EVERY_S = 30.0
