@@ -484,10 +484,23 @@ class System:
             from pydrake.systems.framework import OutputPortSelection
             linear = Linearize(plant, context, input_port_index=port.get_index(),
                                output_port_index=OutputPortSelection.kNoOutput)
-            K, S = LinearQuadraticRegulator(linear.A(), linear.B(), Q, R)
+            try:
+                K, S = LinearQuadraticRegulator(linear.A(), linear.B(), Q, R)
+            except RuntimeError as exc:  # Drake's Riccati solver: not stabilizable / not detectable
+                raise ValueError(self._lqr_failure(str(exc))) from None
+            if not (np.isfinite(K).all() and np.isfinite(S).all()):
+                raise ValueError(self._lqr_failure("the gain K or cost-to-go S is not finite"))
             self._lqr_cache[key] = (np.asarray(K), np.asarray(S))
         K, S = self._lqr_cache[key]
         return K.copy(), S.copy()
+
+    def _lqr_failure(self, reason: str) -> str:
+        """The one-line message of an LQR about the goal that cannot be solved: what to change."""
+        reason = reason.splitlines()[0] if reason else "no solution"
+        where = self.spec.path.name + "".join(f", {k}={v!r}" for k, v in self.spec.overrides.items())
+        return (f"{self.name} ({where}): no LQR about the goal with these parameters ({reason}); "
+                f"check the spec's params (gravity, masses, lengths, inertias) and lqr.Q / lqr.R "
+                f"(Q must weigh every unstable state, e.g. the spec's default)")
 
 
 def load(name: str, **overrides: Any) -> System:

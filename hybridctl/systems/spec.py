@@ -20,6 +20,8 @@ from typing import Any
 
 import numpy as np
 
+from ..limits import MAX_SIMULATION_STEPS, MAX_SPEC_BYTES, MIN_DT
+
 # Specs and robot models ship inside the package (``hybridctl/data``; the repository's top-level
 # ``systems/`` and ``models/`` are links to them), so an installed wheel finds them.
 DATA_DIR = Path(str(resources.files("hybridctl") / "data"))
@@ -38,6 +40,24 @@ CENTERED_REWARD_SETTINGS = ("reward.position_scale", "reward.speed_scale")
 CH7_REWARD_KINDS = ("angle_squared", "angle_cosine", "tip_distance")
 CH7_REWARD_SETTINGS = ("reward.alive_bonus", "reward.velocity_penalty", "reward.position_weight")
 REWARD_KINDS = REWARD_KINDS + CH7_REWARD_KINDS
+
+SYSTEM_NAME = re.compile(r"[a-z0-9][a-z0-9_-]{0,63}")
+"""A system's name (``system.name``, else the spec file's stem): it becomes part of file and folder
+names and of records, so it is a plain identifier, never a path."""
+
+PHYSICAL_RANGES = {
+    # key: (lowest, highest, why): SI units. The dynamics and the LQR solve are well conditioned across
+    # these ranges; outside them a typo (1e30 for 1e3) trains to nothing or overflows float64.
+    "params.gravity": (0.0, 300.0, "m/s^2; the Sun's surface gravity is 274"),
+    "params.link_mass": (1e-3, 1e4, "kg: 1 g to 10 t"),
+    "params.cart_mass": (1e-3, 1e4, "kg: 1 g to 10 t"),
+    "params.link_length": (1e-3, 100.0, "m: 1 mm to 100 m"),
+    "params.link_com": (0.0, 100.0, "m from the joint"),
+    "params.link_inertia": (0.0, 1e6, "kg m^2 about the centre of mass"),
+    "params.joint_damping": (0.0, 1e4, "N m s/rad or N s/m"),
+    "action.limit": (1e-6, 1e6, "N m or N"),
+}
+"""Plausible physical ranges of a spec's parameters (inclusive), each with why."""
 
 _PI_EXPR = re.compile(r"^\s*(-)?\s*(?:(\d+(?:\.\d*)?)\s*\*\s*)?pi\s*(?:/\s*(\d+(?:\.\d*)?))?\s*$")
 
@@ -93,14 +113,23 @@ def parse_number(raw: Any, where: str) -> float:
             sign = -1.0 if match.group(1) else 1.0
             factor = float(match.group(2)) if match.group(2) else 1.0
             divisor = float(match.group(3)) if match.group(3) else 1.0
-            return sign * factor * math.pi / divisor
+            if divisor == 0.0:
+                raise SpecError(f"{where}: divides by zero in {raw!r}; write a multiple of pi like 'pi/2'")
+            value = sign * factor * math.pi / divisor
+            if not math.isfinite(value):  # a factor of 400 digits
+                raise SpecError(f"{where}: must be a finite number, got {raw!r}")
+            return value
     raise SpecError(f"{where}: expected a number or a multiple of pi like 'pi/2', got {raw!r}")
 
 
 def _parse_tree(raw: Any, where: str) -> Any:
     """Numbers, pi expressions and (nested) lists of them -> floats / float arrays."""
     if isinstance(raw, list):
-        return np.array([_parse_tree(item, f"{where}[{i}]") for i, item in enumerate(raw)], dtype=float)
+        items = [_parse_tree(item, f"{where}[{i}]") for i, item in enumerate(raw)]
+        try:
+            return np.array(items, dtype=float)
+        except ValueError:  # ragged: [[1], [1, 2]]
+            raise SpecError(f"{where}: nested lists must all have the same length, got {raw!r}") from None
     return parse_number(raw, where)
 
 
@@ -237,15 +266,33 @@ def read_spec(name_or_path: str | Path, **overrides: Any) -> Spec:
                 f"unknown system '{name_or_path}'; known systems: {', '.join(known_systems())}")
     elif not path.is_file():
         raise SpecError(f"{path}: no such spec file")
-    try:
-        doc = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as exc:
-        raise SpecError(f"{path}: not valid TOML: {exc}") from exc
-    spec = _flatten(doc, path)
+    spec = _flatten(_read_toml(path), path)
     _apply_overrides(spec, overrides)
     spec.overrides = dict(overrides)  # so worker processes can rebuild the same System
     validate(spec)
     return spec
+
+
+def _read_toml(path: Path) -> dict:
+    """The TOML document of a spec file, or a one-line SpecError naming the file.
+
+    The size is checked before reading (:data:`~hybridctl.limits.MAX_SPEC_BYTES`); a binary file,
+    invalid TOML and nesting too deep for the parser (``[[[[...``) are refused alike.
+    """
+    size = path.stat().st_size
+    if size > MAX_SPEC_BYTES:
+        raise SpecError(f"{path}: a spec file is at most {MAX_SPEC_BYTES:,} bytes, this one has {size:,}")
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise SpecError(f"{path}: not a text file (not UTF-8 at byte {exc.start}); a spec is TOML text") from None
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise SpecError(f"{path}: not valid TOML: {exc}") from exc
+    except RecursionError:  # tomllib recurses once per nested array or inline table
+        raise SpecError(f"{path}: not valid TOML: arrays or tables nested too deeply") from None
+    return doc
 
 
 def _require_positive(spec: Spec, key: str, allow_zero: bool = False) -> None:
@@ -256,6 +303,23 @@ def _require_positive(spec: Spec, key: str, allow_zero: bool = False) -> None:
         raise spec.error(key, f"must be finite and {rule}, got {spec.get(key)!r}")
 
 
+def _require_in_range(spec: Spec, key: str) -> None:
+    """Every entry of ``key`` within its :data:`PHYSICAL_RANGES` row."""
+    low, high, why = PHYSICAL_RANGES[key]
+    value = np.asarray(spec.get(key), dtype=float)
+    if np.any(value < low) or np.any(value > high):
+        raise spec.error(key, f"must lie in [{low:g}, {high:g}] ({why}), got {np.asarray(spec.get(key)).tolist()}")
+
+
+def _check_name(spec: Spec) -> None:
+    """``system.name`` (or the file's stem, where the spec sets none) is a plain identifier."""
+    name = spec.get("system.name", spec.name)
+    if not SYSTEM_NAME.fullmatch(name):
+        key = "system.name" if spec.has("system.name") else "the file name"
+        raise spec.error("system.name", f"must be a plain name of lower-case letters, digits, '_' and '-' "
+                                        f"(at most 64, as [a-z0-9_-]+), got {name!r} ({key})")
+
+
 def validate(spec: Spec) -> None:
     """Check every value's range and every shape; raise SpecError naming the key and file."""
     if spec.get("model.family") != "chain":
@@ -263,6 +327,7 @@ def validate(spec: Spec) -> None:
     base = spec.get("model.base")
     if base not in ("fixed", "cart"):
         raise spec.error("model.base", f"must be 'fixed' or 'cart', got {base!r}")
+    _check_name(spec)
     n_links = len(np.atleast_1d(spec.get("params.link_mass")))
     for key in ("params.link_mass", "params.link_length"):
         _require_positive(spec, key)
@@ -295,11 +360,20 @@ def validate(spec: Spec) -> None:
     if len(spec.get("action.names")) != len(actuated):
         raise spec.error("action.names", f"must name {len(actuated)} actions")
     _require_positive(spec, "action.limit")
+    for key in PHYSICAL_RANGES:  # after the sign and shape checks, which say more about a wrong value
+        if spec.has(key):
+            _require_in_range(spec, key)
     if spec.get("integrator.method") not in INTEGRATORS:
         raise spec.error("integrator.method", f"must be one of {INTEGRATORS}")
     for key in ("integrator.dt", "control.period", "control.swingup_period", "episode.duration"):
         _require_positive(spec, key)
+        if spec.get(key) < MIN_DT:
+            raise spec.error(key, f"must be at least {MIN_DT:g} s (hybridctl.limits.MIN_DT), got {spec.get(key)!r}")
     dt = spec.get("integrator.dt")
+    steps = spec.get("episode.duration") / dt
+    if steps > MAX_SIMULATION_STEPS:
+        raise spec.error("episode.duration", f"is {steps:.3g} steps of integrator.dt ({dt}), above the limit of "
+                                             f"{MAX_SIMULATION_STEPS:,} (hybridctl.limits.MAX_SIMULATION_STEPS)")
     for key in ("control.period", "control.swingup_period", "episode.duration"):
         ratio = spec.get(key) / dt
         if abs(ratio - round(ratio)) > 1e-9:
