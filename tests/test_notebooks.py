@@ -51,6 +51,10 @@ EXPECTED_LINES = {
     ],
     "06_fine_tuning.ipynb": [
         "written back as an SB3 zip: True",   # the shipped SB3 PPO, read without unpickling, fine-tuned
+        "payload ran while we read and wrote the zip: False",   # a planted pickle is data (issue 29)
+        "payload kept in our output: False",
+        "SB3's own load of our output ran the payload: False",
+        "SB3's own load of the planted input ran the payload: True",   # ... and would have run under SB3
         "balanced: True",                     # the fine-tuned SSAC swing-up in the Drake diagram
         "Ch. 6 record: notebooks/data/ch6/results.json",
     ],
