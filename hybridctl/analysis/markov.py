@@ -7,8 +7,12 @@ is the solution of
 
     (I - Q) t = 1                                                   (exact MFPT)
 
-solved here by a preconditioner-free Krylov method (BiCGSTAB, then GMRES if it
-stalls), never densely and never by sparse LU (which fills in badly on meshes).
+solved by the solver the chain calls for (``method="auto"``, the default): a short
+unpreconditioned BiCGSTAB probe (enough for chains that mix fast, such as random sparse
+rows), then a sparse LU capped at :data:`FILL_CAP` times the nonzeros of ``I - Q``
+(SuperLU's ILU with no drop tolerance: exact while the fill stays under the cap), and
+where the cap is hit, GMRES preconditioned by the capped (now incomplete) factor. The
+path taken is recorded in ``result.solver["path"]``. Never dense.
 The thesis' estimate (eq. 5.2, Byl 2009) is ``1 / (1 - lambda_2)`` with lambda_2 the
 largest eigenvalue of ``Q``: exact for a start drawn from the quasi-stationary
 distribution, and close to the exact value only when the chain mixes much faster
@@ -33,8 +37,28 @@ import scipy.sparse as sp
 import scipy.sparse.csgraph as csgraph
 import scipy.sparse.linalg as spla
 
-METHODS = ("krylov", "eigen", "direct")
+from ..limits import LimitError, memory_budget
+
+METHODS = ("auto", "krylov", "eigen", "direct")
 ROW_SUM_TOLERANCE = 1e-9
+PROBE_ITERATIONS = 40
+"""BiCGSTAB iterations ``method="auto"`` tries before factorizing: a fast-mixing chain converges in
+about 25 (random sparse rows, 1e3-1e5 states); a slowly mixing mesh needs hundreds."""
+FILL_CAP = 60.0
+"""Nonzeros of the LU factors ``method="auto"`` accepts, as a multiple of the nonzeros of ``I - Q``
+(12 bytes each; lowered further where the memory budget of :mod:`hybridctl.limits` is smaller).
+Mesh-like chains need 8-36 at 1e3-1e5 states; random sparse rows need 60-560 and more."""
+FACTOR_BYTES_PER_NONZERO = 12
+EIGEN_MAX_SECONDS = 60.0
+"""Wall-time cap of the ARPACK eigen estimate (``method="eigen"`` and the ``eigen=True`` diagnostics):
+without it a slowly mixing 1e5-state mesh ran past 150 s. Hitting it raises :class:`EigenLimitError`
+for ``method="eigen"``; for the diagnostics of an exact solve it leaves them None with a note."""
+EIGEN_MAX_RESTARTS = 2_000
+"""ARPACK restarts of the eigen estimate (the iteration cap beside :data:`EIGEN_MAX_SECONDS`)."""
+
+
+class EigenLimitError(LimitError):
+    """The eigen estimate did not converge within :data:`EIGEN_MAX_SECONDS` / :data:`EIGEN_MAX_RESTARTS`."""
 
 
 def check_transition_matrix(T, failure: int = 0) -> sp.csr_matrix:
@@ -138,13 +162,33 @@ def _transient_block(T: sp.csr_matrix, keep: np.ndarray) -> sp.csr_matrix:
     return T[keep][:, keep].tocsr()
 
 
-def dominant_eigen(Q: sp.csr_matrix, k: int = 3) -> tuple[np.ndarray, np.ndarray]:
-    """The ``k`` eigenvalues of ``Q`` of largest modulus (descending) and the left Perron vector."""
+def dominant_eigen(Q: sp.csr_matrix, k: int = 3, max_seconds: float = EIGEN_MAX_SECONDS,
+                   max_restarts: int = EIGEN_MAX_RESTARTS) -> tuple[np.ndarray, np.ndarray]:
+    """The ``k`` eigenvalues of ``Q`` of largest modulus (descending) and the left Perron vector.
+
+    Dense below 200 states, ARPACK above, bounded by ``max_seconds`` of wall time and
+    ``max_restarts`` restarts: past either it raises :class:`EigenLimitError`.
+    """
     n = Q.shape[0]
     if n <= max(k + 2, 200):
         values, vectors = np.linalg.eig(Q.T.toarray())
     else:
-        values, vectors = spla.eigs(Q.T.tocsc(), k=min(k, n - 2), which="LM", tol=1e-10, maxiter=20 * n)
+        QT = Q.T.tocsr()
+        deadline = time.perf_counter() + max_seconds
+
+        def matvec(x):
+            # ARPACK calls back into Python for every product: the one place a wall-time cap can act
+            if time.perf_counter() > deadline:
+                raise EigenLimitError(f"the eigen estimate of {n} states ran past its limit of {max_seconds:g} s "
+                                      f"(EIGEN_MAX_SECONDS); use method='auto' for the exact MFPT")
+            return QT @ x
+
+        operator = spla.LinearOperator(QT.shape, matvec=matvec, dtype=np.float64)
+        try:
+            values, vectors = spla.eigs(operator, k=min(k, n - 2), which="LM", tol=1e-10, maxiter=max_restarts)
+        except spla.ArpackNoConvergence:
+            raise EigenLimitError(f"the eigen estimate of {n} states did not converge in {max_restarts} ARPACK "
+                                  f"restarts (EIGEN_MAX_RESTARTS); use method='auto' for the exact MFPT") from None
     order = np.argsort(-np.abs(values))
     values, vectors = values[order], vectors[:, order]
     perron = np.abs(np.real(vectors[:, 0]))
@@ -172,30 +216,88 @@ def _krylov_solve(A: sp.csr_matrix, b: np.ndarray, rtol: float) -> tuple[np.ndar
                "seconds": time.perf_counter() - start}
 
 
-def absorbing_mfpt(T, failure: int = 0, method: str = "krylov", rtol: float = 1e-10,
-                   eigen: bool = True) -> MFPTResult:
+def _relative_residual(A: sp.csr_matrix, x: np.ndarray, b: np.ndarray) -> float:
+    return float(np.linalg.norm(A @ x - b) / np.linalg.norm(b))
+
+
+def _capped_factor(A: sp.csr_matrix, fill_cap: float):
+    """SuperLU factor of ``A`` holding at most ``fill_cap`` x nnz(A) nonzeros (and the memory budget).
+
+    SuperLU's ILU with drop tolerance 0 keeps every entry until the area cap is reached, so under the
+    cap this is the exact LU (same ordering, COLAMD); over it, an incomplete one.
+    """
+    cap = min(float(fill_cap), memory_budget() / (FACTOR_BYTES_PER_NONZERO * max(A.nnz, 1)))
+    if not cap >= 1.0:
+        raise ValueError(f"fill_cap must be >= 1 (nonzeros of the factors per nonzero of I - Q), got {fill_cap!r}")
+    return spla.spilu(A.tocsc(), drop_tol=0.0, fill_factor=cap), cap
+
+
+def _auto_solve(A: sp.csr_matrix, b: np.ndarray, rtol: float, fill_cap: float) -> tuple[np.ndarray, dict]:
+    """Probe, capped LU, preconditioned GMRES (see the module docstring); returns x and the solver record."""
+    start = time.perf_counter()
+    x, info = spla.bicgstab(A, b, rtol=rtol, atol=0.0, maxiter=PROBE_ITERATIONS)
+    if info == 0 and np.all(np.isfinite(x)) and _relative_residual(A, x, b) <= rtol:
+        return x, {"solver": "bicgstab", "path": "krylov", "converged": True,
+                   "relative_residual": _relative_residual(A, x, b), "seconds": time.perf_counter() - start}
+    factor, cap = _capped_factor(A, fill_cap)
+    fill = (factor.L.nnz + factor.U.nnz) / A.nnz
+    x = factor.solve(b)
+    for _ in range(2):     # iterative refinement: an exact factor gains the last digits in one step
+        residual = _relative_residual(A, x, b) if np.all(np.isfinite(x)) else np.inf
+        if residual <= rtol:
+            return x, {"solver": "splu", "path": "direct", "fill": fill, "fill_cap": cap, "converged": True,
+                       "relative_residual": residual, "seconds": time.perf_counter() - start}
+        if residual > 1e-3:
+            break          # an incomplete factor: refinement would crawl, precondition instead
+        x = x + factor.solve(b - A @ x)
+    preconditioner = spla.LinearOperator(A.shape, matvec=factor.solve, dtype=np.float64)
+    x0 = x if np.all(np.isfinite(x)) else None
+    x, info = spla.gmres(A, b, x0=x0, M=preconditioner, rtol=rtol, atol=0.0, restart=50, maxiter=20)
+    residual = _relative_residual(A, x, b) if np.all(np.isfinite(x)) else np.inf
+    if residual > max(1e3 * rtol, 1e-6):
+        raise RuntimeError(f"ILU-preconditioned GMRES on (I - Q) t = 1 did not converge (relative residual "
+                           f"{residual:.2e}, LU fill capped at {cap:.3g} x nnz); the chain may fail extremely "
+                           f"rarely: raise fill_cap or use method='eigen'")
+    return x, {"solver": "ilu-gmres", "path": "krylov-ilu", "fill": fill, "fill_cap": cap, "converged": info == 0,
+               "relative_residual": residual, "seconds": time.perf_counter() - start}
+
+
+def absorbing_mfpt(T, failure: int = 0, method: str = "auto", rtol: float = 1e-10,
+                   eigen: bool = True, fill_cap: float = FILL_CAP) -> MFPTResult:
     """Mean first passage time to the absorbing ``failure`` state from every state.
 
-    ``method``: "krylov" (exact, default: BiCGSTAB/GMRES on ``(I - Q) t = 1``), "direct"
-    (exact, sparse LU; slow on large meshes, for reference) or "eigen" (the thesis'
-    ``1 / (1 - lambda_2)`` for every transient state). ``eigen=True`` also computes
-    lambda_2, |lambda_3| / lambda_2 and the quasi-stationary distribution (dense eig
-    below 200 states, ARPACK above). Raises ValueError naming a bad row or index.
+    ``method``: "auto" (exact, default: the solver the chain calls for, see the module
+    docstring; ``fill_cap`` bounds its LU, the path taken is ``result.solver["path"]``),
+    "krylov" (exact: unpreconditioned BiCGSTAB/GMRES), "direct" (exact, uncapped sparse LU,
+    for reference) or "eigen" (the thesis' ``1 / (1 - lambda_2)`` for every transient state).
+    ``eigen=True`` also computes lambda_2, |lambda_3| / lambda_2 and the quasi-stationary
+    distribution (dense eig below 200 states, ARPACK above, capped at :data:`EIGEN_MAX_SECONDS`:
+    past it these stay None and ``result.solver["eigen"]`` says why; with ``method="eigen"``
+    it raises :class:`EigenLimitError`). Raises ValueError naming a bad row or index.
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     T = check_transition_matrix(T, failure)
     n = T.shape[0]
     sure = states_that_can_fail_surely(T, failure)
+    if n > 1 and not np.any(np.delete(T[:, failure].toarray().ravel(), failure) > 0):
+        raise ValueError(f"no state of the chain reaches the failure state {failure} (column {failure} of the "
+                         f"transition matrix is zero outside row {failure}): every MFPT would be infinite")
     transient = sure.copy()
     transient[failure] = False
     mfpt = np.full(n, np.inf)
     mfpt[failure] = 0.0
     result = MFPTResult(mfpt, failure, method, np.flatnonzero(~sure))
+    eigen_note = ""
     if eigen or method == "eigen":
         keep = np.flatnonzero(np.arange(n) != failure)
-        if keep.size:
-            values, perron = dominant_eigen(_transient_block(T, keep))
+        try:
+            values, perron = dominant_eigen(_transient_block(T, keep)) if keep.size else (None, None)
+        except EigenLimitError as exc:
+            if method == "eigen":
+                raise
+            values, eigen_note = None, str(exc)
+        if values is not None:
             lam2 = float(np.real(values[0]))
             result.lambda2 = lam2
             result.lambda3_ratio = float(abs(values[1]) / abs(values[0])) if values.size > 1 and values[0] != 0 else None
@@ -204,6 +306,8 @@ def absorbing_mfpt(T, failure: int = 0, method: str = "krylov", rtol: float = 1e
             qsd[keep] = perron
             result.quasi_stationary = qsd
     idx = np.flatnonzero(transient)
+    note = {"eigen": eigen_note} if eigen_note else {}
+    result.solver = dict(note)
     if idx.size == 0:
         return result
     if method == "eigen":
@@ -214,9 +318,13 @@ def absorbing_mfpt(T, failure: int = 0, method: str = "krylov", rtol: float = 1e
     if method == "direct":
         start = time.perf_counter()
         mfpt[idx] = spla.spsolve(A.tocsc(), b)
-        result.solver = {"solver": "spsolve", "seconds": time.perf_counter() - start}
+        result.solver = {"solver": "spsolve", "path": "direct", "seconds": time.perf_counter() - start, **note}
+    elif method == "auto":
+        mfpt[idx], solver = _auto_solve(A, b, rtol, fill_cap)
+        result.solver = {**solver, **note}
     else:
-        mfpt[idx], result.solver = _krylov_solve(A, b, rtol)
+        mfpt[idx], solver = _krylov_solve(A, b, rtol)
+        result.solver = {**solver, "path": "krylov", **note}
     return result
 
 
