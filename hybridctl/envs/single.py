@@ -85,7 +85,8 @@ RENDER_MODES = ("rgb_array",)
 """The render modes of :class:`SwingupEnv` (live viewing lives in ``hybridctl.viz``: meshcat, HTML replays)."""
 RENDER_SIZE = 256
 """Height and width in pixels of a ``render_mode="rgb_array"`` frame."""
-_BACKGROUND, _RAIL, _LINK, _JOINT, _CART = (255, 255, 255), (150, 150, 150), (40, 90, 200), (20, 20, 20), (110, 110, 110)
+_BACKGROUND, _RAIL, _LINK, _JOINT, _CART = ((255, 255, 255), (150, 150, 150), (40, 90, 200), (20, 20, 20),
+                                            (110, 110, 110))
 
 
 def chain_points(system: System, state) -> np.ndarray:

@@ -703,8 +703,9 @@ class FineTune(Learner):
 
     # -- export and checkpoints ----------------------------------------------------------------
     def save_sb3(self, path: str | Path) -> Path:
-        """Write the fine-tuned agent as an SB3 zip (the original with its policy weights replaced,
-        readable by SB3's own ``load``) and its normaliser as ``vecnormalize.npz`` beside it."""
+        """Write the fine-tuned agent as an SB3 zip (:meth:`~hybridctl.learn.sb3.SB3Agent.save_zip`: rebuilt
+        from the parsed fields with the tuned weights, readable by SB3's own ``load``, no pickle of the
+        input's kept) and its normaliser as ``vecnormalize.npz`` beside it."""
         if self.tunable.sb3 is None:
             raise ValueError(f"save_sb3 needs an sb3: source; this policy came from {self.tunable.source}")
         self._write_theta()

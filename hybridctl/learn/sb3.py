@@ -14,8 +14,15 @@ An SB3 2.x ``model.save("agent.zip")`` writes a zip holding::
 deterministic (maximum-likelihood) action path of an ``MlpPolicy`` with Box spaces as
 :class:`SB3Policy`, a plain ``torch.nn.Module`` whose parameter names are the SB3 keys.
 Neither ``pickle`` nor ``cloudpickle`` is ever called on the zip, and this module imports
-without stable-baselines3 installed. :meth:`SB3Agent.save_zip` writes the zip back with the
-(perturbed) weights, so that SB3's own ``PPO.load`` etc. predicts the fine-tuned actions.
+without stable-baselines3 installed. A zip is someone else's data: every entry is read in
+chunks and stopped at ``hybridctl.limits`` (a zip bomb is not inflated), all entries are
+checked before anything is built, tensors must be real floating point, and a class named in
+the JSON (``policy_class``'s module, ``activation_fn``, ``optimizer_class``,
+``features_extractor_class``) must be one of the known ones (:data:`POLICY_CLASSES`,
+:data:`CLASS_KWARGS`). :meth:`SB3Agent.save_zip` writes a NEW zip built from what was parsed
+(a fixed entry list, the JSON without the input's ":serialized:" payloads, the classes and
+spaces re-serialised from known names), so that SB3's own ``PPO.load`` etc. predicts the
+fine-tuned actions and never meets a pickle of the input's.
 
 ``VecNormalize.save`` writes a pickle; observation statistics are read here from an ``.npz``
 (:class:`Normalizer`). A ``.pkl`` is unpickled only with ``trust=True``.
@@ -213,18 +220,14 @@ def _class_name(key: str, text: Any, where: str) -> str:
     """The class named by SB3's text ``<class 'torch.nn.modules.activation.ReLU'>`` (or a bare name) of
     ``policy_kwargs[key]``, if it is one of the known classes of :data:`CLASS_KWARGS` (nothing is imported)."""
     prefix, known = CLASS_KWARGS[key]
-    match = re.fullmatch(r"\s*(?:<class '([A-Za-z_][\w.]*)'>|([A-Za-z_]\w*))\s*", text) if isinstance(text, str) else None
+    pattern = r"\s*(?:<class '([A-Za-z_][\w.]*)'>|([A-Za-z_]\w*))\s*"
+    match = re.fullmatch(pattern, text) if isinstance(text, str) else None
     dotted = (match.group(1) or match.group(2)) if match else ""
     module, _, name = dotted.rpartition(".")
     if name in known and (not module or module == prefix or module.startswith(prefix + ".")):
         return name
     raise CheckpointError(f"{where}: policy_kwargs[{key!r}] is {str(text)[:80]!r}, not one of {sorted(known)} "
                           f"(of {prefix})")
-
-
-def _activation_name(text: str | None, algo: str, source: str) -> str:
-    """The activation class name in SB3's text ``<class 'torch.nn.modules.activation.ReLU'>`` (None: default)."""
-    return DEFAULT_ACTIVATION[algo] if text is None else _class_name("activation_fn", text, source)
 
 
 def _strip(value: Any) -> Any:
@@ -447,13 +450,6 @@ class SB3Policy(nn.Module):
 
 
 # --- reading the zip ----------------------------------------------------------------------------------
-
-def _plain(entry: Any) -> Any:
-    """A ``data`` entry without its ":serialized:" / ":type:" fields (a plain value is returned as is)."""
-    if isinstance(entry, dict):
-        return {key: value for key, value in entry.items() if not key.startswith(":")}
-    return entry
-
 
 def _parse_array(text: Any, shape: tuple[int, ...], dtype: np.dtype, where: str) -> np.ndarray:
     """A numpy ``str()`` of an array (``'[-1. -1. -8.]'``, nested for 2-d, ``inf``) parsed back."""
@@ -847,8 +843,12 @@ def load_sb3(path: str | Path, normalizer: str | Path | Normalizer | None = None
         algo: override the algorithm found from the JSON (``policy_class.__module__`` and the
             algorithm's fields) or the state-dict keys; one of :data:`SB3_ALGORITHMS`.
 
-    Raises :class:`CheckpointError` naming the file and the entry: a missing file, not a zip,
-    no ``data`` or ``policy.pth``, damaged JSON, a state dict that does not fit.
+    Raises :class:`CheckpointError` naming the file and the entry (and key): a missing file, not a
+    zip, an entry that inflates past its limit (``hybridctl.limits.MAX_JSON_BYTES`` for text,
+    ``MAX_ZIP_ENTRY_BYTES`` for others and all together; at most ``MAX_ZIP_ENTRIES`` entries), no
+    ``data`` or ``policy.pth``, damaged JSON, a bad JSON field we read (``_shape``, ``dtype``,
+    ``clip_mean``, ``squash_output``), an unknown class name, a tensor that is not real floating
+    point, a state dict that does not fit, a damaged ``pytorch_variables.pth`` or optimizer state.
     """
     path = Path(path)
     if algo is not None and algo not in SB3_ALGORITHMS:
