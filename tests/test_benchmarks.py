@@ -107,17 +107,24 @@ def test_mesh_dimension_benchmark_reports_both_methods(tmp_path):
         assert 0 <= entry["lower"] <= entry["upper"]
 
 
-def test_mfpt_benchmark_agrees_with_spsolve(tmp_path):
-    """benchmarks/mfpt.py --quick: the Krylov MFPT equals spsolve's on a mesh-like chain (no speed thresholds)."""
-    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "mfpt.py"), "--quick"],
+def test_mfpt_benchmark_agrees_with_its_peers(tmp_path):
+    """benchmarks/mfpt.py --quick: the auto MFPT equals spsolve's (and deeptime's, if installed) on a mesh-like
+    and a uniform chain, picks the direct and the Krylov path, and reports ratios (no speed thresholds)."""
+    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "mfpt.py"), "--quick", "--repeats", "1"],
                           cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     report = json.loads(proc.stdout)
-    (entry,) = report["entries"]
-    assert report["benchmark"] == "mfpt" and entry["states"] == 12 ** 3 + 1
-    assert entry["max_rel_diff_vs_spsolve"] < 1e-8 and entry["krylov_solver"]["converged"]
-    assert _positive_finite(entry["krylov_s"]) and _positive_finite(entry["speedup_vs_spsolve"])
-    assert 1 < entry["mfpt_mean_over_states"] < 1e6 and entry["infinite_states"] == 0
+    assert report["benchmark"] == "mfpt"
+    entries = {e["family"]: e for e in report["entries"]}
+    assert set(entries) == {"mesh-like", "uniform"}
+    assert entries["mesh-like"]["auto_path"] == "direct" and entries["uniform"]["auto_path"] == "krylov"
+    for entry in entries.values():
+        assert 1_000 <= entry["states"] <= 1_100 and entry["infinite_states"] == 0
+        assert entry["spsolve"]["max_rel_diff"] < 1e-9 and _positive_finite(entry["spsolve"]["ratio"])
+        assert _positive_finite(entry["auto_s"]) and 10 < entry["mfpt_mean_over_states"] < 1e6
+        assert "max_rel_diff" in entry["deeptime"] or entry["deeptime"] == {"skipped": "deeptime not installed"}
+        if "max_rel_diff" in entry["deeptime"]:
+            assert entry["deeptime"]["max_rel_diff"] < 1e-9
 
 
 def test_training_benchmark_reports_rates_and_projection(tmp_path):

@@ -5,6 +5,7 @@ import pytest
 import scipy.sparse as sp
 
 from hybridctl.analysis.markov import absorbing_mfpt, check_transition_matrix
+from hybridctl.limits import LimitError
 
 
 def birth_death(n, p_up, p_down):
@@ -104,3 +105,77 @@ def test_near_singular_chain_fails_fast_with_a_message():
     with pytest.raises(RuntimeError, match="did not converge"):
         absorbing_mfpt(T, eigen=False)
     assert absorbing_mfpt(T, method="eigen").eigen_estimate == np.inf
+
+
+# --------------------------------------------------------------------------- method="auto" (issue 29)
+def mesh_like(side, seed=0):
+    """Small mesh-like chain: 2-D lattice, 8 successors one cell around a slowly turning, contracting image."""
+    rng = np.random.default_rng(seed)
+    n = side * side
+    rel = np.stack(np.unravel_index(np.arange(n), (side, side)), axis=1) - (side - 1) / 2
+    turn = np.array([[np.cos(0.05), np.sin(0.05)], [-np.sin(0.05), np.cos(0.05)]])
+    target = np.rint((side - 1) / 2 + 0.995 * rel @ turn)[:, None, :] + np.rint(rng.normal(size=(n, 8, 2)))
+    fails = np.any((target < 0) | (target > side - 1), axis=2) | (rng.uniform(size=(n, 8)) < 1e-4)
+    index = np.ravel_multi_index(np.clip(target, 0, side - 1).astype(np.int64).transpose(2, 0, 1), (side, side)) + 1
+    return normalised(np.repeat(np.arange(1, n + 1), 8), np.where(fails, 0, index).ravel(), np.ones(8 * n), n + 1)
+
+
+def uniform(n, seed=0):
+    """Small chain with random sparse rows: 5 successors uniform over all states (failure included)."""
+    rng = np.random.default_rng(seed)
+    rows = np.repeat(np.arange(1, n), 5)
+    return normalised(rows, rng.integers(0, n, size=rows.size), rng.uniform(size=rows.size), n)
+
+
+def normalised(rows, cols, vals, n):
+    T = sp.csr_matrix((np.r_[1.0, vals], (np.r_[0, rows], np.r_[0, cols])), shape=(n, n))
+    return (sp.diags(1 / np.asarray(T.sum(axis=1)).ravel()) @ T).tocsr()
+
+
+@pytest.mark.parametrize("T, path", [(mesh_like(30), "direct"), (uniform(2000), "krylov")], ids=["mesh", "uniform"])
+def test_auto_equals_spsolve_and_picks_its_path(T, path):
+    auto, direct = absorbing_mfpt(T, eigen=False), absorbing_mfpt(T, method="direct", eigen=False)
+    finite = np.isfinite(direct.mfpt)
+    assert finite[1:].all() and np.median(direct.mfpt[1:]) > 50       # long failure times, all finite
+    np.testing.assert_allclose(auto.mfpt[finite], direct.mfpt[finite], rtol=1e-9)
+    assert auto.method == "auto" and auto.solver["path"] == path and auto.solver["relative_residual"] <= 1e-10
+
+
+def test_auto_falls_back_to_ilu_gmres_under_a_tiny_fill_cap():
+    T = mesh_like(30)
+    capped, direct = absorbing_mfpt(T, eigen=False, fill_cap=1.5), absorbing_mfpt(T, method="direct", eigen=False)
+    assert capped.solver["path"] == "krylov-ilu" and capped.solver["fill"] <= 1.5 + 1e-9
+    np.testing.assert_allclose(capped.mfpt[1:], direct.mfpt[1:], rtol=1e-8)
+    assert absorbing_mfpt(T, eigen=False).solver["fill"] > 1.5    # the default cap: the exact LU
+
+
+def test_eigen_diagnostics_past_their_cap_are_left_out_with_a_note(monkeypatch):
+    import hybridctl.analysis.markov as markov
+    monkeypatch.setattr(markov.dominant_eigen, "__defaults__", (3, 0.0, markov.EIGEN_MAX_RESTARTS))
+    r = absorbing_mfpt(mesh_like(20))
+    assert r.eigen_estimate is None and "EIGEN_MAX_SECONDS" in r.solver["eigen"] and np.isfinite(r.mfpt).all()
+
+
+def _no_failure_path():
+    T = np.eye(3)
+    T[1, [1, 2]] = T[2, [1, 2]] = 0.5
+    return T
+
+
+MFPT_BAD_CASES = [
+    # (chain, keyword arguments, exception, message)
+    (_no_failure_path(), {}, ValueError, "no state of the chain reaches the failure state 0"),
+    (mesh_like(20), {"fill_cap": 0.5}, ValueError, "fill_cap must be >= 1"),
+    (mesh_like(20), {"method": "eigen", "_eigen_seconds": 0.0}, LimitError, "ran past its limit of 0 s"),
+]
+
+
+@pytest.mark.parametrize("T, kwargs, error, message", MFPT_BAD_CASES, ids=["no-failure-path", "fill-cap", "eigen-cap"])
+def test_mfpt_bad_cases_give_one_line(T, kwargs, error, message, monkeypatch):
+    import hybridctl.analysis.markov as markov
+    kwargs = dict(kwargs)
+    if "_eigen_seconds" in kwargs:
+        monkeypatch.setattr(markov.dominant_eigen, "__defaults__", (3, kwargs.pop("_eigen_seconds"), 10))
+    with pytest.raises(error, match=message) as info:
+        absorbing_mfpt(T, **kwargs)
+    assert "\n" not in str(info.value)
