@@ -75,6 +75,7 @@ import numpy as np
 import torch
 
 from .. import systems as systems_mod
+from ..limits import MAX_SIMULATION_STEPS, check_at_most
 from ..parallel import BACKENDS, cached_env, make_backend
 from ..systems import System, known_systems
 from ..systems import control
@@ -195,6 +196,13 @@ class APGConfig:
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0):
                 raise ValueError(f"APGConfig.{name} must be None or a finite number > 0, got {value!r}")
+        # an unroll or a graph cut longer than the episode would silently be the whole episode
+        if self.method == "shapg" and self.short_horizon > self.horizon:
+            raise ValueError(f"APGConfig.short_horizon ({self.short_horizon}) must be <= horizon ({self.horizon}): "
+                             f"an unroll is part of an episode")
+        if self.truncation is not None and self.truncation > self.horizon:
+            raise ValueError(f"APGConfig.truncation ({self.truncation}) must be None or <= horizon "
+                             f"({self.horizon}): the graph is cut within an episode")
 
     @classmethod
     def preset(cls, name: str = "thesis", method: str = "ce-apg", **overrides) -> "APGConfig":
@@ -577,6 +585,8 @@ class APG(Learner):
         self.dtype = torch.float64 if cfg.dtype == "float64" else torch.float32
         period = cfg.control_period if cfg.control_period is not None else self.system.swingup_period
         ratio = period / self.system.dt
+        check_at_most("APGConfig.horizon x control_period / integrator.dt", cfg.horizon * ratio,
+                      MAX_SIMULATION_STEPS, why="integrator steps of one episode", force_flag=None)
         if abs(ratio - round(ratio)) > 1e-9 or round(ratio) < 1:
             raise ValueError(f"APGConfig.control_period ({period}) must be a whole multiple of {self.system.name}'s "
                              f"integrator.dt ({self.system.dt})")
@@ -904,11 +914,12 @@ class APG(Learner):
         warning), as for another algorithm's checkpoint.
         """
         folder = ckpt.resolve_checkpoint_dir(path)
-        meta = ckpt.read_json(folder / ckpt.CONFIG_FILE)
+        meta = ckpt.read_json(folder / ckpt.CONFIG_FILE)  # its shape is checked there (ckpt.SCHEMAS)
         ckpt.check_algorithm(folder, meta.get("algorithm") or "(no algorithm)", (cls.algorithm_name,),
                              cls.algorithm_name, force)
-        config = APGConfig(**{**meta["config"], **overrides})
-        system = systems_mod.load(meta["system"], **meta.get("system_overrides", {}))
+        ckpt.require_keys(folder, meta, cls.algorithm_name)
+        config = ckpt.config_from_meta(APGConfig, meta, overrides, folder)
+        system = ckpt.recorded_system(folder, meta["system"], meta.get("system_overrides", {}))
         agent = cls(system, config)  # applies the config's reward settings to the system
         if "plant" in meta:
             ckpt.check_plant(folder, meta["plant"], agent.system, force)

@@ -26,6 +26,11 @@ not load an SSAC checkpoint), :func:`check_plant` (another system, or the same s
 other spec values, is refused naming each differing value; a checkpoint from before the
 spec hash was recorded is compared by name and spec overrides, with a warning). Both take
 ``force=True`` to load anyway, with a warning.
+
+Every file of a checkpoint is data from someone else: :func:`read_json` checks the shape of
+config.json, progress.json and normalization.json against :data:`SCHEMAS` (one place for every
+shape check; an error names the file and the key), and :func:`load_tensors` reads only plain
+tensors (no pickled objects) and refuses non-finite weights, naming the file and the tensor.
 """
 
 from __future__ import annotations
@@ -34,18 +39,22 @@ import dataclasses
 
 import hashlib
 import json
+import math
+import numbers
 import os
+import pickle
 import platform
 import warnings
 from pathlib import Path
-from typing import Iterable
+from typing import Any, Callable, Iterable
 
 import numpy as np
 import torch
 
 from .. import io as _io
+from ..limits import MAX_HIDDEN_UNITS, MAX_JSON_BYTES, MAX_NUM_ENVS
 from ..systems import load as load_system
-from ..systems.spec import OPTIONAL_DEFAULTS
+from ..systems.spec import OPTIONAL_DEFAULTS, SYSTEM_NAME
 
 MODEL_FILE = "model.pt"
 CONFIG_FILE = "config.json"
@@ -57,7 +66,14 @@ FORMAT_VERSION = 1
 
 
 class CheckpointError(RuntimeError):
-    """A checkpoint directory is missing, incomplete or does not fit the environment."""
+    """A checkpoint directory is missing, incomplete or does not fit the environment.
+
+    Its text is always one line: a wrapped error's further lines (torch's ``load_state_dict``
+    lists every key) are joined with "; ", so the CLI prints one ``error:`` line."""
+
+    def __str__(self) -> str:
+        text = super().__str__()
+        return "; ".join(line.strip() for line in text.splitlines() if line.strip()) if "\n" in text else text
 
 
 def versions() -> dict[str, str]:
@@ -76,11 +92,27 @@ def write_json(path: Path, data: dict) -> None:
 
 
 def read_json(path: Path) -> dict:
-    """Read a JSON file, naming it in the error when it is not valid JSON."""
+    """Read a JSON file of a checkpoint, naming it in the error when it is not valid JSON.
+
+    config.json, progress.json and normalization.json are also checked against :data:`SCHEMAS`
+    (:func:`check_schema`), so a loader may index what the schema guarantees. Files over
+    :data:`~hybridctl.limits.MAX_JSON_BYTES` are refused before reading.
+    """
+    path = Path(path)
+    if path.is_file() and path.stat().st_size > MAX_JSON_BYTES:
+        raise CheckpointError(f"{path} has {path.stat().st_size:,} bytes, above the limit of {MAX_JSON_BYTES:,} "
+                              f"for a JSON file (hybridctl.limits.MAX_JSON_BYTES)")
     try:
-        return _io.read_json(path)
+        doc = _io.read_json(path)
     except _io.FileFormatError as exc:
         raise CheckpointError(str(exc)) from exc
+    except UnicodeDecodeError:
+        raise CheckpointError(f"{path} is not valid JSON: not UTF-8 text") from None
+    except RecursionError:
+        raise CheckpointError(f"{path} is not valid JSON: arrays or objects nested too deeply") from None
+    if path.name in SCHEMAS:
+        check_schema(path, doc)
+    return doc
 
 
 write_checkpoint_dir = _io.atomic_directory
@@ -110,11 +142,207 @@ def resolve_checkpoint_dir(path: str | os.PathLike) -> Path:
 
 
 def load_tensors(path: Path, device: str | torch.device = "cpu") -> dict:
-    """``torch.load(path, weights_only=True)`` with the file named in errors."""
+    """``torch.load(path, weights_only=True)`` with the file named in errors.
+
+    A file holding pickled Python objects (anything but tensors, numbers, strings and
+    containers of them) is refused, never unpickled; a floating-point tensor holding NaN or
+    Inf is refused naming the tensor (:func:`check_finite_tensors`).
+    """
     try:
-        return torch.load(path, map_location=device, weights_only=True)
-    except Exception as exc:  # noqa: BLE001 - re-raised with the file name
-        raise CheckpointError(f"could not read {path}: {type(exc).__name__}: {exc}") from exc
+        content = torch.load(path, map_location=device, weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - re-raised with the file name, without torch's advice
+        text = str(exc)
+        if isinstance(exc, pickle.UnpicklingError) and "Unsupported global" in text:
+            # torch's weights-only unpickler met an object it does not allow; its message advises
+            # weights_only=False, which would run the object's code: never say that
+            raise CheckpointError(f"{path} holds pickled Python objects, which hybridctl refuses to load (a "
+                                  f"checkpoint file holds only tensors, numbers and dicts of them)") from None
+        raise CheckpointError(f"could not read {path}: it is damaged or not a torch file "
+                              f"({_load_failure(exc)})") from None
+    check_finite_tensors(path, content)
+    return content
+
+
+def _load_failure(exc: Exception) -> str:
+    """The reason of a failed ``torch.load`` in a few words (the unpickler's own error, not its advice)."""
+    lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+    for i, line in enumerate(lines):
+        if "WeightsUnpickler error:" in line:
+            detail = line.partition("WeightsUnpickler error:")[2].strip() or (lines[i + 1] if i + 1 < len(lines) else "")
+            return f"not a tensor file: {detail}"
+    first = lines[0] if lines else type(exc).__name__
+    return f"{type(exc).__name__}: {first}" if "weights_only" not in first else type(exc).__name__
+
+
+def check_finite_tensors(path: Path, content: Any, where: str = "") -> None:
+    """Raise :class:`CheckpointError` naming ``path`` and the key of the first floating-point tensor in
+    ``content`` (nested dicts and lists) that holds NaN or Inf: weights, statistics and data sets
+    of a checkpoint are finite, and a non-finite one would surface only later, far from the file."""
+    if isinstance(content, torch.Tensor):
+        if (content.is_floating_point() or content.is_complex()) and not bool(torch.isfinite(content).all()):
+            raise CheckpointError(f"{path}: tensor {where or '(the file)'!r} holds NaN or Inf; the checkpoint is "
+                                  f"damaged (weights and statistics must be finite)")
+        return
+    if isinstance(content, dict):
+        for key, value in content.items():
+            check_finite_tensors(path, value, f"{where}.{key}" if where else str(key))
+    elif isinstance(content, (list, tuple)):
+        for i, value in enumerate(content):
+            check_finite_tensors(path, value, f"{where}[{i}]")
+
+
+# ============================================================================ the shape of the JSON files
+MAX_COUNT = 2 ** 53
+"""The largest counter (env steps, episodes, dimensions) a checkpoint may record: the largest
+integer float64 holds exactly; a larger one is damage, not progress."""
+MAX_HIDDEN_LAYERS = 64
+"""Hidden layers of a recorded network (config ``hidden_layers``, ``gate.hidden``): far above any
+learner's default (2), low enough that a damaged value cannot ask for unbounded work."""
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _numbers(value) -> bool:
+    """A finite number or a (nested) list of them."""
+    if isinstance(value, list):
+        return all(_numbers(v) for v in value)
+    return _is_number(value)
+
+
+def _check(test: Callable[[Any], bool], wants: str) -> tuple[Callable[[Any], bool], str]:
+    return test, wants
+
+
+STRING = _check(lambda v: isinstance(v, str), "a string")
+OBJECT = _check(lambda v: isinstance(v, dict), "an object {...}")
+LIST = _check(lambda v: isinstance(v, list), "a list")
+BOOL = _check(lambda v: isinstance(v, bool), "true or false")
+NUMBER = _check(_is_number, "a finite number")
+NUMBER_OR_NULL = _check(lambda v: v is None or _is_number(v), "a finite number or null")
+NUMBERS = _check(lambda v: isinstance(v, list) and _numbers(v), "a list of finite numbers")
+COUNT = _check(lambda v: isinstance(v, int) and not isinstance(v, bool) and 0 <= v <= MAX_COUNT,
+               "an integer in [0, 2**53]")
+POSITIVE_COUNT = _check(lambda v: isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= MAX_COUNT,
+                        "an integer in [1, 2**53]")
+WIDTH = _check(lambda v: isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= MAX_HIDDEN_UNITS,
+               f"an integer in [1, {MAX_HIDDEN_UNITS}] (hybridctl.limits.MAX_HIDDEN_UNITS)")
+LAYERS = _check(lambda v: isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= MAX_HIDDEN_LAYERS,
+                f"an integer in [1, {MAX_HIDDEN_LAYERS}]")
+WIDTHS = _check(lambda v: isinstance(v, list) and 1 <= len(v) <= MAX_HIDDEN_LAYERS and all(WIDTH[0](w) for w in v),
+                f"a list of 1 to {MAX_HIDDEN_LAYERS} integers in [1, {MAX_HIDDEN_UNITS}]")
+UINT128 = _check(lambda v: isinstance(v, int) and not isinstance(v, bool) and 0 <= v < 2 ** 128,
+                 "an integer in [0, 2**128)")
+STRINGS = _check(lambda v: isinstance(v, list) and all(isinstance(s, str) for s in v), "a list of strings")
+INTEGERS = _check(lambda v: isinstance(v, list) and all(COUNT[0](i) for i in v), "a list of integers >= 0")
+
+# a recorded system is a name, never a path to some other spec file (systems.load reads a path)
+SYSTEM = _check(lambda v: isinstance(v, str) and SYSTEM_NAME.fullmatch(v) is not None,
+                "a system name such as 'acrobot' ([a-z0-9_-], not a path)")
+_SYSTEM_RECORD = {"name": SYSTEM, "overrides": OBJECT, "spec_hash": STRING, "spec_values": OBJECT,
+                  "recorded": STRING}
+_VECTOR_AGENT = {  # SAC and SSAC (learn/vector_agent.py)
+    "system": OBJECT, **{f"system.{k}": v for k, v in _SYSTEM_RECORD.items()},
+    "obs_dim": POSITIVE_COUNT, "action_dim": POSITIVE_COUNT, "action_scale": NUMBERS,
+    "decision_period": NUMBER_OR_NULL,
+    # the config fields load_controller builds the deployed actor from
+    "config.hidden_layers": LAYERS, "config.hidden_size": WIDTH, "config.log_std_min": NUMBER,
+    "config.log_std_max": NUMBER, "config.obs_transform": STRING, "config.gate_cost_feature": BOOL,
+    "config.num_envs": _check(lambda v: POSITIVE_COUNT[0](v) and v <= MAX_NUM_ENVS,
+                              f"an integer in [1, {MAX_NUM_ENVS:,}] (hybridctl.limits.MAX_NUM_ENVS)"),
+}
+_VECTOR_AGENT_REQUIRED = ("config", "system", "system.name", "obs_dim", "action_dim")
+SCHEMAS: dict[str, dict[str | None, tuple[dict, tuple]]] = {
+    # file -> algorithm (None: every algorithm) -> (key -> (test, what it must be), required keys).
+    # A key is 'a.b' for b inside object a. read_json checks the types of the keys present and the
+    # keys every algorithm needs (None); a loader checks its algorithm's required keys (require_keys)
+    # after it has checked the algorithm, so that another algorithm's checkpoint is named as such.
+    "config.json": {
+        None: ({"algorithm": STRING, "format": COUNT, "config": OBJECT, "versions": OBJECT, "files": STRINGS},
+               ("config",)),
+        "SAC": (_VECTOR_AGENT, _VECTOR_AGENT_REQUIRED),
+        "SSAC": ({**_VECTOR_AGENT, "gate": OBJECT, "gate.hidden": WIDTHS, "gate.cost_feature": BOOL,
+                  "gate.gate_on": NUMBER, "gate.gate_off": NUMBER, "gate.K": NUMBERS, "gate.info": OBJECT},
+                 (*_VECTOR_AGENT_REQUIRED, "gate")),
+        "APG": ({"method": STRING, "system": SYSTEM, "system_overrides": OBJECT, "plant": OBJECT,
+                 **{f"plant.{k}": v for k, v in _SYSTEM_RECORD.items()},
+                 "policy": OBJECT, "policy.kind": STRING, "policy.obs_dim": POSITIVE_COUNT,
+                 "policy.act_dim": POSITIVE_COUNT, "policy.hidden": _check(
+                     lambda v: isinstance(v, list) and len(v) <= MAX_HIDDEN_LAYERS and all(WIDTH[0](w) for w in v),
+                     f"a list of at most {MAX_HIDDEN_LAYERS} integers in [1, {MAX_HIDDEN_UNITS}]"),
+                 "policy.action_limit": NUMBER, "policy.n_params": COUNT, "policy.hidden_state": COUNT,
+                 "substeps": POSITIVE_COUNT, "period": NUMBER,
+                 "config.population": POSITIVE_COUNT, "config.horizon": POSITIVE_COUNT},
+                ("system", "config")),
+    },
+    "progress.json": {None: ({**{k: COUNT for k in (
+        "env_steps", "episodes", "gradient_steps", "updates", "rounds", "needle_episodes", "needle_size",
+        "replay_size", "epoch", "iterations", "nan_grads", "large_grads")},
+        "wall_time": NUMBER, **{k: NUMBER_OR_NULL for k in ("mean_return", "best_mean_return", "success_rate")},
+        "recent_returns": LIST, "recent_successes": LIST, "history": LIST,
+        # numpy's PCG64 state (128-bit integers): what Generator.bit_generator.state accepts
+        "env_rng_state": OBJECT, "env_rng_state.bit_generator": _check(lambda v: v == "PCG64", "'PCG64'"),
+        "env_rng_state.state": OBJECT, **{f"env_rng_state.state.{k}": UINT128 for k in ("state", "inc")},
+        "env_rng_state.has_uint32": _check(lambda v: v in (0, 1) and not isinstance(v, bool), "0 or 1"),
+        "env_rng_state.uinteger": _check(lambda v: isinstance(v, int) and not isinstance(v, bool) and 0 <= v < 2 ** 32,
+                                         "an integer in [0, 2**32)")}, ())},
+    "normalization.json": {None: ({"type": STRING, "mean": NUMBERS, "std": NUMBERS, "count": COUNT,
+                                   "n_states": POSITIVE_COUNT, "angle_indices": INTEGERS, "features": STRING},
+                                  ("type",))},
+}
+"""What each key of a checkpoint's JSON files must be: one place for every shape check."""
+
+_ABSENT = object()
+
+
+def _lookup(doc: dict, key: str):
+    for part in key.split("."):
+        if not isinstance(doc, dict) or part not in doc:
+            return _ABSENT
+        doc = doc[part]
+    return doc
+
+
+def check_schema(path: Path, doc: Any) -> None:
+    """Raise :class:`CheckpointError` naming ``path`` and the key when ``doc`` (the parsed JSON file at
+    ``path``) does not have the shape :data:`SCHEMAS` gives for its file name (and, for config.json,
+    its ``algorithm``). Keys the schema does not name are not checked."""
+    tables = SCHEMAS.get(Path(path).name)
+    if tables is None:
+        return
+    if not isinstance(doc, dict):
+        raise CheckpointError(f"{path} is damaged: expected an object {{...}}, got {_kind(doc)}")
+    _require(path, doc, tables[None][1])
+    algorithm = doc.get("algorithm")
+    for algo in (None, algorithm if isinstance(algorithm, str) and algorithm in tables else None):
+        for key, (test, wants) in tables[algo][0].items():
+            value = _lookup(doc, key)
+            if value is not _ABSENT and not test(value):
+                raise CheckpointError(f"{path}: {key!r} must be {wants}, got {_shown_short(value)}")
+
+
+def require_keys(found: Path, meta: dict, algorithm: str) -> None:
+    """Raise :class:`CheckpointError` naming the file and key when the config.json ``meta`` of the
+    checkpoint at ``found`` lacks a key :data:`SCHEMAS` requires of an ``algorithm`` checkpoint."""
+    _require(found / CONFIG_FILE, meta, SCHEMAS[CONFIG_FILE].get(algorithm, ({}, ()))[1])
+
+
+def _require(path: Path, doc: dict, keys: Iterable[str]) -> None:
+    for key in keys:
+        if _lookup(doc, key) is _ABSENT:
+            raise CheckpointError(f"{path} is damaged or not this learner's: it lacks the key {key!r}")
+
+
+def _kind(value) -> str:
+    return {list: "a list", type(None): "null", str: "a string", bool: "a boolean", int: "a number",
+            float: "a number", dict: "an object"}.get(type(value), type(value).__name__)
+
+
+def _shown_short(value) -> str:
+    text = json.dumps(to_jsonable(value)) if not isinstance(value, float) else repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
 
 
 def newest_checkpoint(candidates: Iterable[str | os.PathLike], key: str = "env_steps",
@@ -225,11 +453,43 @@ def refuse_unless_forced(problems: list[str], force: bool = False) -> bool:
     return True
 
 
-def config_from_meta(config_class: type, meta: dict, overrides: dict | None = None):
+def config_from_meta(config_class: type, meta: dict, overrides: dict | None = None, found: Path | None = None):
     """The ``config_class`` recorded in a checkpoint's config.json (fields it no longer has are
-    dropped, so older checkpoints load), with ``overrides`` applied."""
+    dropped, so older checkpoints load), validated, with ``overrides`` applied.
+
+    A recorded value the config refuses raises :class:`CheckpointError` naming the file (the
+    checkpoint at ``found``) and the field; an override it refuses stays the caller's ValueError.
+    """
     names = {f.name for f in dataclasses.fields(config_class)}
-    return config_class(**{**{k: v for k, v in meta["config"].items() if k in names}, **(overrides or {})})
+    where = found / CONFIG_FILE if found is not None else CONFIG_FILE
+    if not isinstance(meta.get("config"), dict):
+        raise CheckpointError(f"{where}: 'config' must be an object {{...}}, got {_shown_short(meta.get('config'))}")
+    try:
+        config = config_class(**{k: v for k, v in meta["config"].items() if k in names})
+        if hasattr(config, "validate"):
+            config.validate()
+    except (TypeError, ValueError, OverflowError) as exc:
+        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise CheckpointError(f"{where}: 'config' holds a value {config_class.__name__} refuses: {reason}") from None
+    if not overrides:
+        return config
+    config = dataclasses.replace(config, **overrides)
+    if hasattr(config, "validate"):
+        config.validate()
+    return config
+
+
+def recorded_system(found: Path, name: str, overrides: dict):
+    """The system a checkpoint at ``found`` records (its name and spec overrides in config.json), or
+    :class:`CheckpointError` naming the file when that system is unknown here or its overrides do
+    not apply (the spec's own message says which value)."""
+    try:
+        return load_system(name, **overrides)
+    except KeyError as exc:
+        raise CheckpointError(f"{found / CONFIG_FILE}: {exc.args[0] if exc.args else exc}") from None
+    except (TypeError, ValueError) as exc:
+        raise CheckpointError(f"{found / CONFIG_FILE}: the recorded system {name!r} with overrides "
+                              f"{_shown_short(overrides)} does not load: {exc}") from None
 
 
 def check_plant(found: Path, recorded: dict | None, system, force: bool = False,

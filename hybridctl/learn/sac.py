@@ -64,6 +64,7 @@ from __future__ import annotations
 import copy
 import math
 import time
+import warnings
 from dataclasses import dataclass, fields
 from pathlib import Path
 
@@ -72,6 +73,7 @@ import torch.nn.functional as F
 from torch.func import functional_call, grad_and_value
 
 from . import checkpoint as ckpt
+from ..limits import check_at_most
 from ..systems import System
 from ..systems.compiled import COMPILE_MODES, LazyCompiled, wants_compile
 from .networks import (OBS_TRANSFORMS, Actor, DeterministicPolicy, ObsTransform, QNetwork, squashed_sample,
@@ -164,10 +166,33 @@ class SACConfig:
         if self.obs_transform not in OBS_TRANSFORMS:
             raise ValueError(f"SACConfig.obs_transform must be one of {OBS_TRANSFORMS}, got {self.obs_transform!r}")
         try:
-            torch.device(self.device)
+            device = torch.device(self.device)
         except (RuntimeError, TypeError):
             raise ValueError(f"SACConfig.device must be a torch device such as 'cpu' or 'cuda:0', "
                              f"got {self.device!r}") from None
+        check_device_available(f"{type(self).__name__}.device", device)
+        name = type(self).__name__
+        for key in ("buffer_size", "needle_buffer_size"):
+            check_at_most(f"{name}.{key}", getattr(self, key), MAX_BUFFER_SIZE, why="transitions held in memory",
+                          force_flag=None)
+        # a minibatch is drawn from the filled part of the buffer: a smaller buffer can never fill one
+        if self.buffer_size < self.minibatch_size:
+            raise ValueError(f"{name}.buffer_size ({self.buffer_size}) must be >= minibatch_size "
+                             f"({self.minibatch_size}): a minibatch is drawn from the buffer")
+        if self.needle_prob > 0 and self.needle_buffer_size < self.minibatch_size:
+            raise ValueError(f"{name}.needle_buffer_size ({self.needle_buffer_size}) must be >= minibatch_size "
+                             f"({self.minibatch_size}) when needle_prob > 0")
+
+    def exploration_note(self, total_steps: int | None = None) -> str | None:
+        """A one-line note when a run of ``total_steps`` (default ``total_steps``) env steps ends within
+        the exploration phase: it takes uniform random actions only and makes no gradient step. None
+        otherwise. Not an error: a smoke test may do it on purpose."""
+        total = self.total_steps if total_steps is None else total_steps
+        if total > self.exploration_steps:
+            return None
+        return (f"note: {total:,} env steps are no more than exploration_steps ({self.exploration_steps:,}): the run "
+                f"takes uniform random actions only and makes no gradient step (lower exploration_steps, CLI "
+                f"--exploration-steps, to learn)")
 
     @property
     def gradient_steps_per_update(self) -> int:
@@ -176,6 +201,23 @@ class SACConfig:
 
 
 # ============================================================================= agent
+
+
+MAX_BUFFER_SIZE = 100_000_000
+"""Transitions of one replay (or needle) buffer (``buffer_size``, ``needle_buffer_size``): 1e8 rows of
+the acrobot's transitions are about 4.4 GB; 100x the default 1e6, which holds half a thesis run."""
+
+
+def check_device_available(name: str, device: torch.device) -> None:
+    """Raise ValueError naming ``name`` when ``device`` is a CUDA device this machine does not have."""
+    if device.type != "cuda":
+        return
+    if not torch.cuda.is_available():
+        raise ValueError(f"{name} is {str(device)!r}, but CUDA is not available here (torch {torch.__version__}, "
+                         f"{'built without CUDA' if torch.version.cuda is None else 'no GPU found'}); use 'cpu'")
+    if device.index is not None and device.index >= torch.cuda.device_count():
+        raise ValueError(f"{name} is {str(device)!r}, but this machine has {torch.cuda.device_count()} CUDA "
+                         f"device(s): use 'cuda:0' to 'cuda:{torch.cuda.device_count() - 1}'")
 
 
 def set_lr(optimizer: torch.optim.Optimizer, lr: float) -> None:
@@ -483,6 +525,9 @@ class SAC(VectorEnvAgent):
         cfg = self.config
         total = int(cfg.total_steps if total_steps is None else total_steps)
         with self.run(log_dir, resume, progress, callback, total, force=force) as run:
+            note = cfg.exploration_note(total) if self.num_timesteps < total else None
+            if note is not None:  # not an error (a smoke test may want it), but never silent
+                warnings.warn(note, stacklevel=2)
             self.use_compile(total - self.num_timesteps)
             if self._obs is None:
                 obs, _ = self.env.reset(seed=self._env_seed)

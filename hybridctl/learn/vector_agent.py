@@ -235,22 +235,17 @@ class VectorEnvAgent(Learner):
         algorithm's or plant's checkpoint anyway (with a warning).
         """
         found = ckpt.resolve_checkpoint_dir(path)
-        meta = ckpt.read_json(found / ckpt.CONFIG_FILE)
-        if not isinstance(meta, dict) or not isinstance(meta.get("config"), dict) or not isinstance(
-                meta.get("system"), dict):
-            raise ckpt.CheckpointError(f"{found / ckpt.CONFIG_FILE} is damaged or not a {cls.algorithm_name} "
-                                       f"checkpoint's: it lacks 'config' or 'system'")
+        meta = ckpt.read_json(found / ckpt.CONFIG_FILE)  # its shape is checked there (ckpt.SCHEMAS)
         ckpt.check_algorithm(found, meta.get("algorithm"), cls.compatible_algorithms, cls.algorithm_name, force)
-        saved_system = meta["system"].get("name")
+        ckpt.require_keys(found, meta, meta.get("algorithm") or cls.algorithm_name)
+        saved_system = meta["system"]["name"]
         if env is None:
-            env = load_system(saved_system, **meta["system"].get("overrides", {}))
+            env = ckpt.recorded_system(found, saved_system, meta["system"].get("overrides", {}))
         env_system = env if isinstance(env, str) else env.name if isinstance(env, System) else env.system.name
         if env_system != saved_system and not force:
             raise ckpt.CheckpointError(f"checkpoint {found} was trained on system {saved_system!r}, "
                                        f"but the env is system {env_system!r} ({ckpt.FORCE_HINT})")
-        fields = {f.name for f in dataclasses.fields(cls.config_class)}
-        saved = {k: v for k, v in meta["config"].items() if k in fields}
-        config = dataclasses.replace(cls.config_class(**saved), **overrides)
+        config = ckpt.config_from_meta(cls.config_class, meta, overrides, found)
         agent = cls._construct_for_load(env, config, found)
         if (agent.obs_dim, agent.action_dim) != (meta.get("obs_dim"), meta.get("action_dim")):
             raise ckpt.CheckpointError(f"checkpoint {found} has obs/action dims {meta.get('obs_dim')}/"
