@@ -116,6 +116,17 @@ OVERRIDE_CASES = [
     ({"names": ["a"]}, "override 'names' is ambiguous"),
     ({"nope": 1}, "override 'nope' is not a key of this spec"),
     ({"angles": [0.5, 1]}, "override angles=.*list of integers"),
+    # issue 29: expressions, physical ranges, the smallest time step, a name that is a path
+    ({"angle_offset": "pi/0"}, "override angle_offset='pi/0' .*divides by zero"),
+    ({"gravity": 1e300}, r"override gravity=1e\+300 .*must lie in \[0, 300\]"),
+    ({"gravity": 1e30}, r"override gravity=1e\+30 .*must lie in \[0, 300\]"),
+    ({"link_mass": [1e-300, 1e-300]}, r"override link_mass=.*must lie in \[0.001, 10000\]"),
+    ({"link_inertia": [0.2, 1e9]}, r"override link_inertia=.*must lie in \[0, 1e\+06\]"),
+    ({"joint_damping": [0.0, 1e9]}, r"override joint_damping=.*must lie in \[0, 10000\]"),
+    ({"link_length": [1.0, 1e9]}, r"override link_length=.*must lie in \[0.001, 100\]"),
+    ({"dt": 1e-300}, "override dt=1e-300 .*must be at least 1e-06 s"),
+    ({"system__name": "../../evil"}, "override system__name='../../evil' .*must be a plain name"),
+    ({"Q": [[1], [1, 2]]}, "override Q=.*nested lists must all have the same length"),
 ]
 
 
@@ -124,6 +135,63 @@ def test_spec_overrides_are_checked_like_the_file(override, message):
     with pytest.raises(SpecError, match=message) as info:
         systems.load("acrobot", **override)
     assert "acrobot.toml" not in str(info.value)  # the file is fine; the override is named
+
+
+def _acrobot_spec(old: str = "", new: str = "") -> bytes:
+    return (systems.spec.SPEC_DIR / "acrobot.toml").read_text().replace(old, new).encode()
+
+
+SPEC_FILE_CASES = [  # issue 29: (name, file content, message naming the file)
+    ("pi/0", _acrobot_spec('"pi/2"', '"pi/0"'), r"'model.angle_offset': divides by zero in 'pi/0'"),
+    ("100k nested [", b"a = " + b"[" * 100_000, "not valid TOML: arrays or tables nested too deeply"),
+    ("binary", b"\xff\xfe\x00\x01 binary", r"not a text file \(not UTF-8 at byte 0\)"),
+    ("over MAX_SPEC_BYTES", b"#" * ((1 << 20) + 1), "a spec file is at most 1,048,576 bytes"),
+    ("gravity 1e30", _acrobot_spec("value = 9.8,", "value = 1e30,"), r"'params.gravity' must lie in \[0, 300\]"),
+    ("dt 1e-300", _acrobot_spec("value = 0.01, units = \"s\", source = \"thesis Sec. 3.2: time step",
+                                "value = 1e-300, units = \"s\", source = \"thesis Sec. 3.2: time step"),
+     "'integrator.dt' must be at least 1e-06 s"),
+    ("name a path", _acrobot_spec('name = "acrobot"', 'name = "../../evil"'), "'system.name' must be a plain name"),
+]
+
+
+@pytest.mark.parametrize("name, content, message", SPEC_FILE_CASES, ids=[c[0] for c in SPEC_FILE_CASES])
+def test_a_bad_spec_file_is_one_line_naming_the_file(tmp_path, name, content, message):
+    path = tmp_path / "bad.toml"
+    path.write_bytes(content)
+    with pytest.raises(SpecError, match=message) as info:
+        systems.load(str(path))
+    assert str(path) in str(info.value) and "\n" not in str(info.value)
+
+
+SPEC_CLI_CASES = [  # issue 29: the same through the command line (exit 2, one line, no traceback)
+    (["train", "sac", "acrobot", "--spec", "angle_offset=pi/0"], "divides by zero"),
+    (["train", "sac", "acrobot", "--spec", "params.gravity=1e300"], r"must lie in [0, 300]"),
+    (["train", "sac", "acrobot", "--spec", "params.link_mass=[1e-300,1e-300]"], "must lie in [0.001, 10000]"),
+    (["train", "sac", "acrobot", "--spec", "system.name=../../evil"], "must be a plain name"),
+    (["train", "sac", "acrobot", "--spec", "integrator.dt=1e-300"], "must be at least 1e-06 s"),
+    (["train", "sac", "acrobot", "--buffer-size", "10", "--minibatch-size", "64"],
+     "buffer_size (10) must be >= minibatch_size (64)"),
+    (["train", "sac", "acrobot", "--device", "cuda:99"], "CUDA"),
+    (["train", "shapg", "cartpole", "--short-horizon", "100000"], "short_horizon (100000) must be <= horizon"),
+]
+
+
+@pytest.mark.parametrize("argv, message", SPEC_CLI_CASES, ids=[" ".join(a) for a, _ in SPEC_CLI_CASES])
+def test_bad_specs_and_config_rules_on_the_command_line(tmp_path, cli_error, argv, message):
+    err = cli_error([*argv, "--quiet", "--out", str(tmp_path / "out")])
+    assert message in err and len(err.strip().splitlines()) == 1, err
+
+
+ENTRY_LQR_CASES = [  # issue 29: an LQR Drake cannot solve is a ValueError naming the system and what to change
+    ("no gravity", {"gravity": 0.0}, r"acrobot \(acrobot.toml, gravity=0.0\): no LQR about the goal"),
+    ("Q zero", {"Q": [[0.0] * 4] * 4}, "check the spec's params .* and lqr.Q / lqr.R"),
+]
+
+
+@pytest.mark.parametrize("name, overrides, message", ENTRY_LQR_CASES, ids=[c[0] for c in ENTRY_LQR_CASES])
+def test_an_lqr_that_cannot_be_solved_names_the_system(name, overrides, message):
+    with pytest.raises(ValueError, match=message):
+        systems.load("acrobot", **overrides).lqr()
 
 
 # ---------------------------------------------------------------------- dynamics and engines
@@ -320,8 +388,10 @@ def test_learner_configs_reject_out_of_range_values(name, overrides, message):
 
 
 def test_the_table_is_large():
-    """The closing note of issue 12 reports this count."""
-    total = len(CLI_CASES) + len(OVERRIDE_CASES) + len(ENTRY_CASES) + len(CONFIG_CASES) + len(RANGE_CASES)
+    """The closing note of issue 12 reports this count; issue 29 added the spec file, spec CLI and LQR
+    rows here and the checkpoint tables of tests/test_bad_checkpoints.py."""
+    total = (len(CLI_CASES) + len(OVERRIDE_CASES) + len(ENTRY_CASES) + len(CONFIG_CASES) + len(RANGE_CASES)
+             + len(SPEC_FILE_CASES) + len(SPEC_CLI_CASES) + len(ENTRY_LQR_CASES))
     assert total > 200
 
 
