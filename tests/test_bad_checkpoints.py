@@ -267,3 +267,17 @@ def test_error_text_is_one_line_even_when_wrapping_a_multi_line_error():
     assert str(CheckpointError("a.pt: does not fit\n  Missing key(s): x\n  Unexpected: y")) == \
         "a.pt: does not fit; Missing key(s): x; Unexpected: y"
     assert re.fullmatch(r"plain", str(CheckpointError("plain")))
+
+
+# ---------------------------------------------------------------- a run too short to learn says so
+def test_a_run_within_exploration_steps_says_it_makes_no_gradient_step():
+    from hybridctl.learn import SAC, SACConfig
+    assert SACConfig(total_steps=50_001).exploration_note() is None
+    note = SACConfig(total_steps=20_000).exploration_note()
+    assert "20,000 env steps" in note and "exploration_steps (50,000)" in note and "no gradient step" in note
+    agent = SAC("acrobot", num_envs=8, exploration_steps=400, steps_per_update=200, updates_per_round=1,
+                replay_batch_size=128, minibatch_size=64, buffer_size=2_000, needle_buffer_size=2_000,
+                tensorboard=False)
+    with pytest.warns(UserWarning, match=r"16 env steps are no more than exploration_steps \(400\)"):
+        agent.learn(total_steps=16, progress=False)
+    assert agent.num_gradient_steps == 0
