@@ -126,7 +126,7 @@ def test_the_pool_closes_when_training_fails(recording, monkeypatch):
     ("backend", "threads", r"APGConfig.backend must be one of \('serial', 'processes', 'ray'\), got 'threads'"),
     ("workers", 0, "APGConfig.workers must be None .* or an integer >= 1, got 0"),
     ("workers", 1.5, "APGConfig.workers must be an integer or None, got 1.5"),
-    ("ray_address", "auto", "APGConfig.ray_address must be None or a non-empty address with backend 'ray'"),
+    ("ray_address", "auto", r"APGConfig.ray_address \(--ray-address\) applies to backend 'ray' only, not 'serial'"),
 ])
 def test_bad_parallel_settings_name_the_field(field, value, message):
     with pytest.raises(ValueError, match=message):
@@ -142,7 +142,7 @@ def test_ray_gives_the_serial_result():
 @pytest.mark.parametrize("flags, message", [
     (["--backend", "bogus"], "argument --backend: invalid choice: 'bogus'"),
     (["--workers", "0"], "argument --workers: must be > 0, got 0"),
-    (["--ray-address", "auto"], "APGConfig.ray_address must be None or a non-empty address with backend 'ray'"),
+    (["--ray-address", "auto"], "APGConfig.ray_address (--ray-address) applies to backend 'ray' only, not 'serial'"),
 ])
 def test_cli_flags_and_one_line_errors(capsys, tmp_path, flags, message):
     from hybridctl.cli import main

@@ -24,6 +24,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -207,23 +208,27 @@ def test_the_api_refuses_an_empty_folder(tmp_path):
 
 # ==================================================================== the lock
 
-def _hold(folder: str, ready, release) -> None:
-    """A lock holder in another process: lock ``folder``, say so, wait to be released (or killed)."""
+def _hold(folder: str, ready) -> None:
+    """A lock holder in another process: lock ``folder``, say so, hold it until killed."""
     with io.locked_folder(folder):
         ready.set()
-        release.wait(60)
+        time.sleep(120)
 
 
 @pytest.fixture
 def holder(tmp_path):
-    """A process (forked: it starts in milliseconds) that holds ``tmp_path/run`` locked."""
+    """A process (forked: it starts in milliseconds) that holds ``tmp_path/run`` locked until killed.
+
+    It is ended by a kill, never told through an Event: a multiprocessing Event's ``set`` waits for
+    every waiter to wake, and a waiter killed with SIGKILL never does (that hung the suite)."""
     context = multiprocessing.get_context("fork")
-    ready, release = context.Event(), context.Event()
-    process = context.Process(target=_hold, args=(str(tmp_path / "run"), ready, release), daemon=True)
+    ready = context.Event()
+    process = context.Process(target=_hold, args=(str(tmp_path / "run"), ready), daemon=True)
     process.start()
     assert ready.wait(30), "the holder did not lock the folder"
     yield process
-    release.set()
+    if process.is_alive():
+        process.kill()
     process.join(10)
 
 
@@ -239,7 +244,6 @@ def test_a_second_holder_is_refused_with_the_pid_and_a_kill_leaves_no_stale_lock
         assert (run / io.LOCK_FILE).read_text().strip() == str(os.getpid())
 
 
-@pytest.mark.skip(reason="hung the 10-minute run at 04:11 UTC; not yet found which of these: see the report")
 def test_the_cli_and_the_learners_loop_refuse_a_locked_folder(tmp_path, holder, cli_error):
     run = tmp_path / "run"
     err = cli_error(["train", "ars", "Pendulum-v1", "--epochs", "1", "--out", str(run), *ARS_FLAGS])
@@ -251,7 +255,6 @@ def test_the_cli_and_the_learners_loop_refuse_a_locked_folder(tmp_path, holder, 
     assert sorted(p.name for p in run.iterdir()) == [io.LOCK_FILE]     # nothing was written
 
 
-@pytest.mark.skip(reason="hung the 10-minute run at 04:11 UTC; not yet found which of these: see the report")
 def test_the_lock_nests_in_one_process_and_is_released(tmp_path):
     with io.locked_folder(tmp_path / "run") as run:
         with io.locked_folder(run):
@@ -266,7 +269,6 @@ def test_the_lock_nests_in_one_process_and_is_released(tmp_path):
         os.close(fd)
 
 
-@pytest.mark.skip(reason="hung the 10-minute run at 04:11 UTC; not yet found which of these: see the report")
 def test_two_training_runs_started_together_one_refused_one_consistent_run(tmp_path):
     """The issue's race: both passed the "folder holds a run" check; one died on progress.csv.tmp and
     the folder once held checkpoint/ of one seed and final/ of the other."""

@@ -235,6 +235,8 @@ WIDTHS = _check(lambda v: isinstance(v, list) and 1 <= len(v) <= MAX_HIDDEN_LAYE
 UINT128 = _check(lambda v: isinstance(v, int) and not isinstance(v, bool) and 0 <= v < 2 ** 128,
                  "an integer in [0, 2**128)")
 STRINGS = _check(lambda v: isinstance(v, list) and all(isinstance(s, str) for s in v), "a list of strings")
+# a running mean/std's sample count: SB3's VecNormalize keeps a float (it starts at epsilon = 1e-4)
+SAMPLE_COUNT = _check(lambda v: _is_number(v) and 0 <= v <= MAX_COUNT, "a finite number in [0, 2**53]")
 INTEGERS = _check(lambda v: isinstance(v, list) and all(COUNT[0](i) for i in v), "a list of integers >= 0")
 
 # a recorded system is a name, never a path to some other spec file (systems.load reads a path)
@@ -287,7 +289,7 @@ SCHEMAS: dict[str, dict[str | None, tuple[dict, tuple]]] = {
         "env_rng_state.has_uint32": _check(lambda v: v in (0, 1) and not isinstance(v, bool), "0 or 1"),
         "env_rng_state.uinteger": _check(lambda v: isinstance(v, int) and not isinstance(v, bool) and 0 <= v < 2 ** 32,
                                          "an integer in [0, 2**32)")}, ())},
-    "normalization.json": {None: ({"type": STRING, "mean": NUMBERS, "std": NUMBERS, "count": COUNT,
+    "normalization.json": {None: ({"type": STRING, "mean": NUMBERS, "std": NUMBERS, "count": SAMPLE_COUNT,
                                    "n_states": POSITIVE_COUNT, "angle_indices": INTEGERS, "features": STRING},
                                   ("type",))},
 }
