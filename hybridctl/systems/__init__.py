@@ -13,6 +13,8 @@ here derives from it.
 from __future__ import annotations
 
 import math
+import re
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -21,11 +23,16 @@ import torch
 from . import control
 from .dynamics import ChainDynamics, ChainParams
 from .spec import CH7_REWARD_KINDS
+from .multibody import GeneratedDynamics, ModelError, MultibodyModel
 from .spec import (OPTIONAL_DEFAULTS, GateSection, InitialStateSection, SpecError, Spec, SuccessSection, SwingupSection, known_systems,
-                   read_spec, typed_sections)
+                   read_spec, spec_from_document, typed_sections, validate_shapes)
 
-__all__ = ["System", "load", "known_systems", "SpecError", "Spec", "check_array", "control", "GateSection",
-           "SuccessSection", "InitialStateSection", "SwingupSection"]
+__all__ = ["System", "load", "from_drake", "known_systems", "SpecError", "ModelError", "Spec", "check_array", "control",
+           "GateSection", "SuccessSection", "InitialStateSection", "SwingupSection"]
+
+MULTIBODY_REWARD_KINDS = ("quadratic", "angle_squared", "angle_cosine", "tip_height", "tip_height_centered")
+"""The reward kinds a multibody system has (the tip-height ones need the spec's model.tip_body):
+``upright_centered`` and ``tip_distance`` are written for planar chains."""
 
 
 def _plants():
@@ -74,6 +81,11 @@ class System:
     def __init__(self, spec: Spec):
         self.spec = spec
         self.name: str = spec.name
+        self.family: str = spec.get("model.family")
+        self.model: MultibodyModel | None = None     # the multibody family's generated equations
+        self.model_request = None
+        if self.family == "multibody":
+            self._load_multibody()
         self.state_names: list[str] = list(spec.get("state.names"))
         self.action_names: list[str] = list(spec.get("action.names"))
         self.n_states = len(self.state_names)
@@ -116,8 +128,12 @@ class System:
         self.reward_position_scale = float(spec.get("reward.position_scale",
                                                     OPTIONAL_DEFAULTS["reward.position_scale"]))
         self.reward_speed_scale = float(spec.get("reward.speed_scale", OPTIONAL_DEFAULTS["reward.speed_scale"]))
-        self.chain = self._chain_params()
-        self.dynamics = ChainDynamics(self.chain)
+        if self.family == "multibody":
+            self.chain = None
+            self.dynamics = GeneratedDynamics(self.model)
+        else:
+            self.chain = self._chain_params()
+            self.dynamics = ChainDynamics(self.chain)
         try:                                  # the plain-float path of one state (step_single)
             self.dynamics.scalar(self.dt, self.integrator)
             self._has_scalar = True
@@ -134,6 +150,36 @@ class System:
         return f"System({self.name!r}, n_states={self.n_states}, dt={self.dt}, integrator={self.integrator!r})"
 
     # ----------------------------------------------------------------- parameters
+    def _load_multibody(self) -> None:
+        """Read the model file through Drake (or the cache), fill the spec's defaults from it
+        (state and action names, angles, the action limit from the actuators' effort limits) and
+        check every shape against it."""
+        from . import symbolic
+
+        spec = self.spec
+        self.model_request = multibody_request(spec)
+        self.model = symbolic.load_model(self.model_request)
+        model, where = self.model, f"model file {spec.get('model.file')}"
+        defaults = {"state.names": [*model.positions, *model.velocities],
+                    "state.angles": [i for i, r in enumerate(model.revolute) if r],
+                    "action.names": list(model.actuators)}
+        for key, value in defaults.items():
+            if not spec.has(key):
+                spec.values[key], spec.sources[key] = value, where
+        if not spec.has("action.limit"):
+            limits = np.asarray([np.inf if e is None else e for e in model.info.get("effort_limits", [])], dtype=float)
+            if limits.size == 0 or not np.all(np.isfinite(limits)) or np.ptp(limits) != 0.0 or limits[0] <= 0:
+                raise spec.error("action.limit", f"is needed: the model's actuators give no single finite effort "
+                                                 f"limit ({limits.tolist()}); set action.limit in the spec")
+            spec.values["action.limit"], spec.sources["action.limit"] = float(limits[0]), f"{where} (effort limit)"
+        validate_shapes(spec, model.n_q, model.n_u)
+        kind = spec.get("reward.kind")
+        if kind not in MULTIBODY_REWARD_KINDS:
+            raise spec.error("reward.kind", f"must be one of {MULTIBODY_REWARD_KINDS} for a multibody system, "
+                                            f"got {kind!r}")
+        if kind.startswith("tip_height") and not model.tip:
+            raise spec.error("reward.kind", f"{kind!r} needs a tip point: set model.tip_body (and model.tip_point)")
+
     def _chain_params(self) -> ChainParams:
         s = self.spec
         has_cart = s.get("model.base") == "cart"
@@ -444,15 +490,26 @@ class System:
         return np.asarray(x_drake, dtype=float) - self.drake_state_offset()
 
     def drake_state_offset(self) -> np.ndarray:
-        """x_drake - x: Drake's AcrobotPlant measures the first link angle from hanging down."""
+        """x_drake - x: Drake's AcrobotPlant measures the first link angle from hanging down
+        (zero for the multibody family, whose state is the MultibodyPlant's)."""
         offset = np.zeros(self.n_states)
-        offset[int(self.chain.has_cart)] = self.chain.angle_offset
+        if self.chain is not None:
+            offset[int(self.chain.has_cart)] = self.chain.angle_offset
         return offset
+
+    def drake_input_matrix(self, plant) -> np.ndarray:
+        """S with the Drake plant's actuation input = S u: the identity, except for a multibody model
+        whose spec actuates a subset (or another order) of the model's JointActuators."""
+        return _plants().input_matrix(self, plant)
+
+    def drake_input(self, plant, u) -> np.ndarray:
+        """The Drake plant's actuation input for our action ``u``."""
+        return self.drake_input_matrix(plant) @ np.asarray(u, dtype=float)
 
     def drake_derivatives(self, plant, context, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """Time derivatives from the Drake plant at one state (our convention) and input."""
         context.SetContinuousState(self.to_drake_state(x))
-        _plants().actuation_port(plant).FixValue(context, np.asarray(u, dtype=float))
+        _plants().actuation_port(plant).FixValue(context, self.drake_input(plant, u))
         return plant.EvalTimeDerivatives(context).CopyToVector()
 
     def lqr(self, Q: np.ndarray | None = None, R: np.ndarray | None = None):
@@ -475,9 +532,8 @@ class System:
             plant = self.drake_plant()
             context = self.drake_context(plant)
             context.SetContinuousState(self.to_drake_state(self.goal))
-            u0 = np.zeros(self.n_actions)
             port = _plants().actuation_port(plant)
-            port.FixValue(context, u0)
+            port.FixValue(context, np.zeros(port.size()))
             xdot = plant.EvalTimeDerivatives(context).CopyToVector()
             if np.abs(xdot).max() > 1e-8:
                 raise ValueError(f"{self.name}: the goal is not an equilibrium with u = 0 (xdot = {xdot})")
@@ -485,7 +541,7 @@ class System:
             linear = Linearize(plant, context, input_port_index=port.get_index(),
                                output_port_index=OutputPortSelection.kNoOutput)
             try:
-                K, S = LinearQuadraticRegulator(linear.A(), linear.B(), Q, R)
+                K, S = LinearQuadraticRegulator(linear.A(), linear.B() @ self.drake_input_matrix(plant), Q, R)
             except RuntimeError as exc:  # Drake's Riccati solver: not stabilizable / not detectable
                 raise ValueError(self._lqr_failure(str(exc))) from None
             if not (np.isfinite(K).all() and np.isfinite(S).all()):
@@ -503,6 +559,21 @@ class System:
                 f"(Q must weigh every unstable state, e.g. the spec's default)")
 
 
+def multibody_request(spec: Spec):
+    """The :class:`~hybridctl.systems.symbolic.ModelRequest` of a multibody spec (its model file resolved
+    next to the spec, in the package's models/, or as a package://drake/ URL)."""
+    from .symbolic import ModelRequest, resolve_source
+    try:
+        source = resolve_source(spec.get("model.file"), spec.path.parent)
+    except ModelError as exc:
+        raise spec.error("model.file", str(exc)) from None
+    tip = spec.get("model.tip_point", None)
+    return ModelRequest(source=source, actuated=tuple(spec.get("model.actuated_joints", ())),
+                        gravity=float(spec.get("params.gravity")) if spec.has("params.gravity") else None,
+                        tip_body=spec.get("model.tip_body", None),
+                        tip_point=tuple(float(t) for t in tip) if tip is not None else (0.0, 0.0, 0.0))
+
+
 def load(name: str, **overrides: Any) -> System:
     """Load a system by name (``systems/NAME.toml``) or path, with optional overrides.
 
@@ -512,3 +583,65 @@ def load(name: str, **overrides: Any) -> System:
     and the file.
     """
     return System(read_spec(name, **overrides))
+
+
+_FROM_DRAKE = "hybridctl.systems.from_drake default"
+
+
+def from_drake(model_file: str, goal, Q, R, *, name: str | None = None, actuated_joints=None,
+               action_limit: float | None = None, gravity: float | None = None, tip_body: str | None = None,
+               tip_point=None, nominal=None, **overrides: Any) -> System:
+    """A :class:`System` straight from a URDF/SDF file, without writing a spec.
+
+    ``model_file``: a path or a ``package://drake/`` URL. ``goal``: the state to balance at (Drake's
+    coordinates: positions then velocities), ``Q`` / ``R``: the LQR weights. ``actuated_joints``:
+    joint names in action order (default: every JointActuator of the model); ``action_limit``:
+    default the actuators' effort limit; ``gravity``: m/s^2 (default Drake's 9.81); ``tip_body`` /
+    ``tip_point``: the point whose height the tip rewards use; ``nominal``: the initial state
+    (default all zeros). Every other section gets a default recorded with the source
+    "hybridctl.systems.from_drake default" (Euler, dt = control period = 0.01 s, swing-up
+    decisions every 0.1 s, 10 s episodes, reward ``angle_cosine``, success within 0.1 over the
+    last 10 states, gate 0.9 / 0.5 with cost scale 1); change any by key as in
+    :func:`load` (``dt=0.005``, ``gate__cost_scale=50``). The result equals a spec file with the
+    same values (``[model] family = "multibody"``).
+    """
+    def entry(value, source=_FROM_DRAKE):
+        if isinstance(value, np.ndarray):
+            value = value.tolist()
+        return {"value": value, "source": source}
+
+    goal = np.asarray(goal, dtype=float)
+    if goal.ndim != 1 or goal.size % 2:
+        raise ValueError(f"goal must be a state (positions then velocities), got shape {goal.shape}")
+    nominal = np.zeros_like(goal) if nominal is None else np.asarray(nominal, dtype=float)
+    path = Path(model_file)
+    stem = re.sub(r"[^a-z0-9_-]", "_", path.stem.lower()).strip("_-") or "robot"
+    # a URL, or a file found from here, is kept as an absolute reference; any other name is looked up
+    # among the package's models (resolve_source)
+    found = not str(model_file).startswith("package://") and path.expanduser().is_file()
+    model = {"family": "multibody", "file": str(path.expanduser().resolve()) if found else str(model_file)}
+    if actuated_joints is not None:
+        model["actuated_joints"] = list(actuated_joints)
+    if tip_body is not None:
+        model["tip_body"] = tip_body
+        model["tip_point"] = entry(list(tip_point if tip_point is not None else (0.0, 0.0, 0.0)), "from_drake argument")
+    doc = {
+        "system": {"name": name or stem[:64], "description": f"from_drake({model_file!r})"},
+        "model": model,
+        "state": {"goal": entry(goal, "from_drake argument")},
+        "action": {} if action_limit is None else {"limit": entry(float(action_limit), "from_drake argument")},
+        "integrator": {"method": entry("euler"), "dt": entry(0.01)},
+        "control": {"period": entry(0.01), "swingup_period": entry(0.1)},
+        "episode": {"duration": entry(10.0)},
+        "reward": {"kind": entry("angle_cosine")},
+        "initial_state": {"distribution": "uniform", "nominal": entry(nominal),
+                          "low": entry(np.zeros_like(goal)), "high": entry(np.zeros_like(goal))},
+        "lqr": {"Q": entry(np.atleast_2d(np.asarray(Q, dtype=float)), "from_drake argument"),
+                "R": entry(np.atleast_2d(np.asarray(R, dtype=float)), "from_drake argument")},
+        "success": {"eps": entry(0.1), "lookback": entry(10)},
+        "gate": {"on": entry(0.9), "off": entry(0.5), "cost_scale": entry(1.0)},
+    }
+    if gravity is not None:
+        doc["params"] = {"gravity": entry(float(gravity), "from_drake argument")}
+    base = Path(model["file"]) if found else Path.cwd() / path.name   # where errors say the values come from
+    return System(spec_from_document(doc, base, **overrides))

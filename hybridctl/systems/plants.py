@@ -78,15 +78,29 @@ def _pendulum_parameter_setter(system: "HybridSystem", plant: PendulumPlant) -> 
     return apply
 
 
+def _symbolic():
+    from . import symbolic
+    return symbolic
+
+
+def input_matrix(system: "HybridSystem", plant) -> np.ndarray:
+    """S: the plant's actuation input is S u for the system's action u (see ``System.drake_input_matrix``)."""
+    if system.family == "multibody":
+        return _symbolic().actuator_selection(plant, system.model_request)[0]
+    return np.eye(system.n_actions)
+
+
 def make_plant(system: "HybridSystem"):
     """A fresh, unowned Drake plant and the function that writes the spec's parameters into a Context."""
-    kind = system.spec.get("model.drake")
+    kind = system.spec.get("model.drake", "multibody")
     if kind == "acrobot":
         plant = AcrobotPlant()
         return plant, _acrobot_parameter_setter(system, plant)
     if kind == "pendulum":
         plant = PendulumPlant()
         return plant, _pendulum_parameter_setter(system, plant)
+    if system.family == "multibody":
+        return _symbolic().parse_plant(system.model_request), (lambda context: None)
     if kind.startswith("multibody:"):
         plant = MultibodyPlant(0.0)
         _parse_model(system, plant)
@@ -113,7 +127,11 @@ def add_plant(system: "HybridSystem", builder: DiagramBuilder, with_geometry: bo
     ready for a MeshcatVisualizer.
     """
     scene_graph = None
-    if system.spec.get("model.drake").startswith("multibody:") and with_geometry:
+    if system.family == "multibody" and with_geometry:
+        plant, scene_graph = AddMultibodyPlantSceneGraph(builder, 0.0)
+        _symbolic().parse_plant(system.model_request, plant)
+        setter = lambda context: None  # noqa: E731 - the model file holds the parameters
+    elif system.spec.get("model.drake", "").startswith("multibody:") and with_geometry:
         plant, scene_graph = AddMultibodyPlantSceneGraph(builder, 0.0)
         _parse_model(system, plant)
         setter = lambda context: None  # noqa: E731 - parameters are baked into the model
@@ -133,6 +151,14 @@ def add_plant(system: "HybridSystem", builder: DiagramBuilder, with_geometry: bo
                 warnings.warn(f"{system.name}: Drake's PendulumGeometry draws its default length "
                               f"{PendulumParams().length()} m, not {system.chain.link_length[0]} m", stacklevel=2)
             PendulumGeometry.AddToBuilder(builder, state_output, scene_graph)
+    if system.family == "multibody":
+        selection = input_matrix(system, plant)
+        if selection.shape[0] != selection.shape[1] or not np.array_equal(selection, np.eye(selection.shape[0])):
+            # the spec actuates a subset (or another order) of the model's actuators: u -> S u
+            from pydrake.systems.primitives import MatrixGain
+            gain = builder.AddSystem(MatrixGain(selection))
+            builder.Connect(gain.get_output_port(), actuation_input)
+            actuation_input = gain.get_input_port()
     plant.set_name("plant")
     return PlantHandle(plant, state_output, actuation_input, setter), scene_graph
 

@@ -167,10 +167,14 @@ class Spec:
 _STRING_KEYS = {
     "system.name", "system.description", "system.source", "model.family", "model.base",
     "model.drake", "integrator.method", "reward.kind", "initial_state.distribution",
-    "swingup.controller",
+    "swingup.controller", "model.file", "model.tip_body",
 }
 _LIST_OF_STRING_KEYS = {"state.names", "action.names"}
-_INT_LIST_KEYS = {"model.actuated_joints", "state.angles"}
+_INT_LIST_KEYS = {"state.angles"}
+_INT_OR_NAME_LIST_KEYS = {"model.actuated_joints"}  # chain: joint indices; multibody: joint names
+FAMILIES = ("chain", "multibody")
+MULTIBODY_PARAMS = ("params.gravity",)
+"""The only [params] a multibody spec may set: the model file holds the rest of the physics."""
 _INT_KEYS = {"success.lookback"}
 
 
@@ -191,6 +195,14 @@ def parse_value(full: str, entry: Any, where: str) -> Any:
         if not (isinstance(entry, (list, tuple)) and all(isinstance(i, int) and not isinstance(i, bool)
                                                          for i in entry)):
             raise SpecError(f"{where}: must be a list of integers, got {entry!r}")
+        return list(entry)
+    if full in _INT_OR_NAME_LIST_KEYS:
+        if isinstance(entry, (list, tuple)) and all(isinstance(s, str) for s in entry):
+            return list(entry)
+        if not (isinstance(entry, (list, tuple)) and all(isinstance(i, int) and not isinstance(i, bool)
+                                                         for i in entry)):
+            raise SpecError(f"{where}: must be a list of joint indices (chain) or joint names (multibody), "
+                            f"got {entry!r}")
         return list(entry)
     if full in _INT_KEYS:
         if isinstance(entry, float) and entry.is_integer():
@@ -254,6 +266,16 @@ def _apply_overrides(spec: Spec, overrides: dict[str, Any]) -> None:
         spec.values[full] = new
         spec.sources[full] = "user override"
         spec.overridden[full] = f"override {key}={value!r}"
+
+
+def spec_from_document(doc: dict, path: Path, **overrides: Any) -> Spec:
+    """A validated spec from a TOML-shaped ``doc`` (sections of keys, values or {value, source}),
+    as if read from ``path`` (errors name it): ``systems.from_drake`` builds one in memory."""
+    spec = _flatten(doc, Path(path))
+    _apply_overrides(spec, overrides)
+    spec.overrides = dict(overrides)
+    validate(spec)
+    return spec
 
 
 def read_spec(name_or_path: str | Path, **overrides: Any) -> Spec:
@@ -321,13 +343,52 @@ def _check_name(spec: Spec) -> None:
 
 
 def validate(spec: Spec) -> None:
-    """Check every value's range and every shape; raise SpecError naming the key and file."""
-    if spec.get("model.family") != "chain":
-        raise spec.error("model.family", f"must be 'chain', got {spec.get('model.family')!r}")
+    """Check every value's range and every shape; raise SpecError naming the key and file.
+
+    A multibody spec's shapes depend on its model file: here its own keys and every value that
+    does not depend on the model are checked; ``System`` checks the shapes (:func:`validate_shapes`)
+    once Drake has read the model.
+    """
+    family = spec.get("model.family")
+    if family not in FAMILIES:
+        raise spec.error("model.family", f"must be one of {FAMILIES}, got {family!r}")
+    _check_name(spec)
+    if family == "multibody":
+        _validate_multibody_keys(spec)
+        _validate_values(spec)
+        return
+    n_q, n_actions = _validate_chain(spec)
+    validate_shapes(spec, n_q, n_actions)
+    _validate_values(spec)
+
+
+def _validate_multibody_keys(spec: Spec) -> None:
+    """[model] of a multibody spec: a model file, actuated joints by name, an optional tip point."""
+    spec.get("model.file")
+    for key in spec.values:
+        if key.startswith("params.") and key not in MULTIBODY_PARAMS:
+            raise spec.error(key, f"is not used by the multibody family: the model file holds the robot's "
+                                  f"physics (a multibody spec's [params] may set only {', '.join(MULTIBODY_PARAMS)})")
+    for key in ("model.base", "model.angle_offset", "model.drake"):
+        if spec.has(key):
+            raise spec.error(key, "belongs to the chain family; a multibody spec names its model with model.file")
+    actuated = spec.get("model.actuated_joints", None)
+    if actuated is not None and (not actuated or not all(isinstance(j, str) for j in actuated)):
+        raise spec.error("model.actuated_joints", f"must list joint names of the model (or be left out: every "
+                                                  f"JointActuator of the model), got {actuated!r}")
+    if spec.has("model.tip_point"):
+        point = np.asarray(spec.get("model.tip_point"))
+        if point.shape != (3,) or not spec.has("model.tip_body"):
+            raise spec.error("model.tip_point", "must be 3 numbers (x, y, z in the body frame of model.tip_body)")
+
+
+def _validate_chain(spec: Spec) -> tuple[int, int]:
+    """The chain family's keys; returns (joint coordinates, actions)."""
+    if spec.has("model.file"):
+        raise spec.error("model.file", "belongs to the multibody family (model.family = 'multibody')")
     base = spec.get("model.base")
     if base not in ("fixed", "cart"):
         raise spec.error("model.base", f"must be 'fixed' or 'cart', got {base!r}")
-    _check_name(spec)
     n_links = len(np.atleast_1d(spec.get("params.link_mass")))
     for key in ("params.link_mass", "params.link_length"):
         _require_positive(spec, key)
@@ -341,6 +402,14 @@ def validate(spec: Spec) -> None:
         _require_positive(spec, "params.cart_mass")
     if len(np.atleast_1d(spec.get("params.joint_damping"))) != n_q:
         raise spec.error("params.joint_damping", f"must have one entry per joint ({n_q})")
+    actuated = spec.get("model.actuated_joints")
+    if not actuated or any(not isinstance(j, int) or not 0 <= j < n_q for j in actuated):
+        raise spec.error("model.actuated_joints", f"must list joint indices in 0..{n_q - 1}")
+    return n_q, len(actuated)
+
+
+def validate_shapes(spec: Spec, n_q: int, n_actions: int) -> None:
+    """Every value whose shape follows from the joint coordinates ``n_q`` and the actions ``n_actions``."""
     n = 2 * n_q
     names = spec.get("state.names")
     if len(names) != n:
@@ -354,12 +423,25 @@ def validate(spec: Spec) -> None:
     for idx in spec.get("state.angles"):
         if not 0 <= idx < n_q:
             raise spec.error("state.angles", f"index {idx} is not a position index (0..{n_q - 1})")
-    actuated = spec.get("model.actuated_joints")
-    if not actuated or any(not 0 <= j < n_q for j in actuated):
-        raise spec.error("model.actuated_joints", f"must list joint indices in 0..{n_q - 1}")
-    if len(spec.get("action.names")) != len(actuated):
-        raise spec.error("action.names", f"must name {len(actuated)} actions")
-    _require_positive(spec, "action.limit")
+    if len(spec.get("action.names")) != n_actions:
+        raise spec.error("action.names", f"must name {n_actions} actions")
+    Q = np.atleast_2d(spec.get("lqr.Q"))
+    R = np.atleast_2d(spec.get("lqr.R"))
+    if Q.shape != (n, n) or not np.allclose(Q, Q.T) or np.linalg.eigvalsh(Q).min() < -1e-12:
+        raise spec.error("lqr.Q", f"must be a symmetric positive semidefinite {n}x{n} matrix")
+    if R.shape != (n_actions, n_actions) or not np.allclose(R, R.T) or np.linalg.eigvalsh(R).min() <= 0:
+        raise spec.error("lqr.R", f"must be a symmetric positive definite {n_actions}x{n_actions} matrix")
+    for key in ("gate.warm_near", "gate.warm_far"):
+        if spec.has(key):
+            value = np.asarray(spec.get(key))
+            if value.shape != (n,) or not np.all(np.isfinite(value)) or np.any(value <= 0):
+                raise spec.error(key, f"must be {n} finite numbers > 0 (a spread per state), got {spec.get(key)!r}")
+
+
+def _validate_values(spec: Spec) -> None:
+    """The checks that do not depend on the model's size: ranges, periods, rewards, gate, success."""
+    if spec.has("action.limit") or spec.get("model.family") == "chain":
+        _require_positive(spec, "action.limit")
     for key in PHYSICAL_RANGES:  # after the sign and shape checks, which say more about a wrong value
         if spec.has(key):
             _require_in_range(spec, key)
@@ -386,13 +468,6 @@ def validate(spec: Spec) -> None:
     for key in CENTERED_REWARD_SETTINGS:
         if spec.has(key):
             _require_positive(spec, key)
-    Q = np.atleast_2d(spec.get("lqr.Q"))
-    R = np.atleast_2d(spec.get("lqr.R"))
-    if Q.shape != (n, n) or not np.allclose(Q, Q.T) or np.linalg.eigvalsh(Q).min() < -1e-12:
-        raise spec.error("lqr.Q", f"must be a symmetric positive semidefinite {n}x{n} matrix")
-    m = len(actuated)
-    if R.shape != (m, m) or not np.allclose(R, R.T) or np.linalg.eigvalsh(R).min() <= 0:
-        raise spec.error("lqr.R", f"must be a symmetric positive definite {m}x{m} matrix")
     _require_positive(spec, "success.eps")
     if spec.get("success.lookback") < 1:
         raise spec.error("success.lookback", "must be >= 1")
@@ -405,11 +480,6 @@ def validate(spec: Spec) -> None:
         _require_positive(spec, key, allow_zero=key != "swingup.k_energy")
     if spec.has("gate.label_horizon"):
         _require_positive(spec, "gate.label_horizon")
-    for key in ("gate.warm_near", "gate.warm_far"):
-        if spec.has(key):
-            value = np.asarray(spec.get(key))
-            if value.shape != (n,) or not np.all(np.isfinite(value)) or np.any(value <= 0):
-                raise spec.error(key, f"must be {n} finite numbers > 0 (a spread per state), got {spec.get(key)!r}")
 
 
 # ----------------------------------------------------------------- typed sections

@@ -1,0 +1,339 @@
+"""From a URDF/SDF file to a :class:`~hybridctl.systems.multibody.MultibodyModel` through Drake.
+
+Drake parses the file into a continuous-time ``MultibodyPlant`` and its symbolic twin
+(``ToSymbolic``) writes M(q), C(q, v) v, tau_g(q), the energies and the tip point's position
+as ``pydrake.symbolic.Expression``s. ``pydrake.symbolic.to_sympy`` hands them to sympy, where
+sin q_i and cos q_i become variables s_i, c_i, every float becomes the exact rational it
+stands for, and each entry is reduced modulo s_i^2 + c_i^2 - 1 (a Groebner basis: the
+remainder is canonical, of degree <= 1 in each s_i). The result is a polynomial with a
+handful of terms per entry (the acrobot's M_00 is 2.663 + 2 c_1), converted back to floats.
+
+Imported only when a multibody system is built (pydrake and sympy are heavy). The result is
+cached as JSON (:func:`cache_folder`), keyed by a hash of the model file's bytes and every
+setting that changes it; a cache file is read as data and checked, never executed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from .. import io
+from ..limits import MAX_JSON_BYTES
+from .multibody import MAX_JOINTS, MAX_TERMS, ModelError, MultibodyModel
+
+CACHE_ENV = "HYBRIDCTL_CACHE"
+"""Environment variable: the folder of hybridctl's caches (default ``~/.cache/hybridctl``)."""
+
+MAX_MODEL_BYTES = 16 << 20
+"""Largest model file read (16 MiB): far above any URDF/SDF of an underactuated robot; a larger
+file is refused before Drake parses it."""
+
+MAX_EXPRESSION_CHARS = 5_000_000
+"""Most characters of Drake's symbolic expressions (M, C v, tau_g, energies, tip) that are handed
+to sympy: above it the reduction takes minutes and the generated code would be too large to run
+fast. The 2-link acrobot's are about 4,000 characters."""
+
+FORMAT = 1  # bumped when the model record or the reduction changes, so old cache files are not used
+SUPPORTED_JOINTS = ("revolute", "prismatic", "weld")
+
+
+@dataclass(frozen=True)
+class ModelRequest:
+    """Everything that determines a generated model: the file and the spec's choices."""
+
+    source: str                    # a file path or a package://drake/ URL
+    actuated: tuple[str, ...] = ()  # joint names in action order; () = every JointActuator, in model order
+    gravity: float | None = None   # m/s^2 along -z; None = Drake's default 9.81
+    tip_body: str | None = None    # body whose point ``tip_point`` is the tip (tip-height rewards)
+    tip_point: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+
+def resolve_source(ref: str, base: Path | None = None) -> str:
+    """The file path or URL Drake reads for the spec's ``model.file`` value ``ref``.
+
+    ``package://drake/...``: pydrake's own models (``package://drake_models`` downloads from
+    the internet and is refused). Otherwise a path: absolute, or relative to ``base`` (the
+    spec's folder), else inside the package's ``models/`` folder.
+    """
+    from .spec import MODELS_DIR
+
+    if ref.startswith("package://"):
+        if not ref.startswith("package://drake/"):
+            raise ModelError(f"model file {ref!r}: only package://drake/ URLs (pydrake's own models) can be "
+                             f"read offline; give a path to a file instead")
+        return ref
+    path = Path(ref).expanduser()
+    candidates = [path] if path.is_absolute() else [*(([base / path]) if base else []), MODELS_DIR / path]
+    for candidate in candidates:
+        if candidate.is_file():
+            return str(candidate.resolve())
+    where = " or ".join(str(c) for c in candidates)
+    raise ModelError(f"model file {ref!r}: no such file ({where})")
+
+
+def _file_bytes(source: str) -> bytes:
+    """The model file's bytes (for the cache key), its size checked first."""
+    if source.startswith("package://"):
+        from pydrake.multibody.parsing import PackageMap
+        package, _, rest = source[len("package://"):].partition("/")
+        path = Path(PackageMap().GetPath(package)) / rest
+    else:
+        path = Path(source)
+    size = path.stat().st_size
+    if size > MAX_MODEL_BYTES:
+        raise ModelError(f"model file {source}: {size:,} bytes, above the limit of {MAX_MODEL_BYTES:,} "
+                         f"(hybridctl.systems.symbolic.MAX_MODEL_BYTES)")
+    return path.read_bytes()
+
+
+def parse_plant(request: ModelRequest, plant=None):
+    """A finalized continuous-time MultibodyPlant of the model (``plant``: one to fill, e.g. from
+    ``AddMultibodyPlantSceneGraph``), its structure checked; ModelError names the file and what to change."""
+    from pydrake.multibody.parsing import Parser
+    from pydrake.multibody.plant import MultibodyPlant
+
+    _file_bytes(request.source)  # the size limit, before Drake reads it
+    plant = MultibodyPlant(0.0) if plant is None else plant
+    parser = Parser(plant)
+    try:
+        if request.source.startswith("package://"):
+            parser.AddModels(url=request.source)
+        else:
+            parser.AddModels(file_name=request.source)
+    except RuntimeError as exc:  # the parser's own message names the file and line
+        raise ModelError(f"model file {request.source} does not parse: {_first_lines(str(exc))}") from None
+    if request.gravity is not None:
+        plant.mutable_gravity_field().set_gravity_vector([0.0, 0.0, -float(request.gravity)])
+    plant.Finalize()
+    check_structure(plant, request)
+    return plant
+
+
+def _first_lines(text: str, count: int = 3) -> str:
+    return " ".join(line.strip() for line in text.strip().splitlines()[:count])
+
+
+def check_structure(plant, request: ModelRequest) -> None:
+    """Refuse what the generated dynamics cannot express, naming the joint or the file."""
+    src = request.source
+    if plant.num_positions() != plant.num_velocities():
+        floating = [plant.get_body(b).name() for b in plant.GetFloatingBaseBodies()] \
+            if hasattr(plant, "GetFloatingBaseBodies") else []
+        raise ModelError(f"model file {src}: has a floating base or a quaternion joint "
+                         f"({plant.num_positions()} positions, {plant.num_velocities()} velocities"
+                         f"{'; free bodies: ' + ', '.join(floating) if floating else ''}); weld the root link to "
+                         f"'world' (a <joint type=\"fixed\">) and use revolute or prismatic joints")
+    for index in range(plant.num_joints()):
+        joint = plant.get_joint(_joint_index(index))
+        kind = joint.type_name()
+        if kind not in SUPPORTED_JOINTS:
+            raise ModelError(f"model file {src}: joint {joint.name()!r} is of type {kind!r}; the generated "
+                             f"dynamics support {', '.join(SUPPORTED_JOINTS)} joints (a floating base or a "
+                             f"ball joint has no such coordinates: weld it, or split it into revolute joints)")
+    n = plant.num_positions()
+    if n == 0:
+        raise ModelError(f"model file {src}: has no joint coordinates (nothing moves)")
+    if n > MAX_JOINTS:
+        raise ModelError(f"model file {src}: {n} joint coordinates, above the limit of {MAX_JOINTS} "
+                         f"(hybridctl.systems.multibody.MAX_JOINTS)")
+    if plant.num_actuators() == 0:
+        raise ModelError(f"model file {src}: has no actuators; add a <transmission> (URDF) or a joint "
+                         f"<limit><effort> > 0 (SDF) for each actuated joint")
+
+
+def _joint_index(i: int):
+    from pydrake.multibody.tree import JointIndex
+    return JointIndex(i)
+
+
+def actuator_selection(plant, request: ModelRequest) -> tuple[np.ndarray, tuple[str, ...]]:
+    """(S, joint names): Drake's actuation vector is S u for our action u (one column per action)."""
+    from pydrake.multibody.tree import JointActuatorIndex
+
+    actuators = [plant.get_joint_actuator(JointActuatorIndex(i)) for i in range(plant.num_actuators())]
+    by_joint = {a.joint().name(): k for k, a in enumerate(actuators)}
+    names = request.actuated or tuple(a.joint().name() for a in actuators)
+    selection = np.zeros((len(actuators), len(names)))
+    for column, name in enumerate(names):
+        if name not in by_joint:
+            raise ModelError(f"model file {request.source}: model.actuated_joints names {name!r}, which has no "
+                             f"actuator; joints with one: {', '.join(sorted(by_joint)) or 'none'}")
+        selection[by_joint[name], column] = 1.0
+    if len(set(names)) != len(names):
+        raise ModelError(f"model file {request.source}: model.actuated_joints names a joint twice: {list(names)}")
+    return selection, tuple(names)
+
+
+def effort_limits(plant, request: ModelRequest) -> np.ndarray:
+    """The effort limits of the actuated joints' actuators (inf where the model sets none)."""
+    from pydrake.multibody.tree import JointActuatorIndex
+
+    selection, _ = actuator_selection(plant, request)
+    limits = np.array([plant.get_joint_actuator(JointActuatorIndex(i)).effort_limit()
+                       for i in range(plant.num_actuators())])
+    return selection.T @ limits
+
+
+def coordinates(plant) -> tuple[list[str], list[bool], np.ndarray]:
+    """Names of the positions (joint names), whether each is an angle, and each velocity's damping."""
+    names = [""] * plant.num_positions()
+    revolute = [False] * plant.num_positions()
+    damping = np.zeros(plant.num_velocities())
+    for index in range(plant.num_joints()):
+        joint = plant.get_joint(_joint_index(index))
+        if joint.num_positions() == 0:
+            continue
+        names[joint.position_start()] = joint.name()
+        revolute[joint.position_start()] = joint.type_name() == "revolute"
+        damping[joint.velocity_start()] = float(joint.default_damping())
+    return names, revolute, damping
+
+
+# ============================================================================ symbolic -> polynomials
+def derive(request: ModelRequest) -> MultibodyModel:
+    """The model's polynomial equations from Drake's symbolic plant (no cache; see :func:`load_model`)."""
+    import sympy
+    from pydrake.symbolic import MakeVectorVariable, to_sympy
+
+    started = time.perf_counter()
+    plant = parse_plant(request)
+    selection, actuated = actuator_selection(plant, request)
+    names, revolute, damping = coordinates(plant)
+    n = plant.num_positions()
+    symbolic = plant.ToSymbolic()
+    context = symbolic.CreateDefaultContext()
+    q, v = MakeVectorVariable(n, "q"), MakeVectorVariable(n, "v")
+    symbolic.SetPositions(context, q)
+    symbolic.SetVelocities(context, v)
+    M = symbolic.CalcMassMatrix(context)
+    entries = [M[i, k] for i in range(n) for k in range(i, n)]
+    entries += list(symbolic.CalcBiasTerm(context)) + list(symbolic.CalcGravityGeneralizedForces(context))
+    entries += [symbolic.CalcKineticEnergy(context), symbolic.CalcPotentialEnergy(context)]
+    if request.tip_body is not None:
+        if not symbolic.HasBodyNamed(request.tip_body):
+            bodies = sorted(plant.get_body(_body_index(i)).name() for i in range(1, plant.num_bodies()))
+            raise ModelError(f"model file {request.source}: model.tip_body {request.tip_body!r} is not a body of "
+                             f"the model; its bodies: {', '.join(bodies)}")
+        body = symbolic.GetBodyByName(request.tip_body)
+        point = np.asarray(request.tip_point, dtype=float).reshape(3, 1)
+        tip = symbolic.CalcPointsPositions(context, body.body_frame(), point, symbolic.world_frame())
+        entries += [tip[k, 0] for k in range(3)]
+    size = sum(len(e.to_string()) for e in entries)
+    if size > MAX_EXPRESSION_CHARS:
+        raise ModelError(f"model file {request.source}: Drake's symbolic equations have {size:,} characters, above "
+                         f"the limit of {MAX_EXPRESSION_CHARS:,} (hybridctl.systems.symbolic.MAX_EXPRESSION_CHARS): "
+                         f"too large to generate code for; fewer joints or bodies would do")
+    s, c = sympy.symbols(f"s0:{n}"), sympy.symbols(f"c0:{n}")
+    qs, vs = sympy.symbols(f"q0:{n}"), sympy.symbols(f"v0:{n}")
+    memo = {**{q[i].get_id(): qs[i] for i in range(n)}, **{v[i].get_id(): vs[i] for i in range(n)}}
+    trig = {**{sympy.sin(qs[i]): s[i] for i in range(n)}, **{sympy.cos(qs[i]): c[i] for i in range(n)}}
+    generators = (*s, *c, *qs, *vs)
+    circle = [s[i] ** 2 + c[i] ** 2 - 1 for i in range(n) if revolute[i]]
+    polys, count = [], 0
+    for index, entry in enumerate(entries):
+        polys.append(_polynomial(sympy, to_sympy(entry, memo=memo), trig, generators, circle, revolute, qs,
+                                 request.source))
+        count += len(polys[-1])
+        if count > MAX_TERMS:
+            raise ModelError(f"model file {request.source}: the equations have more than {MAX_TERMS:,} terms "
+                             f"(hybridctl.systems.multibody.MAX_TERMS): too large to generate code for")
+    n_mass = n * (n + 1) // 2
+    B = plant.MakeActuationMatrix() @ selection
+    model = MultibodyModel(
+        positions=tuple(names), velocities=tuple(f"{name}_dot" for name in names), actuators=actuated,
+        revolute=tuple(revolute), mass=tuple(polys[:n_mass]), bias=tuple(polys[n_mass:n_mass + n]),
+        gravity=tuple(polys[n_mass + n:n_mass + 2 * n]), kinetic=polys[n_mass + 2 * n],
+        potential=polys[n_mass + 2 * n + 1], tip=tuple(polys[n_mass + 2 * n + 2:]),
+        actuation=tuple(tuple(float(b) for b in row) for row in B), damping=tuple(float(d) for d in damping),
+        info={"generation_seconds": time.perf_counter() - started, "terms": count, "expression_chars": size,
+              # None where the model sets no limit (JSON has no infinity)
+              "effort_limits": [float(e) if np.isfinite(e) else None for e in effort_limits(plant, request)]})
+    return model
+
+
+def _body_index(i: int):
+    from pydrake.multibody.tree import BodyIndex
+    return BodyIndex(i)
+
+
+def _polynomial(sympy, expression, trig, generators, circle, revolute, qs, source) -> tuple:
+    """One entry as terms (float coefficient, exponents): exact rationals, reduced modulo the circles."""
+    expression = expression.xreplace(trig)
+    expression = expression.xreplace({f: sympy.Rational(float(f)) for f in expression.atoms(sympy.Float)})
+    leftover = [qs[i] for i in range(len(qs)) if revolute[i] and expression.has(qs[i])]
+    try:
+        if leftover:
+            raise sympy.PolynomialError(f"{leftover} outside sin/cos")
+        if circle:
+            _, expression = sympy.reduced(expression, circle, *generators, order="lex", domain="QQ")
+        poly = sympy.Poly(expression, *generators, domain="QQ")
+    except (sympy.PolynomialError, sympy.polys.polyerrors.GeneratorsError, sympy.polys.polyerrors.CoercionFailed) as exc:
+        raise ModelError(f"model file {source}: an equation is not a polynomial in sin q, cos q, q and v "
+                         f"({str(exc).splitlines()[0][:200]}); the generated dynamics cannot express it") from None
+    return tuple((float(coefficient), tuple(int(k) for k in exponents))
+                 for exponents, coefficient in poly.terms() if coefficient != 0)
+
+
+# ============================================================================ the cache
+def cache_folder() -> Path:
+    """Where generated models are cached: ``$HYBRIDCTL_CACHE/multibody`` or ``~/.cache/hybridctl/multibody``."""
+    root = os.environ.get(CACHE_ENV) or os.path.join(os.path.expanduser("~"), ".cache", "hybridctl")
+    return Path(root) / "multibody"
+
+
+def model_hash(request: ModelRequest) -> str:
+    """sha256 of the model file's bytes: what a checkpoint records to notice a changed model."""
+    return hashlib.sha256(_file_bytes(request.source)).hexdigest()
+
+
+def cache_key(request: ModelRequest) -> str:
+    """The cache key: the model file's bytes, its location, every setting, the format and Drake's version."""
+    import pydrake
+    settings = {"format": FORMAT, "source": request.source, "actuated": list(request.actuated),
+                "gravity": request.gravity, "tip_body": request.tip_body, "tip_point": list(request.tip_point),
+                "file": model_hash(request), "drake": getattr(pydrake, "__version__", "")}
+    return hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:32]
+
+
+def load_model(request: ModelRequest, use_cache: bool = True) -> MultibodyModel:
+    """The generated model of ``request``: from the cache when it holds it, else derived and cached.
+
+    ``info`` says ``cached`` and ``generation_seconds`` (of the derivation, when it ran now).
+    An unreadable or damaged cache file is derived anew and replaced.
+    """
+    key = cache_key(request)
+    path = cache_folder() / f"{key}.json"
+    if use_cache and path.is_file() and path.stat().st_size <= MAX_JSON_BYTES:
+        try:
+            model = MultibodyModel.from_json(json.loads(path.read_text()), where=str(path))
+            return _with_info(model, cached=True, cache_file=str(path), key=key)
+        except (ModelError, ValueError, OSError):
+            pass
+    model = derive(request)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        io.write_json(path, model.to_json())
+    except OSError:  # a read-only home: generate every time
+        pass
+    return _with_info(model, cached=False, cache_file=str(path), key=key)
+
+
+def _with_info(model: MultibodyModel, **info) -> MultibodyModel:
+    from dataclasses import replace
+    return replace(model, info={**model.info, **info})
+
+
+def equilibrium_residual(plant, x: Sequence[float]) -> np.ndarray:
+    """Drake's time derivatives at state ``x`` with zero input (an equilibrium has all zeros)."""
+    context = plant.CreateDefaultContext()
+    context.SetContinuousState(np.asarray(x, dtype=float))
+    plant.get_actuation_input_port().FixValue(context, np.zeros(plant.num_actuators()))
+    return plant.EvalTimeDerivatives(context).CopyToVector()

@@ -1,0 +1,243 @@
+"""The multibody family: torch dynamics generated from Drake's symbolic plant (issue 30).
+
+The generated code is checked against Drake's own MultibodyPlant (``CalcTimeDerivatives``) and
+against the hand-folded chain family on the same robots; bad models get one clear error."""
+
+from __future__ import annotations
+
+import json
+import textwrap
+
+import numpy as np
+import pytest
+import torch
+
+from hybridctl import systems
+from hybridctl.systems import ModelError, SpecError, multibody, symbolic
+from hybridctl.systems.plants import render_model
+
+DRAKE_MODELS = ["package://drake/examples/acrobot/Acrobot.urdf",
+                "package://drake/examples/multibody/cart_pole/cart_pole.sdf"]
+MULTIBODY_SPECS = [name for name in systems.known_systems() if systems.spec.read_spec(name).get("model.family")
+                   == "multibody"]
+
+
+@pytest.fixture(autouse=True)
+def private_cache(tmp_path_factory, monkeypatch):
+    """Each test session's generated models go to a cache of its own, never the user's."""
+    monkeypatch.setenv(symbolic.CACHE_ENV, str(tmp_path_factory.getbasetemp() / "cache"))
+
+
+def _drake_reference(system, X, U):
+    plant = system.drake_plant()
+    context = system.drake_context(plant)
+    return np.stack([system.drake_derivatives(plant, context, x, u) for x, u in zip(X, U)])
+
+
+def _random(system, rng, n=1000):
+    X = rng.uniform(-2 * np.pi, 2 * np.pi, size=(n, system.n_states))
+    U = rng.uniform(-1, 1, size=(n, system.n_actions)) * min(system.action_limit, 50.0)
+    return X, U
+
+
+def _from_drake_file(source, n_states, n_actions=1, **kwargs):
+    kwargs.setdefault("action_limit", 10.0)     # Drake's acrobot and cart-pole set no effort limit
+    return systems.from_drake(source, goal=np.zeros(n_states), Q=np.eye(n_states), R=np.eye(n_actions), **kwargs)
+
+
+@pytest.mark.parametrize("source", DRAKE_MODELS)
+def test_generated_dynamics_equal_drakes_plant(source, rng):
+    system = _from_drake_file(source, 4)
+    X, U = _random(system, rng)
+    ours = system.derivatives(torch.tensor(X), torch.tensor(U)).numpy()
+    np.testing.assert_allclose(ours, _drake_reference(system, X, U), rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("name", MULTIBODY_SPECS)
+def test_shipped_multibody_systems_equal_drakes_plant(name, rng):
+    system = systems.load(name)
+    X, U = _random(system, rng)
+    ours = system.derivatives(torch.tensor(X), torch.tensor(U)).numpy()
+    np.testing.assert_allclose(ours, _drake_reference(system, X, U), rtol=1e-9, atol=1e-9)
+
+
+def test_the_acrobot_urdf_equals_the_chain_family(rng):
+    chain = systems.load("acrobot")
+    model = systems.from_drake("acrobot.urdf", goal=[np.pi, 0, 0, 0], Q=chain.Q, R=chain.R, gravity=9.8)
+    X, U = _random(chain, rng)
+    offset = chain.drake_state_offset()                     # th1 from the horizontal vs from hanging down
+    expected = chain.derivatives(torch.tensor(X), torch.tensor(U))
+    got = model.derivatives(torch.tensor(X + offset), torch.tensor(U))
+    np.testing.assert_allclose(got.numpy(), expected.numpy(), rtol=1e-9, atol=1e-9)
+    K_chain, S_chain = chain.lqr()
+    K_model, S_model = model.lqr()                          # Drake's LQR on the MultibodyPlant
+    np.testing.assert_allclose(K_model, K_chain, rtol=1e-9)
+    np.testing.assert_allclose(K_model.ravel(), [-1649.87, -460.16, -716.07, -278.15], atol=0.006)  # thesis
+    np.testing.assert_allclose(model.energy(X + offset), chain.energy(X), rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("name", ["cartpole", "double_cartpole"])
+def test_cart_models_equal_the_chain_family(name, rng, tmp_path):
+    chain = systems.load(name)
+    sdf = tmp_path / f"{name}.sdf"
+    sdf.write_text(render_model(chain))                     # the chain spec's parameters in Drake's format
+    n = chain.n_states
+    model = systems.from_drake(str(sdf), goal=chain.goal, Q=chain.Q, R=chain.R, gravity=float(chain.params["gravity"]),
+                               action_limit=chain.action_limit)
+    assert model.model.n_q == n // 2 and model.angle_indices == chain.angle_indices
+    X, U = _random(chain, rng)
+    expected = chain.derivatives(torch.tensor(X), torch.tensor(U)).numpy()
+    got = model.derivatives(torch.tensor(X), torch.tensor(U)).numpy()
+    np.testing.assert_allclose(got, expected, rtol=1e-9, atol=1e-9)
+
+
+def test_steps_float32_columns_floats_and_gradients(rng):
+    system = systems.from_drake("acrobot.urdf", goal=[np.pi, 0, 0, 0], Q=np.eye(4), R=np.eye(1), gravity=9.8,
+                                integrator__method="runge_kutta2")
+    X, U = _random(system, rng, 64)
+    x, u = torch.tensor(X), torch.tensor(U)
+    step = system.step(x, u)
+    # the plain-float path of one state, and column-major batches, give the same step
+    for i in range(3):
+        np.testing.assert_allclose(system.step_single(X[i], U[i]), step[i].numpy(), rtol=1e-12, atol=1e-12)
+    np.testing.assert_array_equal(system.step_columns(x.T.contiguous(), u.T.contiguous()).T.numpy(), step.numpy())
+    # float32 on the input's dtype
+    step32 = system.step(x.float(), u.float())
+    assert step32.dtype == torch.float32
+    np.testing.assert_allclose(step32.numpy(), step.numpy(), rtol=1e-4, atol=1e-3)
+    # differentiable: autograd equals central differences
+    x0 = x[:4].clone().requires_grad_(True)
+    system.step(x0, u[:4]).sum().backward()
+    eps = 1e-6
+    numeric = np.zeros((4, 4))
+    for k in range(4):
+        d = torch.zeros_like(x[:4])
+        d[:, k] = eps
+        numeric[:, k] = ((system.step(x[:4] + d, u[:4]) - system.step(x[:4] - d, u[:4])).sum(-1) / (2 * eps)).numpy()
+    np.testing.assert_allclose(x0.grad.numpy(), numeric, rtol=1e-6, atol=1e-6)
+
+
+def test_a_generated_model_is_cached_and_a_damaged_cache_is_derived_anew(tmp_path, monkeypatch):
+    monkeypatch.setenv(symbolic.CACHE_ENV, str(tmp_path / "cache"))
+    first = _from_drake_file(DRAKE_MODELS[1], 4)
+    assert first.model.info["cached"] is False and first.model.info["generation_seconds"] > 0
+    second = _from_drake_file(DRAKE_MODELS[1], 4)
+    assert second.model.info["cached"] is True and second.model == first.model
+    cache = tmp_path / "cache" / "multibody" / f"{first.model.info['key']}.json"
+    doc = json.loads(cache.read_text())
+    doc["mass"][0] = [[1.0, ["__import__('os').system('x')"]]]  # not numbers: data that fails its check
+    cache.write_text(json.dumps(doc))
+    third = _from_drake_file(DRAKE_MODELS[1], 4)
+    assert third.model.info["cached"] is False and third.model == first.model
+    assert json.loads(cache.read_text())["mass"] == first.model.to_json()["mass"]    # replaced
+    with pytest.raises(ModelError, match="is damaged: a term of 'mass' must be"):
+        multibody.MultibodyModel.from_json(doc, where="x.json")
+
+
+def test_a_changed_model_file_is_a_new_cache_entry(tmp_path):
+    path = tmp_path / "pendulum.urdf"
+    path.write_text(_pendulum_urdf(mass=1.0))
+    light = _from_drake_file(str(path), 2)
+    path.write_text(_pendulum_urdf(mass=2.0))
+    heavy = _from_drake_file(str(path), 2)
+    assert light.model.info["key"] != heavy.model.info["key"]
+    x, u = torch.tensor([[0.5, 0.0]]), torch.tensor([[1.0]])
+    assert not torch.equal(light.derivatives(x, u), heavy.derivatives(x, u))
+
+
+def test_from_drake_fills_names_angles_limits_and_sources():
+    system = systems.from_drake("package://drake/examples/acrobot/Acrobot.urdf", goal=[np.pi, 0, 0, 0],
+                                Q=np.eye(4), R=np.eye(1), action_limit=10.0)
+    assert system.state_names == ["shoulder", "elbow", "shoulder_dot", "elbow_dot"]
+    assert system.action_names == ["elbow"] and system.angle_indices == [0, 1] and system.action_limit == 10.0
+    assert system.spec.sources["state.names"].startswith("model file")
+    assert system.spec.sources["integrator.dt"] == "hybridctl.systems.from_drake default"
+    assert system.spec.sources["state.goal"] == "from_drake argument"
+    assert system.family == "multibody" and system.chain is None
+    # Drake's acrobot is damped (0.1 N m s/rad at each joint): the model file is the physics
+    assert system.model.damping == (0.1, 0.1)
+
+
+# ------------------------------------------------------------------------------------------ bad models
+def _pendulum_urdf(mass=1.0, joint="continuous", weld=True, transmission=True, extra=""):
+    return textwrap.dedent(f"""\
+        <?xml version="1.0"?>
+        <robot name="pendulum">
+          <link name="base"/>
+          <link name="arm">
+            <inertial><origin xyz="0 0 -0.5"/><mass value="{mass}"/>
+              <inertia ixx="0.01" ixy="0" ixz="0" iyy="0.01" iyz="0" izz="0.01"/></inertial>
+          </link>
+          {'<joint name="weld" type="fixed"><parent link="world"/><child link="base"/></joint>' if weld else ''}
+          <joint name="pivot" type="{joint}"><parent link="base"/><child link="arm"/><axis xyz="0 1 0"/>
+            <limit effort="5" lower="-10" upper="10" velocity="100"/></joint>
+          {'<transmission type="SimpleTransmission" name="t"><actuator name="m"/><joint name="pivot"/></transmission>'
+           if transmission else ''}
+          {extra}
+        </robot>
+        """)
+
+
+BAD_MODELS = [
+    # (case, urdf text or None for a special file, message)
+    ("floating base", _pendulum_urdf(weld=False), "has a floating base or a quaternion joint .* weld the root link"),
+    ("ball joint", _pendulum_urdf(extra='<link name="bob"><inertial><mass value="1"/><inertia ixx="0.01" ixy="0" '
+                                        'ixz="0" iyy="0.01" iyz="0" izz="0.01"/></inertial></link><drake:joint '
+                                        'name="wrist" type="ball"><parent link="arm"/><child link="bob"/></drake:joint>'),
+     "joint 'wrist' is of type 'ball_rpy'; the generated dynamics support revolute, prismatic, weld joints"),
+    ("no actuators", _pendulum_urdf(transmission=False), "has no actuators; add a <transmission>"),
+    ("broken XML", "<robot name='x'><link name='a'>", "does not parse: .*"),
+]
+
+
+@pytest.mark.parametrize("case, text, message", BAD_MODELS, ids=[c[0] for c in BAD_MODELS])
+def test_a_bad_model_is_one_clear_error_naming_the_file(case, text, message, tmp_path):
+    path = tmp_path / "robot.urdf"
+    path.write_text(text)
+    with pytest.raises(ModelError, match=message) as raised:
+        _from_drake_file(str(path), 2)
+    assert str(path) in str(raised.value) and "\n" not in str(raised.value)
+
+
+def test_bad_references_are_named(tmp_path):
+    with pytest.raises(SpecError, match="model.file.* no such file"):
+        _from_drake_file(str(tmp_path / "missing.urdf"), 2)
+    with pytest.raises(SpecError, match="only package://drake/ URLs"):
+        _from_drake_file("package://drake_models/iiwa_description/urdf/iiwa14.urdf", 14)
+    path = tmp_path / "robot.urdf"
+    path.write_text(_pendulum_urdf())
+    with pytest.raises(ModelError, match="actuated_joints names 'elbow', which has no actuator; joints with one: pivot"):
+        _from_drake_file(str(path), 2, actuated_joints=["elbow"])
+    with pytest.raises(ModelError, match="model.tip_body 'hand' is not a body of the model; its bodies: arm, base"):
+        _from_drake_file(str(path), 2, tip_body="hand")
+    with pytest.raises(SpecError, match="state.goal.* must be 2 finite numbers"):
+        systems.from_drake(str(path), goal=[0.0, 0.0, 0.0, 0.0], Q=np.eye(4), R=np.eye(1))
+
+
+def test_a_goal_that_is_no_equilibrium_and_a_model_too_large_are_refused(tmp_path, monkeypatch):
+    path = tmp_path / "robot.urdf"
+    path.write_text(_pendulum_urdf())
+    tilted = systems.from_drake(str(path), goal=[0.5, 0.0], Q=np.eye(2), R=np.eye(1))
+    with pytest.raises(ValueError, match="the goal is not an equilibrium with u = 0"):
+        tilted.lqr()
+    monkeypatch.setattr(symbolic, "MAX_TERMS", 3)
+    with pytest.raises(ModelError, match="more than 3 terms .* too large to generate code for"):
+        symbolic.derive(symbolic.ModelRequest(str(path)))
+    monkeypatch.setattr(symbolic, "MAX_EXPRESSION_CHARS", 10)
+    with pytest.raises(ModelError, match=r"symbolic equations have [\d,]+ characters, above the limit of 10"):
+        symbolic.derive(symbolic.ModelRequest(str(path)))
+
+
+def test_a_multibody_spec_refuses_chain_keys_and_chain_rewards(tmp_path):
+    urdf = tmp_path / "robot.urdf"
+    urdf.write_text(_pendulum_urdf())
+    with pytest.raises(SpecError, match="params.link_mass' is not used by the multibody family"):
+        _from_drake_file(str(urdf), 2, **{"params": None}) if False else systems.spec.spec_from_document(
+            {"system": {"name": "x"}, "model": {"family": "multibody", "file": str(urdf)},
+             "params": {"link_mass": [1.0]}}, urdf)
+    with pytest.raises(SpecError, match="reward.kind.* must be one of .* for a multibody system"):
+        _from_drake_file(str(urdf), 2, reward__kind="upright_centered")
+    with pytest.raises(SpecError, match="'tip_height' needs a tip point"):
+        _from_drake_file(str(urdf), 2, reward__kind="tip_height")
+    tipped = _from_drake_file(str(urdf), 2, reward__kind="tip_height", tip_body="arm", tip_point=[0, 0, -1])
+    np.testing.assert_allclose(tipped.reward(np.array([[0.0, 0.0], [np.pi, 0.0]])), [-1.0, 1.0], atol=1e-12)
