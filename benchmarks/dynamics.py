@@ -162,6 +162,46 @@ def bench_columns(system, settings: dict, compiled: bool) -> dict:
             "cpu_seconds_per_call": t["cpu_median"], "calls_per_repeat": t["calls_per_repeat"]}
 
 
+GENERATED_BATCHES = (1, 4096)
+
+
+def generated_twin(chain):
+    """The multibody-family twin of a chain system (issue 30): the same robot read by Drake from a model
+    file (the thesis acrobot's URDF; the cart-poles' SDF templates filled with the spec's values), its
+    torch step generated from Drake's symbolic plant. None for chains without a model file."""
+    import tempfile
+    from hybridctl.systems.plants import render_model
+
+    common = {"Q": chain.Q, "R": chain.R, "gravity": float(chain.params["gravity"]), "action_limit": chain.action_limit,
+              "integrator__method": chain.integrator, "dt": chain.dt}
+    if chain.name == "acrobot":
+        return systems.from_drake("acrobot.urdf", goal=chain.to_drake_state(chain.goal), **common)
+    if str(chain.spec.get("model.drake", "")).startswith("multibody:"):
+        folder = Path(tempfile.mkdtemp(prefix="hybridctl-bench-"))
+        path = folder / f"{chain.name}.sdf"
+        path.write_text(render_model(chain))
+        return systems.from_drake(str(path), goal=chain.goal, **common)
+    return None
+
+
+def bench_generated(settings: dict) -> list:
+    """The generated multibody step against the hand-folded chain step on the same robot, side by side
+    (``step_unchecked``, float64, batch 1 and 4096): ratio = generated seconds per call / chain's."""
+    out = []
+    for name in ("acrobot", "cartpole", "double_cartpole"):
+        chain = systems.load(name)
+        twin = generated_twin(chain)
+        for batch in GENERATED_BATCHES:
+            pair = {kind: bench_step(system, batch, torch.float64, "step_unchecked", settings)
+                    for kind, system in (("chain", chain), ("generated", twin))}
+            out.append({"system": name, "batch": batch, "chain": pair["chain"], "generated": pair["generated"],
+                        "generation_seconds": twin.model.info.get("generation_seconds"),
+                        "cached": twin.model.info.get("cached"),
+                        "ratio_generated_vs_chain_seconds": pair["generated"]["seconds_per_call"]
+                        / pair["chain"]["seconds_per_call"]})
+    return out
+
+
 def formula_ops(system) -> dict:
     """Operations per state-step of the dynamics formula: the binary float operations (+ - * /)
     and sin/cos calls of one integrator step, counted in the straight-line one-state code
@@ -323,10 +363,12 @@ def run(quick: bool = False, threads: int = 1) -> dict:
     columns = [bench_columns(acrobot, settings, compiled) for compiled in (False, True)]
     steps += [c for c in columns if "state_steps_per_s" in c]
     for name in systems.known_systems():
-        if name != "acrobot":
+        if name != "acrobot" and systems.load(name).family == "chain":
             for method in ("step", "step_unchecked"):
                 steps.append(bench_step(systems.load(name), OTHER_BATCH, torch.float64, method, settings))
     loaded = {name: (acrobot if name == "acrobot" else systems.load(name)) for name in systems.known_systems()}
+    loaded = {name: system for name, system in loaded.items() if system.family == "chain"}
+    generated = bench_generated(settings)
     flops = machine_flops(settings)
     drake_result = bench_drake(quick)
 
@@ -340,7 +382,8 @@ def run(quick: bool = False, threads: int = 1) -> dict:
     for entry in limits["systems"].values():
         entry["flop_limit_ratio_vs_gym_acrobot"] = entry["flop_limit_state_steps_per_s"] / gym_rate
     report["step_columns_not_measured"] = [c for c in columns if "state_steps_per_s" not in c]
-    report.update({"gym_acrobot": gym_result, "single_env": single_env, "step": steps, "step_limits": limits, "drake_hybrid": drake_result})
+    report.update({"gym_acrobot": gym_result, "single_env": single_env, "step": steps, "step_limits": limits,
+                   "generated_vs_chain": generated, "drake_hybrid": drake_result})
     return report
 
 

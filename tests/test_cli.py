@@ -70,7 +70,7 @@ def test_demo_balances_the_acrobot_and_the_cartpole(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("args, message", [
-    (["simulate", "acrobott"], "known systems: acrobot, cartpole"),
+    (["simulate", "acrobott"], "known systems: acrobot, acrobot_urdf, cartpole"),
     (["simulate", "acrobot", "--x0", "1,2"], "--x0 needs 4 values"),
     (["simulate", "acrobot", "--x0", "a,b,c,d"], "--x0 must be 4 comma-separated numbers"),
     (["simulate", "acrobot", "--controller", "nope"], "unknown controller 'nope'; known: energy"),

@@ -5,7 +5,9 @@ against the hand-folded chain family on the same robots; bad models get one clea
 
 from __future__ import annotations
 
+import base64
 import json
+import re
 import textwrap
 
 import numpy as np
@@ -241,3 +243,55 @@ def test_a_multibody_spec_refuses_chain_keys_and_chain_rewards(tmp_path):
         _from_drake_file(str(urdf), 2, reward__kind="tip_height")
     tipped = _from_drake_file(str(urdf), 2, reward__kind="tip_height", tip_body="arm", tip_point=[0, 0, -1])
     np.testing.assert_allclose(tipped.reward(np.array([[0.0, 0.0], [np.pi, 0.0]])), [-1.0, 1.0], atol=1e-12)
+
+
+# ------------------------------------------------------------------------------------ the user's paths
+@pytest.mark.parametrize("name", MULTIBODY_SPECS)
+def test_shipped_multibody_specs_balance_in_drake_with_their_own_geometry(name, tmp_path):
+    """Drake's LQR on the MultibodyPlant, in the hybrid diagram with the plant's SceneGraph (the replay
+    records the model's own geometry), balances from 0.05 rad off the goal."""
+    from hybridctl.experiments.simulation import simulate_and_write
+
+    system = systems.load(name)
+    assert system.family == "multibody" and system.spec.sources["lqr.Q"]
+    x0 = system.goal.copy()
+    x0[system.angle_indices[0]] += 0.05
+    summary = simulate_and_write(system, "lqr", out=tmp_path / "run", x0=x0)   # the spec's episode
+    assert summary["balanced"] is True, summary
+    html = (tmp_path / "run" / "replay.html").read_text()
+    umsgpack = pytest.importorskip("umsgpack")
+    blobs = re.findall(r"data:application/octet-binary;base64,([A-Za-z0-9+/=]+)", html)
+    scene = repr([umsgpack.unpackb(base64.b64decode(blob)) for blob in blobs])
+    for body in system.model.bodies:        # the model's links are in the recorded scene
+        assert f"/{body}" in scene
+
+
+def test_the_acrobot_urdf_swings_up_like_the_chain_acrobot_on_both_engines():
+    """The energy swing-up + LQR on the Drake-model acrobot balances from the same starts as on the chain
+    acrobot (its Drake coordinates are shifted by pi/2), in Drake and in batched torch."""
+    from hybridctl.experiments.balance_map import balance_map
+
+    maps = {}
+    for name in ("acrobot", "acrobot_urdf"):
+        for engine in ("torch", "drake"):
+            maps[name, engine] = balance_map(name, "energy", grid=3, duration=10.0, engine=engine, progress=False,
+                                             workers=1)
+    verdicts = {key: np.asarray(m.balanced).tolist() for key, m in maps.items()}
+    assert verdicts["acrobot_urdf", "torch"] == verdicts["acrobot", "torch"] == verdicts["acrobot_urdf", "drake"]
+    assert any(v for row in verdicts["acrobot", "torch"] for v in np.ravel(row))
+
+
+@pytest.mark.parametrize("name", MULTIBODY_SPECS)
+def test_gymnasium_and_torch_envs_run_a_multibody_system(name):
+    from hybridctl.envs import SwingupEnv, TorchVectorEnv
+
+    env = SwingupEnv(name, render_mode="rgb_array")
+    obs, _ = env.reset(seed=0)
+    obs, reward, *_ = env.step(env.action_space.sample())
+    assert np.all(np.isfinite(obs)) and np.isfinite(reward)
+    frame = env.render()
+    assert frame.shape == (256, 256, 3) and (frame != 255).any()     # the bodies are drawn
+    venv = TorchVectorEnv(name, num_envs=4, seed=0)
+    obs, _ = venv.reset()
+    out = venv.step(torch.zeros(4, venv.system.n_actions, dtype=obs.dtype))
+    assert torch.isfinite(out[0]).all()

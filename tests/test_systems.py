@@ -13,7 +13,7 @@ ALL = systems.known_systems()
 
 
 def test_known_systems():
-    assert ALL == ["acrobot", "cartpole", "double_cartpole", "pendulum"]
+    assert ALL == ["acrobot", "acrobot_urdf", "cartpole", "double_cartpole", "furuta", "pendulum", "reaction_wheel"]
 
 
 def test_acrobot_lqr_reproduces_thesis_gain():

@@ -83,7 +83,7 @@ class AcrobotEnergySwingup(_SpecGains):
 
     def __init__(self, system: System, k_energy: float | None = None, k_p: float | None = None,
                  k_d: float | None = None):
-        if system.chain.n_q != 2 or system.chain.has_cart:
+        if not _two_revolute_joints(system):
             raise ValueError(f"AcrobotEnergySwingup needs a fixed-base 2-link system, got {system.name}")
         super().__init__(system, k_energy=k_energy, k_p=k_p, k_d=k_d)
         self._goal_energy = float(system.energy(system.goal))
@@ -94,6 +94,13 @@ class AcrobotEnergySwingup(_SpecGains):
         q2 = control.wrap_angle(x[..., 1])
         u = -self.k_energy * excess * x[..., 3] - self.k_p * q2 - self.k_d * x[..., 3]
         return control.saturate(_command(u), self.system.action_limit)
+
+
+def _two_revolute_joints(system: System) -> bool:
+    """A fixed-base chain of 2 links, or a multibody model of 2 revolute joints (the acrobot's shape)."""
+    if system.chain is not None:
+        return system.chain.n_q == 2 and not system.chain.has_cart
+    return system.model.n_q == 2 and all(system.model.revolute)
 
 
 class CartpoleEnergySwingup(_SpecGains):
@@ -107,7 +114,7 @@ class CartpoleEnergySwingup(_SpecGains):
 
     def __init__(self, system: System, k_energy: float | None = None, k_p: float | None = None,
                  k_d: float | None = None):
-        if system.chain.n_q != 2 or not system.chain.has_cart:
+        if system.chain is None or system.chain.n_q != 2 or not system.chain.has_cart:
             raise ValueError(f"CartpoleEnergySwingup needs a single-pole cart system, got {system.name}")
         super().__init__(system, k_energy=k_energy, k_p=k_p, k_d=k_d)
         p = system.chain

@@ -93,6 +93,9 @@ def chain_points(system: System, state) -> np.ndarray:
     """(n_links + 1, 2) points (horizontal, height) of the chain of ``state``: the pivot (on the cart, if
     any), then each link's far end; the height is measured from the pivot, as ``tip_position``."""
     x = np.asarray(state, dtype=float)
+    if system.chain is None:   # a multibody model: its body origins (and tip) seen from -y, x right, z up
+        points = system.dynamics.points(x)[0][:, [0, 2]]
+        return np.vstack([np.zeros((1, 2)), points])
     phi, base = system.dynamics.absolute_angles(x[: system.n_states // 2])
     lengths = np.asarray(system.chain.link_length, dtype=float)
     pivot = np.array([float(base[0]) if base is not None else 0.0, 0.0])
@@ -109,6 +112,23 @@ def _paint_segment(frame: np.ndarray, a, b, radius: float, color) -> None:
     frame[(cols - a[0] - t * ab[0]) ** 2 + (rows - a[1] - t * ab[1]) ** 2 <= radius ** 2] = color
 
 
+def _render_multibody(system: System, points: np.ndarray, size: int) -> np.ndarray:
+    """A frame of a multibody model: segments from each body's parent origin (the world origin for the
+    first) to its own, and to the tip; the view is centred on the world origin, scaled to the model's
+    reach at its goal state."""
+    goal = chain_points(system, system.goal)
+    reach = max(float(np.abs(goal).max()), float(np.abs(points).max()), 1e-3)
+    scale = 0.45 * size / reach
+    pixels = np.column_stack([points[:, 0] * scale + size / 2, size / 2 - points[:, 1] * scale])
+    frame = np.empty((size, size, 3), dtype=np.uint8)
+    frame[:] = _BACKGROUND
+    for parent, child in system.dynamics.segments():
+        _paint_segment(frame, pixels[parent + 1], pixels[child + 1], max(2.0, size / 80), _LINK)
+    for point in pixels:
+        _paint_segment(frame, point, point, max(3.0, size / 60), _JOINT)
+    return frame
+
+
 def render_frame(system: System, state, size: int = RENDER_SIZE) -> np.ndarray:
     """An RGB uint8 frame (size, size, 3) of the chain in ``state``, drawn with numpy only.
 
@@ -116,6 +136,8 @@ def render_frame(system: System, state, size: int = RENDER_SIZE) -> np.ndarray:
     lengths apart, are fixed in the world, so cart motion shows), the chain fills 90 % of it.
     """
     points = chain_points(system, state)
+    if system.chain is None:
+        return _render_multibody(system, points, size)
     reach = float(np.sum(system.chain.link_length))
     scale = 0.45 * size / reach
     centre = points[0]

@@ -77,6 +77,9 @@ class MultibodyModel:
     actuation: tuple[tuple[float, ...], ...]
     damping: tuple[float, ...]
     tip: tuple[tuple[Term, ...], ...] = ()
+    bodies: tuple[str, ...] = ()                      # the moving bodies, in Drake's order
+    body_parents: tuple[int, ...] = ()                # index of each body's parent body; -1: the world
+    body_origins: tuple[tuple[Term, ...], ...] = ()   # world (x, y, z) of each body frame's origin
     info: dict = field(default_factory=dict, compare=False)
 
     @property
@@ -89,7 +92,7 @@ class MultibodyModel:
 
     def n_terms(self) -> int:
         """All terms of all polynomials (the size :data:`MAX_TERMS` bounds)."""
-        polys = [*self.mass, *self.bias, *self.gravity, self.kinetic, self.potential, *self.tip]
+        polys = [*self.mass, *self.bias, *self.gravity, self.kinetic, self.potential, *self.tip, *self.body_origins]
         return sum(len(p) for p in polys)
 
     def to_json(self) -> dict:
@@ -101,6 +104,8 @@ class MultibodyModel:
                 "mass": [poly(p) for p in self.mass], "bias": [poly(p) for p in self.bias],
                 "gravity": [poly(p) for p in self.gravity], "kinetic": poly(self.kinetic),
                 "potential": poly(self.potential), "tip": [poly(p) for p in self.tip],
+                "bodies": list(self.bodies), "body_parents": list(self.body_parents),
+                "body_origins": [poly(p) for p in self.body_origins],
                 "actuation": [list(map(float, row)) for row in self.actuation],
                 "damping": list(map(float, self.damping)), "info": dict(self.info)}
 
@@ -161,6 +166,12 @@ class MultibodyModel:
         if not (isinstance(damping, list) and len(damping) == n and all(map(number, damping))):
             fail(f"'damping' must be {n} numbers")
         tip = doc.get("tip", [])
+        bodies = doc.get("bodies", [])
+        parents = doc.get("body_parents", [])
+        if not (isinstance(bodies, list) and all(isinstance(b, str) and len(b) < 256 for b in bodies)
+                and isinstance(parents, list) and len(parents) == len(bodies)
+                and all(isinstance(p, int) and not isinstance(p, bool) and -1 <= p < len(bodies) for p in parents)):
+            fail("'bodies' must be names and 'body_parents' one index in -1..len(bodies)-1 per body")
         info = doc.get("info", {})
         if not isinstance(info, dict):
             fail("'info' must be an object")
@@ -168,7 +179,9 @@ class MultibodyModel:
                    revolute=tuple(revolute), mass=polys("mass", n * (n + 1) // 2), bias=polys("bias", n),
                    gravity=polys("gravity", n), kinetic=poly(doc.get("kinetic"), "kinetic"),
                    potential=poly(doc.get("potential"), "potential"),
-                   tip=polys("tip", 3) if tip else (), actuation=tuple(tuple(map(float, r)) for r in actuation),
+                   tip=polys("tip", 3) if tip else (), bodies=tuple(bodies), body_parents=tuple(parents),
+                   body_origins=polys("body_origins", 3 * len(bodies)),
+                   actuation=tuple(tuple(map(float, r)) for r in actuation),
                    damping=tuple(map(float, damping)), info=info)
 
 
@@ -469,7 +482,9 @@ def _compile(source: str, name: str, namespace: dict):
     """Compile generated source (built from numbers only) and return the function ``name``."""
     scope = dict(namespace)
     exec(compile(source, f"<hybridctl generated {name}>", "exec"), scope)  # noqa: S102 - our own generated code
-    return scope[name]
+    function = scope[name]
+    function.source = source       # as ChainDynamics' generated functions: benchmarks count its operations
+    return function
 
 
 class GeneratedDynamics:
@@ -484,6 +499,7 @@ class GeneratedDynamics:
         self._compiled: dict = {}
         self._energy = None
         self._tip = None
+        self._points = None
 
     # ----------------------------------------------------------------- torch
     def generate_torch_step(self, dt: float | None, integrator: str | None, columns: bool = False):
@@ -562,6 +578,27 @@ class GeneratedDynamics:
         return [value if not isinstance(value, float) else (torch.full_like(like, value) if isinstance(like, torch.Tensor)
                                                              else np.full_like(like, value))
                 for value in values]
+
+    def points(self, x) -> np.ndarray:
+        """(len(x), bodies + tip, 3) world positions of the body origins (and the tip point, if any) at
+        states x (numpy, batched): what a stick-figure drawing and a view box need."""
+        if self._points is None:
+            self._points = _compile(polynomials_source(self.model, [*self.model.body_origins, *self.model.tip]),
+                                    "values", {})
+        x = np.atleast_2d(np.asarray(x, dtype=float))
+        q, v, sin, cos = self._split(x)
+        values = [np.broadcast_to(np.asarray(value, dtype=float), (x.shape[0],)) for value in self._points(q, v, sin, cos)]
+        return np.stack(values, axis=-1).reshape(x.shape[0], -1, 3)
+
+    def segments(self) -> list[tuple[int, int]]:
+        """Pairs (parent, child) of :meth:`points` indices to draw: each body from its parent's origin
+        (the world origin for -1: index ``len(points)``, which callers add), then the last body to the tip."""
+        n = len(self.model.bodies)
+        pairs = [(parent if parent >= 0 else -1, child) for child, parent in enumerate(self.model.body_parents)]
+        if self.model.tip:
+            owner = self.model.info.get("tip_body_index", n - 1)
+            pairs.append((owner, n))
+        return pairs
 
     def tip_height(self, x):
         """World height z of the tip point."""

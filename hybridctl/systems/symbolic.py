@@ -41,7 +41,7 @@ MAX_EXPRESSION_CHARS = 5_000_000
 to sympy: above it the reduction takes minutes and the generated code would be too large to run
 fast. The 2-link acrobot's are about 4,000 characters."""
 
-FORMAT = 1  # bumped when the model record or the reduction changes, so old cache files are not used
+FORMAT = 3  # bumped when the model record or the reduction changes, so old cache files are not used
 SUPPORTED_JOINTS = ("revolute", "prismatic", "weld")
 
 
@@ -226,6 +226,20 @@ def derive(request: ModelRequest) -> MultibodyModel:
         point = np.asarray(request.tip_point, dtype=float).reshape(3, 1)
         tip = symbolic.CalcPointsPositions(context, body.body_frame(), point, symbolic.world_frame())
         entries += [tip[k, 0] for k in range(3)]
+    # every moving body's origin in the world (drawings, view boxes) and its parent body
+    moving = [plant.get_body(_body_index(i)) for i in range(1, plant.num_bodies())]
+    moving = [b for b in moving if not _welded_to_world(plant, b)]
+    body_names = [b.name() for b in moving]
+    parents = []
+    for body in moving:
+        parent = _parent_body(plant, body)
+        parents.append(body_names.index(parent) if parent in body_names else -1)
+    n_tip = len(entries) - (n * (n + 1) // 2 + 2 * n + 2)
+    origin = np.zeros((3, 1))
+    for body in moving:
+        where = symbolic.CalcPointsPositions(context, symbolic.GetBodyByName(body.name()).body_frame(), origin,
+                                             symbolic.world_frame())
+        entries += [where[k, 0] for k in range(3)]
     size = sum(len(e.to_string()) for e in entries)
     if size > MAX_EXPRESSION_CHARS:
         raise ModelError(f"model file {request.source}: Drake's symbolic equations have {size:,} characters, above "
@@ -247,16 +261,51 @@ def derive(request: ModelRequest) -> MultibodyModel:
                              f"(hybridctl.systems.multibody.MAX_TERMS): too large to generate code for")
     n_mass = n * (n + 1) // 2
     B = plant.MakeActuationMatrix() @ selection
+    first_body = n_mass + 2 * n + 2 + n_tip
     model = MultibodyModel(
         positions=tuple(names), velocities=tuple(f"{name}_dot" for name in names), actuators=actuated,
         revolute=tuple(revolute), mass=tuple(polys[:n_mass]), bias=tuple(polys[n_mass:n_mass + n]),
         gravity=tuple(polys[n_mass + n:n_mass + 2 * n]), kinetic=polys[n_mass + 2 * n],
-        potential=polys[n_mass + 2 * n + 1], tip=tuple(polys[n_mass + 2 * n + 2:]),
+        potential=polys[n_mass + 2 * n + 1], tip=tuple(polys[n_mass + 2 * n + 2:first_body]),
+        bodies=tuple(body_names), body_parents=tuple(parents), body_origins=tuple(polys[first_body:]),
         actuation=tuple(tuple(float(b) for b in row) for row in B), damping=tuple(float(d) for d in damping),
         info={"generation_seconds": time.perf_counter() - started, "terms": count, "expression_chars": size,
               # None where the model sets no limit (JSON has no infinity)
-              "effort_limits": [float(e) if np.isfinite(e) else None for e in effort_limits(plant, request)]})
+              "effort_limits": [float(e) if np.isfinite(e) else None for e in effort_limits(plant, request)],
+              **({"tip_body_index": body_names.index(request.tip_body)} if request.tip_body in body_names else {})})
     return model
+
+
+def _welded_to_world(plant, body) -> bool:
+    """Whether ``body`` is fixed to the world (welds all the way down): it never moves."""
+    while True:
+        joint = _inboard_joint(plant, body)
+        if joint is None:
+            return True
+        if joint.num_positions() > 0:
+            return False
+        body = joint.parent_body()
+        if body.index() == plant.world_body().index():
+            return True
+
+
+def _inboard_joint(plant, body):
+    for index in range(plant.num_joints()):
+        joint = plant.get_joint(_joint_index(index))
+        if joint.child_body().index() == body.index():
+            return joint
+    return None
+
+
+def _parent_body(plant, body) -> str | None:
+    """The name of the nearest moving ancestor of ``body`` (None: the world or a welded base)."""
+    joint = _inboard_joint(plant, body)
+    while joint is not None:
+        parent = joint.parent_body()
+        if parent.index() == plant.world_body().index() or _welded_to_world(plant, parent):
+            return None
+        return parent.name()
+    return None
 
 
 def _body_index(i: int):

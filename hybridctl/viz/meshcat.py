@@ -134,6 +134,12 @@ def _camera_pose(system: "System") -> RigidTransform:
 
 def _view_box(system: "System", states: np.ndarray) -> tuple[float, float, float, float]:
     """(xmin, xmax, zmin, zmax) of a side view that keeps the whole motion in sight."""
+    if system.chain is None:   # a multibody model: the box around every body origin along the motion
+        points = system.dynamics.points(states[:: max(1, len(states) // 200)])
+        xs, zs = np.append(points[..., 0].ravel(), 0.0), np.append(points[..., 2].ravel(), 0.0)
+        xmin, xmax = float(xs.min()) - _VIEW_MARGIN, float(xs.max()) + _VIEW_MARGIN
+        zmin, zmax = float(zs.min()) - _VIEW_MARGIN, float(zs.max()) + _VIEW_MARGIN
+        return _aspect(xmin, xmax, zmin, zmax)
     reach = float(np.sum(system.chain.link_length)) + _VIEW_MARGIN
     if system.chain.has_cart:
         lo, hi = float(states[:, 0].min()), float(states[:, 0].max())
@@ -141,8 +147,11 @@ def _view_box(system: "System", states: np.ndarray) -> tuple[float, float, float
         xmin, xmax = lo - reach_x, hi + reach_x
     else:
         xmin, xmax = -reach, reach
-    zmin, zmax = -reach, reach
-    # Pad the shorter side so the box has a 4:3 aspect and the robot is not stretched.
+    return _aspect(xmin, xmax, -reach, reach)
+
+
+def _aspect(xmin: float, xmax: float, zmin: float, zmax: float) -> tuple[float, float, float, float]:
+    """Pad the shorter side so the box has a 4:3 aspect and the robot is not stretched."""
     width, height = xmax - xmin, zmax - zmin
     if width < 4 / 3 * height:
         pad = (4 / 3 * height - width) / 2
