@@ -15,8 +15,9 @@ from hybridctl import systems
 from hybridctl.envs import STATE_BOUND, SwingupEnv, TorchVectorEnv, env_id, is_balanced
 
 ALL = systems.known_systems()
-IDS = ["hybridctl/AcrobotSwingup-v0", "hybridctl/CartpoleSwingup-v0",
-       "hybridctl/DoubleCartpoleSwingup-v0", "hybridctl/PendulumSwingup-v0"]
+IDS = ["hybridctl/AcrobotSwingup-v0", "hybridctl/AcrobotUrdfSwingup-v0", "hybridctl/CartpoleSwingup-v0",
+       "hybridctl/DoubleCartpoleSwingup-v0", "hybridctl/FurutaSwingup-v0", "hybridctl/PendulumSwingup-v0",
+       "hybridctl/ReactionWheelSwingup-v0"]
 # By design the action space is in physical units [-limit, limit], not [-1, 1].
 NORMALISED_ACTIONS_HINT = "symmetric and normalized space"
 

@@ -295,3 +295,31 @@ def test_gymnasium_and_torch_envs_run_a_multibody_system(name):
     obs, _ = venv.reset()
     out = venv.step(torch.zeros(4, venv.system.n_actions, dtype=obs.dtype))
     assert torch.isfinite(out[0]).all()
+
+
+def test_a_checkpoint_refuses_a_changed_model_file_unless_forced(tmp_path, monkeypatch):
+    """config.json records the model file's sha256 with the spec values: a changed URDF is another plant."""
+    from hybridctl.learn import SAC
+    from hybridctl.learn.checkpoint import CheckpointError
+
+    folder = tmp_path / "specs"
+    folder.mkdir()
+    (folder / "pendulum.urdf").write_text(_pendulum_urdf(mass=1.0))
+    spec = (systems.spec.SPEC_DIR / "furuta.toml").read_text()
+    spec = spec.replace('name = "furuta"', 'name = "my_pendulum"').replace('"furuta.urdf"', '"pendulum.urdf"')
+    spec = spec.replace('actuated_joints = ["arm_joint"]', 'actuated_joints = ["pivot"]')
+    spec = re.sub(r'tip_body = .*\ntip_point = .*\n', '', spec)
+    for key, value in (("goal", '["pi", 0.0]'), ("nominal", "[0.0, 0.0]"), ("low", "[-0.1, 0.0]"),
+                       ("high", "[0.1, 0.0]"), ("warm_near", "[0.5, 5.0]"), ("warm_far", '["pi", 10.0]')):
+        spec = re.sub(rf"^{key}\s*= \{{ value = \[[^\]]*\]", f"{key} = {{ value = {value}", spec, flags=re.M)
+    spec = re.sub(r"^Q = .*$", 'Q = { value = [[10, 0], [0, 1]], source = "test" }', spec, flags=re.M)
+    (folder / "my_pendulum.toml").write_text(spec)
+    monkeypatch.setenv("HYBRIDCTL_SYSTEMS", str(folder))
+    agent = SAC("my_pendulum", num_envs=2, exploration_steps=100, hidden_size=8, seed=0)
+    agent.learn(total_steps=100, progress=False, log_dir=tmp_path / "run")
+    SAC.load(tmp_path / "run" / "final")                    # the same model: loads
+    (folder / "pendulum.urdf").write_text(_pendulum_urdf(mass=2.0))
+    with pytest.raises(CheckpointError, match="trained on my_pendulum with model.file_sha256="):
+        SAC.load(tmp_path / "run" / "final")
+    with pytest.warns(UserWarning, match="force: loading anyway.*model.file_sha256"):
+        SAC.load(tmp_path / "run" / "final", force=True)

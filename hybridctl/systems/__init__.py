@@ -172,6 +172,10 @@ class System:
                 raise spec.error("action.limit", f"is needed: the model's actuators give no single finite effort "
                                                  f"limit ({limits.tolist()}); set action.limit in the spec")
             spec.values["action.limit"], spec.sources["action.limit"] = float(limits[0]), f"{where} (effort limit)"
+        # the model file's bytes are part of the plant: a checkpoint records this with the spec values
+        # (learn.checkpoint.system_record), so a changed model is refused on load unless forced
+        spec.values["model.file_sha256"] = symbolic.model_hash(self.model_request)
+        spec.sources["model.file_sha256"] = f"sha256 of {self.model_request.source}"
         validate_shapes(spec, model.n_q, model.n_u)
         kind = spec.get("reward.kind")
         if kind not in MULTIBODY_REWARD_KINDS:
