@@ -386,17 +386,28 @@ def _scalar_source(dynamics: "ChainDynamics", name: str, dt: float, integrator: 
         acc = stage(state)
         body = writer.lines + [f"return [{', '.join(state[n_q:] + acc)}]"]
         return "\n".join([f"def {name}(x, u):"] + ["    " + line for line in head + body]) + "\n"
+    return step_loop_source(name, head, state, n_q, writer.lines, stage, dt, integrator, bound)
+
+
+def step_loop_source(name: str, head: list[str], state: list[str], n_q: int, lines: list[str], stage,
+                     dt: float, integrator: str, bound: float | None) -> str:
+    """Source of ``name(x, u, steps)``: ``head`` unpacks x and u into the names ``state`` and the
+    inputs, ``stage(names)`` appends to ``lines`` the code of the accelerations at the state named
+    ``names`` and returns their texts; the loop takes ``steps`` integrator steps (``euler``:
+    x + dt f; ``runge_kutta2``: x + (dt/2)(k1 + k2), k2 = f(x + dt k1)) and returns the state as a
+    list, or None as soon as a coordinate leaves [-bound, bound] or turns NaN (``bound`` given).
+    Shared by the chain family and the generated multibody code."""
     k1 = state[n_q:] + stage(state)
     if integrator == "euler":
         new = [f"{s} + {dt!r}*{k}" for s, k in zip(state, k1)]
     elif integrator == "runge_kutta2":
         mid = [f"m{i}" for i in range(2 * n_q)]
-        writer.lines += [f"{m} = {s} + {dt!r}*{k}" for m, s, k in zip(mid, state, k1)]
+        lines += [f"{m} = {s} + {dt!r}*{k}" for m, s, k in zip(mid, state, k1)]
         k2 = mid[n_q:] + stage(mid)
         new = [f"{s} + {0.5 * dt!r}*({a} + {b})" for s, a, b in zip(state, k1, k2)]
     else:
         raise ValueError(f"integrator must be 'euler' or 'runge_kutta2', got {integrator!r}")
-    loop = writer.lines + [f"n{i} = {e}" for i, e in enumerate(new)]
+    loop = lines + [f"n{i} = {e}" for i, e in enumerate(new)]
     if bound is not None:
         inside = " and ".join(f"{-bound!r} <= n{i} <= {bound!r}" for i in range(2 * n_q))
         loop += [f"if not ({inside}):", "    return None"]
@@ -464,22 +475,30 @@ def _torch_source(dynamics: "ChainDynamics", dt: float | None, integrator: str |
         return f"d{tag}"
 
     writer.lines.append(f"{', '.join(f'u{i}' for i in range(n_u))}, = u.unbind({axis})")
-    k1 = derivative("x", "a")
-    if integrator is None:
-        writer.lines.append(f"return {k1}")
-    elif integrator == "euler":
-        writer.lines.append(f"return x + {dt!r} * {k1}")
-    elif integrator == "runge_kutta2":
-        writer.lines.append(f"m = x + {dt!r} * {k1}")
-        k2 = derivative("m", "b")
-        writer.lines.append(f"return x + {0.5 * dt!r} * ({k1} + {k2})")
-    else:
-        raise ValueError(f"integrator must be 'euler' or 'runge_kutta2', got {integrator!r}")
-    source = "def torch_step(x, u, xp, K):\n" + "".join(f"    {line}\n" for line in _free_early(writer.lines))
+    integrator_lines(writer.lines, derivative, dt, integrator)
+    source = "def torch_step(x, u, xp, K):\n" + "".join(f"    {line}\n" for line in free_early(writer.lines))
     return source, writer.constants
 
 
-def _free_early(lines: list[str]) -> list[str]:
+def integrator_lines(lines: list[str], derivative, dt: float | None, integrator: str | None) -> None:
+    """Append to ``lines`` the batched step's integrator: ``derivative(state, tag)`` appends the code of
+    dx/dt at the tensor named ``state`` and returns its name; the code returns dx/dt (``integrator``
+    None), x + dt k1 (``euler``) or x + (dt/2)(k1 + k2), k2 at m = x + dt k1 (``runge_kutta2``).
+    Shared by the chain family and the generated multibody code."""
+    k1 = derivative("x", "a")
+    if integrator is None:
+        lines.append(f"return {k1}")
+    elif integrator == "euler":
+        lines.append(f"return x + {dt!r} * {k1}")
+    elif integrator == "runge_kutta2":
+        lines.append(f"m = x + {dt!r} * {k1}")
+        k2 = derivative("m", "b")
+        lines.append(f"return x + {0.5 * dt!r} * ({k1} + {k2})")
+    else:
+        raise ValueError(f"integrator must be 'euler' or 'runge_kutta2', got {integrator!r}")
+
+
+def free_early(lines: list[str]) -> list[str]:
     """``lines`` with ``del`` of each temporary ``tN`` right after its last use: straight-line code
     would otherwise keep every intermediate (batch,) tensor alive to the end (hundreds for the
     double cart-pole), which at large batches leaves the cache and slows every operation."""

@@ -27,12 +27,13 @@ cache file is data (checked on reading), never code.
 from __future__ import annotations
 
 import math
-import re
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
 import numpy as np
 import torch
+
+from .dynamics import free_early, integrator_lines, step_loop_source
 
 MAX_TERMS = 20_000
 """Most polynomial terms (all entries of M, C v, tau_g and the energies together) a model may
@@ -373,24 +374,6 @@ def _accelerations(model: MultibodyModel, code: _Code, q: Sequence[str], v: Sequ
     return _ldlt_solve(code, m, rhs)
 
 
-def _free_early(lines: list[str], prefix: str = "t") -> list[str]:
-    """``lines`` with ``del`` of each temporary right after its last use (keeps batches in cache)."""
-    pattern = re.compile(rf"\b{prefix}\d+\b")
-    names = [pattern.findall(line) for line in lines]
-    last = {}
-    for i, used in enumerate(names):
-        for name in used:
-            last[name] = i
-    out = []
-    for i, line in enumerate(lines):
-        out.append(line)
-        dead = sorted({n for n in names[i] if last[n] == i and not line.lstrip().startswith("return")},
-                      key=lambda n: int(n[len(prefix):]))
-        if dead:
-            out.append(f"del {', '.join(dead)}")
-    return out
-
-
 def _column_value(value, like: str) -> str:
     """A column name, or a constant float spread to the shape of column ``like``."""
     return value if isinstance(value, str) else f"_torch.full_like({like}, {float(value)!r})"
@@ -415,18 +398,8 @@ def torch_source(model: MultibodyModel, dt: float | None, integrator: str | None
         code.lines.append(f"d{tag} = _torch.stack([{', '.join(cols)}], {axis})")
         return f"d{tag}"
 
-    k1 = derivative("x", "a")
-    if integrator is None:
-        code.lines.append(f"return {k1}")
-    elif integrator == "euler":
-        code.lines.append(f"return x + {dt!r} * {k1}")
-    elif integrator == "runge_kutta2":
-        code.lines.append(f"m = x + {dt!r} * {k1}")
-        k2 = derivative("m", "b")
-        code.lines.append(f"return x + {0.5 * dt!r} * ({k1} + {k2})")
-    else:
-        raise ValueError(f"integrator must be 'euler' or 'runge_kutta2', got {integrator!r}")
-    return "def torch_step(x, u):\n" + "".join(f"    {line}\n" for line in _free_early(code.lines))
+    integrator_lines(code.lines, derivative, dt, integrator)
+    return "def torch_step(x, u):\n" + "".join(f"    {line}\n" for line in free_early(code.lines))
 
 
 def scalar_source(model: MultibodyModel, dt: float | None, integrator: str | None, bound: float | None) -> str:
@@ -447,23 +420,7 @@ def scalar_source(model: MultibodyModel, dt: float | None, integrator: str | Non
         acc = stage(state)
         body = code.lines + [f"return [{', '.join(state[n:] + acc)}]"]
         return "def derivatives(x, u):\n" + "".join(f"    {line}\n" for line in head + body)
-    k1 = state[n:] + stage(state)
-    if integrator == "euler":
-        new = [f"{s} + {dt!r}*{k}" for s, k in zip(state, k1)]
-    elif integrator == "runge_kutta2":
-        mid = [f"m{i}" for i in range(2 * n)]
-        code.lines += [f"{a} = {s} + {dt!r}*{k}" for a, s, k in zip(mid, state, k1)]
-        k2 = mid[n:] + stage(mid)
-        new = [f"{s} + {0.5 * dt!r}*({a} + {b})" for s, a, b in zip(state, k1, k2)]
-    else:
-        raise ValueError(f"integrator must be 'euler' or 'runge_kutta2', got {integrator!r}")
-    loop = code.lines + [f"n{i} = {e}" for i, e in enumerate(new)]
-    if bound is not None:
-        inside = " and ".join(f"{-bound!r} <= n{i} <= {bound!r}" for i in range(2 * n))
-        loop += [f"if not ({inside}):", "    return None"]
-    loop += [f"{', '.join(state)} = {', '.join(f'n{i}' for i in range(2 * n))}"]
-    return ("def step(x, u, steps):\n" + "".join(f"    {line}\n" for line in head) + "    for _ in range(steps):\n"
-            + "".join(f"        {line}\n" for line in loop) + f"    return [{', '.join(state)}]\n")
+    return step_loop_source("step", head, state, n, code.lines, stage, dt, integrator, bound)
 
 
 def polynomials_source(model: MultibodyModel, polys: Sequence[Sequence[Term]]) -> str:
