@@ -323,3 +323,17 @@ def test_a_checkpoint_refuses_a_changed_model_file_unless_forced(tmp_path, monke
         SAC.load(tmp_path / "run" / "final")
     with pytest.warns(UserWarning, match="force: loading anyway.*model.file_sha256"):
         SAC.load(tmp_path / "run" / "final", force=True)
+
+
+def test_overriding_the_physics_warns_which_tuned_values_were_kept(recwarn):
+    with pytest.warns(UserWarning, match=r"acrobot: override link_mass=\[2, 1\] changes the physics, but the values "
+                                         r"tuned for acrobot.toml were kept and may no longer fit: control.period=0.01, "
+                                         r"gate.cost_scale=2500.0, swingup.k_energy=5.0, swingup.k_p=50.0, swingup.k_d=5.0"):
+        systems.load("acrobot", link_mass=[2, 1])
+    recwarn.clear()
+    systems.load("acrobot", link_mass=[2, 1], control__period=0.02, gate__cost_scale=100.0, k_energy=1.0, k_p=1.0,
+                 k_d=1.0)                                   # every tuned value retuned with it: nothing to say
+    systems.load("acrobot", dt=0.005)                       # not the physics
+    assert not [w for w in recwarn if "changes the physics" in str(w.message)]
+    with pytest.warns(UserWarning, match=r"furuta: override gravity=3.7 changes the physics.*gate.cost_scale=226.8"):
+        systems.load("furuta", gravity=3.7)

@@ -30,6 +30,12 @@ from .spec import (OPTIONAL_DEFAULTS, GateSection, InitialStateSection, SpecErro
 __all__ = ["System", "load", "from_drake", "known_systems", "SpecError", "ModelError", "Spec", "check_array", "control",
            "GateSection", "SuccessSection", "InitialStateSection", "SwingupSection"]
 
+TUNED_FOR_PHYSICS = ("params.", ("model.file",))
+"""Spec keys that are the physics: overriding one (a ``params.`` key, or the model file) keeps
+:data:`TUNED_VALUES` that were tuned for the spec's own physics, and says so."""
+TUNED_VALUES = ("control.period", "gate.cost_scale")
+"""Values tuned for a spec's physics (with every ``swingup.`` gain): the LQR's hold and the gate's scale."""
+
 MULTIBODY_REWARD_KINDS = ("quadratic", "angle_squared", "angle_cosine", "tip_height", "tip_height_centered")
 """The reward kinds a multibody system has (the tip-height ones need the spec's model.tip_body):
 ``upright_centered`` and ``tip_distance`` are written for planar chains."""
@@ -145,11 +151,33 @@ class System:
                 self._step_torch(torch.zeros(2, self.n_states, dtype=dtype),   # that filled them would
                                  torch.zeros(2, self.n_actions, dtype=dtype))  # compile twice)
         self._lqr_cache: dict = {}
+        self._warn_tuned_values_kept()
 
     def __repr__(self) -> str:
         return f"System({self.name!r}, n_states={self.n_states}, dt={self.dt}, integrator={self.integrator!r})"
 
     # ----------------------------------------------------------------- parameters
+    def _warn_tuned_values_kept(self) -> None:
+        """Warn when an override changed the physics (``params.*``, ``model.file``) but kept values tuned
+        for the spec's own physics: the LQR's hold (``control.period``), the gate's cost scale and the
+        swing-up gains. Drake's default acrobot, for one, cannot be balanced under the thesis' 0.01 s hold.
+        Said once per process (worker processes that rebuild the system stay quiet)."""
+        import multiprocessing
+        import warnings
+
+        spec = self.spec
+        physics = [k for k in spec.overridden if k.startswith(TUNED_FOR_PHYSICS[0]) or k in TUNED_FOR_PHYSICS[1]]
+        tuned = [k for k in spec.values if k in TUNED_VALUES or (k.startswith("swingup.") and k != "swingup.controller")]
+        kept = [k for k in tuned if k not in spec.overridden]
+        if not physics or not kept or multiprocessing.parent_process() is not None:
+            return
+        shown = ", ".join(f"{k}={spec.values[k]!r}" for k in kept)
+        warnings.warn(f"{self.name}: {', '.join(spec.overridden[k] for k in physics)} changes the physics, but the "
+                      f"values tuned for {spec.path.name} were kept and may no longer fit: {shown}; check the LQR "
+                      f"under the hold (hybridctl simulate {self.name} --controller lqr --x0=... near the goal) and "
+                      f"rescale the gate (hybridctl.systems.control.lqr_basin_level; docs: Bring your own robot)",
+                      UserWarning, stacklevel=4)
+
     def _load_multibody(self) -> None:
         """Read the model file through Drake (or the cache), fill the spec's defaults from it
         (state and action names, angles, the action limit from the actuators' effort limits) and
