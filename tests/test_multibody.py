@@ -337,3 +337,13 @@ def test_overriding_the_physics_warns_which_tuned_values_were_kept(recwarn):
     assert not [w for w in recwarn if "changes the physics" in str(w.message)]
     with pytest.warns(UserWarning, match=r"furuta: override gravity=3.7 changes the physics.*gate.cost_scale=226.8"):
         systems.load("furuta", gravity=3.7)
+
+
+def test_an_optional_key_a_spec_leaves_out_can_be_overridden():
+    """The Ch. 7 reward settings are optional (default 0): a spec without them takes them as overrides, as
+    the APG learners set them (furuta.toml has no reward.alive_bonus)."""
+    assert not systems.spec.read_spec("furuta").has("reward.alive_bonus")
+    system = systems.load("furuta", reward__alive_bonus=10.0, velocity_penalty=0.01)
+    assert system.reward_alive_bonus == 10.0 and system.reward_velocity_penalty == 0.01
+    with pytest.raises(SpecError, match="override 'alive_bonuss' is not a key of this spec"):
+        systems.load("furuta", alive_bonuss=1.0)

@@ -248,8 +248,14 @@ def _apply_overrides(spec: Spec, overrides: dict[str, Any]) -> None:
     """
     for key, value in overrides.items():
         full = key.replace("__", ".")
+        if full not in spec.values and full in OPTIONAL_DEFAULTS:   # an optional key the file leaves out
+            spec.values[full] = OPTIONAL_DEFAULTS[full]
         if full not in spec.values:
             matches = [k for k in spec.values if k.split(".", 1)[1] == full]
+            if not matches:
+                matches = [k for k in OPTIONAL_DEFAULTS if k.split(".", 1)[1] == full]
+                for k in matches:
+                    spec.values.setdefault(k, OPTIONAL_DEFAULTS[k])
             if len(matches) != 1:
                 known = ", ".join(sorted({k.split(".", 1)[1] for k in spec.values}))
                 what = "is ambiguous (give it as section__key)" if matches else "is not a key of this spec"
