@@ -58,6 +58,11 @@ EXPECTED_LINES = {
         "balanced: True",                     # the fine-tuned SSAC swing-up in the Drake diagram
         "Ch. 6 record: notebooks/data/ch6/results.json",
     ],
+    "07_your_robot.ipynb": [
+        "generated = Drake to 1e-9: True",   # a URDF's generated torch dynamics against Drake's plant (issue 30)
+        "balanced: True",                    # Drake's LQR on the MultibodyPlant in the hybrid diagram
+        "gradients finite: True",            # a PAPG run through the generated dynamics
+    ],
     "03_trajectory_dimension.ipynb": [
         "same curve: True",            # vectorised box count equals the thesis' dict of tuples
         "MuJoCo record: notebooks/data/ch4/results.json",   # the shipped Table 4.1 / 4.4 record is read
