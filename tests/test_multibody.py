@@ -347,3 +347,26 @@ def test_an_optional_key_a_spec_leaves_out_can_be_overridden():
     assert system.reward_alive_bonus == 10.0 and system.reward_velocity_penalty == 0.01
     with pytest.raises(SpecError, match="override 'alive_bonuss' is not a key of this spec"):
         systems.load("furuta", alive_bonuss=1.0)
+
+
+def test_the_command_line_trains_fine_tunes_and_simulates_a_multibody_system_by_name(tmp_path, capsys):
+    """SSAC (learned swing-up + gate), PAPG with the LQR takeover, fine-tuning and simulate, by system name:
+    tiny budgets, only that every path runs on generated dynamics and writes what it says."""
+    from hybridctl.cli import main
+
+    ssac = tmp_path / "ssac"
+    assert main(["train", "ssac", "reaction_wheel", "--steps", "600", "--num-envs", "4", "--exploration-steps", "400",
+                 "--minibatch-size", "32", "--buffer-size", "2000", "--gate-warm-samples", "200",
+                 "--gate-warm-fit-steps", "10", "--eval-episodes", "2", "--out", str(ssac), "--quiet"]) == 0
+    assert (ssac / "final" / "model.pt").is_file()
+    papg = tmp_path / "papg"
+    assert main(["train", "papg", "furuta", "--takeover", "lqr", "--policy", "mlp:8", "--population", "2",
+                 "--elites", "1", "--batch", "2", "--horizon", "10", "--apg-iterations", "2", "--epochs", "1",
+                 "--eval-episodes", "2", "--out", str(papg), "--quiet"]) == 0
+    assert main(["finetune", "reaction_wheel", "--policy", f"ssac:{ssac / 'final'}", "--updates", "1",
+                 "--directions", "2", "--eval-episodes", "2", "--out", str(tmp_path / "ft")]) == 0
+    for name, policy in (("reaction_wheel", f"ssac:{ssac / 'final'}"), ("furuta", f"papg:{papg / 'final'}")):
+        assert main(["simulate", name, "--controller", policy, "--duration", "0.5",
+                     "--out", str(tmp_path / f"sim-{name}")]) == 0
+        assert (tmp_path / f"sim-{name}" / "replay.html").is_file()
+    capsys.readouterr()
