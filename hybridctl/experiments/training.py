@@ -352,8 +352,12 @@ def train_and_evaluate(algorithm: str, system: str, out: str | Path | None = Non
         raise ValueError("--init applies to ars only")
     spec = dict(spec or {})
     system_name = load(system).name  # a clear error for an unknown system name, before any work
-    plant = load(system, **spec) if spec else system  # a bad override fails here, naming the key
     config = make_config(algorithm, variant or "hybridctl", **settings)
+    if spec and getattr(config, "reward", None) is not None:
+        # --reward with --spec: the system is loaded here with the overrides, so the reward goes with them
+        # (a name alone is loaded by the learner with config.reward as its reward.kind)
+        spec.setdefault("reward.kind", config.reward)
+    plant = load(system, **spec) if spec else system  # a bad override fails here, naming the key
     out = _run_folder_of(out, algorithm, system, settings.get("seed", 0))
     with open_run_folder(out, resume, overwrite, inputs={"SYSTEM spec": _input_file(system)}) as folder:
         start = time.perf_counter()
