@@ -304,14 +304,15 @@ def test_train_sac_set_flags_resume_in_process(tmp_path, capsys):
 
 
 def test_train_reward_flag_goes_with_spec_overrides(tmp_path):
-    """--reward with --spec: the reward is one more override of the plant the CLI loads (it used to fail
+    """SSAC's --reward with --spec: the reward is one more override of the plant the CLI loads (it used to fail
     after the run had started: "SACConfig.reward='quadratic', but system ... was loaded with ...")."""
     from hybridctl.cli import main
 
-    out = tmp_path / "sac"
-    assert main(["train", "sac", "acrobot", "--spec", "params.gravity=9.81", "--reward", "quadratic", "--steps", "400",
+    out = tmp_path / "ssac"
+    assert main(["train", "ssac", "acrobot", "--spec", "params.gravity=9.81", "--reward", "quadratic", "--steps", "400",
                  "--num-envs", "4", "--exploration-steps", "400", "--minibatch-size", "32", "--buffer-size", "2000",
-                 "--no-tensorboard", "--eval-episodes", "2", "--quiet", "--out", str(out)]) == 0
+                 "--gate-warm-samples", "200", "--gate-warm-fit-steps", "10", "--no-tensorboard", "--eval-episodes", "2",
+                 "--quiet", "--out", str(out)]) == 0
     record = json.loads((out / "final" / "config.json").read_text())
     assert record["config"]["reward"] == "quadratic"
     assert record["system"]["overrides"] == {"params.gravity": 9.81, "reward.kind": "quadratic"}
