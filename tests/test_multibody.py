@@ -370,3 +370,14 @@ def test_the_command_line_trains_fine_tunes_and_simulates_a_multibody_system_by_
                      "--out", str(tmp_path / f"sim-{name}")]) == 0
         assert (tmp_path / f"sim-{name}" / "replay.html").is_file()
     capsys.readouterr()
+
+
+def test_the_shipped_reaction_wheel_swing_up_balances_from_hanging_down_in_drake(tmp_path):
+    """models/policies/ssac-reaction-wheel: the learned swing-up + the spec's cost-to-go gate + Drake's LQR
+    (issue 30 item 4), loaded by system name, from hanging down (nudged), in the Drake diagram."""
+    from hybridctl.experiments.simulation import simulate_and_write
+
+    system = systems.load("reaction_wheel")
+    summary = simulate_and_write(system, "ssac-costgate:models/policies/ssac-reaction-wheel", out=tmp_path / "run",
+                                 html=False)
+    assert summary["balanced"] is True and 0.5 < summary["first_balance_time"] < 4.5, summary

@@ -35,6 +35,8 @@ CONTROLLERS = {
     "ssac:PATH": "learned swing-up + learned gate (hysteresis) + LQR from an SSAC checkpoint directory",
     "finetune:PATH": "a fine-tuned sac/ssac swing-up (hybridctl finetune's final/ checkpoint), with its gate and LQR",
     "sac:PATH": "learned swing-up only from a SAC checkpoint directory (gate always off)",
+    "ssac-costgate:PATH": "learned swing-up of an SSAC (or SAC) checkpoint + the spec's cost-to-go gate (hysteresis) "
+                          "+ LQR, as the APG controllers; for a system whose learned gate does not fire",
     "ce-apg:PATH": "learned recurrent swing-up from an APG/PAPG/CEM/CE-APG checkpoint (thesis Ch. 7; also "
                    "apg:, papg:, cem:, shapg:) + cost-to-go gate (hysteresis) + LQR",
 }
@@ -69,10 +71,12 @@ def controller_parts(system: System, controller: str = "energy") -> ControllerPa
     if controller == "zero":
         return ControllerParts(swingup="zero", gate="never")
     kind, sep, path = controller.partition(":")
-    if sep and kind in ("ssac", "sac"):
+    if sep and kind in ("ssac", "sac", "ssac-costgate"):
         if not path:
             raise ValueError(f"controller {controller!r} needs a checkpoint path after '{kind}:'")
         policy, gate, meta = load_controller(path, system)
+        if kind == "ssac-costgate":   # the spec's cost-to-go gate (None) in place of the checkpoint's gate
+            return ControllerParts(policy)
         if kind == "ssac" and gate is None:
             raise ValueError(f"{path} is a {meta.get('algorithm')} checkpoint without a gate; use sac:{path}")
         gate_meta = meta.get("gate", {})
