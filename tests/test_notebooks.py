@@ -61,6 +61,7 @@ EXPECTED_LINES = {
     "07_your_robot.ipynb": [
         "generated = Drake to 1e-9: True",   # a URDF's generated torch dynamics against Drake's plant (issue 30)
         "balanced: True",                    # Drake's LQR on the MultibodyPlant in the hybrid diagram
+        "swing-up balanced: True",           # the shipped SSAC reaction-wheel swing-up + gate + LQR, in Drake
         "gradients finite: True",            # a PAPG run through the generated dynamics
     ],
     "03_trajectory_dimension.ipynb": [
