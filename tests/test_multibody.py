@@ -335,7 +335,7 @@ def test_overriding_the_physics_warns_which_tuned_values_were_kept(recwarn):
                  k_d=1.0)                                   # every tuned value retuned with it: nothing to say
     systems.load("acrobot", dt=0.005)                       # not the physics
     assert not [w for w in recwarn if "changes the physics" in str(w.message)]
-    with pytest.warns(UserWarning, match=r"furuta: override gravity=3.7 changes the physics.*gate.cost_scale=226.8"):
+    with pytest.warns(UserWarning, match=r"furuta: override gravity=3.7 changes the physics.*gate.cost_scale=113.4"):
         systems.load("furuta", gravity=3.7)
 
 
