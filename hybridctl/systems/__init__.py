@@ -30,9 +30,9 @@ from .spec import (OPTIONAL_DEFAULTS, GateSection, InitialStateSection, SpecErro
 __all__ = ["System", "load", "from_drake", "known_systems", "SpecError", "ModelError", "Spec", "check_array", "control",
            "GateSection", "SuccessSection", "InitialStateSection", "SwingupSection"]
 
-TUNED_FOR_PHYSICS = ("params.", ("model.file",))
-"""Spec keys that are the physics: overriding one (a ``params.`` key, or the model file) keeps
-:data:`TUNED_VALUES` that were tuned for the spec's own physics, and says so."""
+PHYSICS_KEYS = ("params.", "model.file")
+"""Prefixes of the spec keys that are the physics: overriding one (a ``params.`` key, or the model
+file) keeps :data:`TUNED_VALUES` that were tuned for the spec's own physics, and says so."""
 TUNED_VALUES = ("control.period", "gate.cost_scale")
 """Values tuned for a spec's physics (with every ``swingup.`` gain): the LQR's hold and the gate's scale."""
 
@@ -151,6 +151,7 @@ class System:
                 self._step_torch(torch.zeros(2, self.n_states, dtype=dtype),   # that filled them would
                                  torch.zeros(2, self.n_actions, dtype=dtype))  # compile twice)
         self._lqr_cache: dict = {}
+        self._input_matrix: np.ndarray | None = None
         self._warn_tuned_values_kept()
 
     def __repr__(self) -> str:
@@ -166,7 +167,7 @@ class System:
         import warnings
 
         spec = self.spec
-        physics = [k for k in spec.overridden if k.startswith(TUNED_FOR_PHYSICS[0]) or k in TUNED_FOR_PHYSICS[1]]
+        physics = [k for k in spec.overridden if k.startswith(PHYSICS_KEYS)]
         tuned = [k for k in spec.values if k in TUNED_VALUES or (k.startswith("swingup.") and k != "swingup.controller")]
         kept = [k for k in tuned if k not in spec.overridden]
         if not physics or not kept or multiprocessing.parent_process() is not None:
@@ -202,7 +203,7 @@ class System:
             spec.values["action.limit"], spec.sources["action.limit"] = float(limits[0]), f"{where} (effort limit)"
         # the model file's bytes are part of the plant: a checkpoint records this with the spec values
         # (learn.checkpoint.system_record), so a changed model is refused on load unless forced
-        spec.values["model.file_sha256"] = symbolic.model_hash(self.model_request)
+        spec.values["model.file_sha256"] = model.info["file_sha256"]
         spec.sources["model.file_sha256"] = f"sha256 of {self.model_request.source}"
         validate_shapes(spec, model.n_q, model.n_u)
         kind = spec.get("reward.kind")
@@ -531,8 +532,11 @@ class System:
 
     def drake_input_matrix(self, plant) -> np.ndarray:
         """S with the Drake plant's actuation input = S u: the identity, except for a multibody model
-        whose spec actuates a subset (or another order) of the model's JointActuators."""
-        return _plants().input_matrix(self, plant)
+        whose spec actuates a subset (or another order) of the model's JointActuators. It depends on the
+        model alone, so it is worked out once (``drake_derivatives`` asks for it at every state)."""
+        if self._input_matrix is None:
+            self._input_matrix = _plants().input_matrix(self, plant)
+        return self._input_matrix
 
     def drake_input(self, plant, u) -> np.ndarray:
         """The Drake plant's actuation input for our action ``u``."""

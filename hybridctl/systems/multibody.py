@@ -258,8 +258,7 @@ class _Code:
 class _PolynomialWriter:
     """Evaluates polynomials of :class:`MultibodyModel` in a :class:`_Code`, sharing monomials."""
 
-    def __init__(self, code: _Code, variables: Sequence[str | None], sin: str, cos: str, coordinates: Sequence[str]):
-        # variables: for each of the 4n variable slots, None (unused) or filled lazily
+    def __init__(self, code: _Code, sin: str, cos: str, coordinates: Sequence[str]):
         self.code = code
         self.sin, self.cos = sin, cos
         self.coordinates = list(coordinates)    # names of q_0.., v_0.. columns
@@ -294,16 +293,16 @@ class _PolynomialWriter:
             self._mono[factors] = self.code.mul(self._product(factors[:-1]), self.variable(factors[-1]))
         return self._mono[factors]
 
-    def polynomial(self, terms: Sequence[Term], scale: float = 1.0):
-        """sum_k scale c_k m_k: a float where every term is constant."""
+    def polynomial(self, terms: Sequence[Term]):
+        """sum_k c_k m_k: a float where every term is constant."""
         const = 0.0
         out = None
         for coef, exponents in terms:
             if not any(exponents):
-                const += scale * coef
+                const += coef
                 continue
             m = self.monomial(exponents)
-            out = self.code.mul(m, scale * coef) if out is None else self.code.add(out, m, scale * coef)
+            out = self.code.mul(m, coef) if out is None else self.code.add(out, m, coef)
         if out is None:
             return const
         return self.code.add(out, const) if const != 0.0 else out
@@ -350,7 +349,7 @@ def _accelerations(model: MultibodyModel, code: _Code, q: Sequence[str], v: Sequ
                    sin: str, cos: str):
     """Emit qdd = M^-1 (B u + tau_g - C v - D v) into ``code``; return the n accelerations."""
     n = model.n_q
-    poly = _PolynomialWriter(code, [], sin, cos, [*q, *v])
+    poly = _PolynomialWriter(code, sin, cos, [*q, *v])
     m, index = {}, 0
     for i in range(n):
         for k in range(i, n):
@@ -428,7 +427,7 @@ def polynomials_source(model: MultibodyModel, polys: Sequence[Sequence[Term]]) -
     n = model.n_q
     code = _Code(torch_calls=False)
     q, v = [f"q{i}" for i in range(n)], [f"v{i}" for i in range(n)]
-    writer = _PolynomialWriter(code, [], "sin", "cos", [*q, *v])
+    writer = _PolynomialWriter(code, "sin", "cos", [*q, *v])
     values = [_Code.text(writer.polynomial(p)) for p in polys]
     head = [f"{', '.join(q)}, = q", f"{', '.join(v)}, = v"]
     return ("def values(q, v, sin, cos):\n" + "".join(f"    {line}\n" for line in head + code.lines)
@@ -454,9 +453,7 @@ class GeneratedDynamics:
         self._torch: dict = {}
         self._scalar: dict = {}
         self._compiled: dict = {}
-        self._energy = None
-        self._tip = None
-        self._points = None
+        self._evaluators: dict = {}   # energy, tip, body points: generated on first use
 
     # ----------------------------------------------------------------- torch
     def generate_torch_step(self, dt: float | None, integrator: str | None, columns: bool = False):
@@ -509,13 +506,20 @@ class GeneratedDynamics:
         cols = [x[..., i] for i in range(2 * n)]
         return cols[:n], cols[n:], np.sin, np.cos
 
+    def _values(self, name: str, polys, x) -> list:
+        """The polynomials ``polys`` (evaluator generated once under ``name``) at states x, each as an array
+        or tensor like x's columns (constant polynomials spread to that shape)."""
+        if name not in self._evaluators:
+            self._evaluators[name] = _compile(polynomials_source(self.model, list(polys)), "values", {})
+        q, v, sin, cos = self._split(x)
+        like = q[0]
+        full = torch.full_like if isinstance(like, torch.Tensor) else np.full_like
+        return [full(like, value) if isinstance(value, float) else value
+                for value in self._evaluators[name](q, v, sin, cos)]
+
     def energy(self, x):
         """Kinetic plus potential energy of states x (numpy or torch, batched), as Drake computes them."""
-        if self._energy is None:
-            self._energy = _compile(polynomials_source(self.model, [self.model.kinetic, self.model.potential]),
-                                    "values", {})
-        q, v, sin, cos = self._split(x)
-        kinetic, potential = self._energy(q, v, sin, cos)
+        kinetic, potential = self._values("energy", [self.model.kinetic, self.model.potential], x)
         return kinetic + potential
 
     def has_tip(self) -> bool:
@@ -526,24 +530,13 @@ class GeneratedDynamics:
         """World (x, y, z) of the spec's tip point at states x (numpy or torch, batched)."""
         if not self.model.tip:
             raise ValueError("this model has no tip point: name one in the spec ([model] tip_body and tip_point)")
-        if self._tip is None:
-            self._tip = _compile(polynomials_source(self.model, list(self.model.tip)), "values", {})
-        q, v, sin, cos = self._split(x)
-        values = self._tip(q, v, sin, cos)
-        like = q[0]
-        return [value if not isinstance(value, float) else (torch.full_like(like, value) if isinstance(like, torch.Tensor)
-                                                             else np.full_like(like, value))
-                for value in values]
+        return self._values("tip", self.model.tip, x)
 
     def points(self, x) -> np.ndarray:
         """(len(x), bodies + tip, 3) world positions of the body origins (and the tip point, if any) at
         states x (numpy, batched): what a stick-figure drawing and a view box need."""
-        if self._points is None:
-            self._points = _compile(polynomials_source(self.model, [*self.model.body_origins, *self.model.tip]),
-                                    "values", {})
         x = np.atleast_2d(np.asarray(x, dtype=float))
-        q, v, sin, cos = self._split(x)
-        values = [np.broadcast_to(np.asarray(value, dtype=float), (x.shape[0],)) for value in self._points(q, v, sin, cos)]
+        values = self._values("points", [*self.model.body_origins, *self.model.tip], x)
         return np.stack(values, axis=-1).reshape(x.shape[0], -1, 3)
 
     def segments(self) -> list[tuple[int, int]]:

@@ -343,27 +343,30 @@ def model_hash(request: ModelRequest) -> str:
     return hashlib.sha256(_file_bytes(request.source)).hexdigest()
 
 
-def cache_key(request: ModelRequest) -> str:
-    """The cache key: the model file's bytes, its location, every setting, the format and Drake's version."""
+def cache_key(request: ModelRequest, file_hash: str | None = None) -> str:
+    """The cache key: the model file's bytes (``file_hash``, :func:`model_hash`; read when not given), its
+    location, every setting, the format and Drake's version."""
     import pydrake
     settings = {"format": FORMAT, "source": request.source, "actuated": list(request.actuated),
                 "gravity": request.gravity, "tip_body": request.tip_body, "tip_point": list(request.tip_point),
-                "file": model_hash(request), "drake": getattr(pydrake, "__version__", "")}
+                "file": file_hash or model_hash(request), "drake": getattr(pydrake, "__version__", "")}
     return hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:32]
 
 
 def load_model(request: ModelRequest, use_cache: bool = True) -> MultibodyModel:
     """The generated model of ``request``: from the cache when it holds it, else derived and cached.
 
-    ``info`` says ``cached`` and ``generation_seconds`` (of the derivation, when it ran now).
-    An unreadable or damaged cache file is derived anew and replaced.
+    ``info`` says ``cached``, ``generation_seconds`` (of the derivation, when it ran now) and
+    ``file_sha256`` (:func:`model_hash`, read once here). An unreadable or damaged cache file is
+    derived anew and replaced.
     """
-    key = cache_key(request)
+    file_hash = model_hash(request)
+    key = cache_key(request, file_hash)
     path = cache_folder() / f"{key}.json"
     if use_cache and path.is_file() and path.stat().st_size <= MAX_JSON_BYTES:
         try:
             model = MultibodyModel.from_json(json.loads(path.read_text()), where=str(path))
-            return _with_info(model, cached=True, cache_file=str(path), key=key)
+            return _with_info(model, cached=True, cache_file=str(path), key=key, file_sha256=file_hash)
         except (ModelError, ValueError, OSError):
             pass
     model = derive(request)
@@ -372,7 +375,7 @@ def load_model(request: ModelRequest, use_cache: bool = True) -> MultibodyModel:
         io.write_json(path, model.to_json())
     except OSError:  # a read-only home: generate every time
         pass
-    return _with_info(model, cached=False, cache_file=str(path), key=key)
+    return _with_info(model, cached=False, cache_file=str(path), key=key, file_sha256=file_hash)
 
 
 def _with_info(model: MultibodyModel, **info) -> MultibodyModel:
