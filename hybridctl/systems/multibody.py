@@ -522,10 +522,6 @@ class GeneratedDynamics:
         kinetic, potential = self._values("energy", [self.model.kinetic, self.model.potential], x)
         return kinetic + potential
 
-    def has_tip(self) -> bool:
-        """Whether the spec names a tip point (needed by the tip-height rewards)."""
-        return bool(self.model.tip)
-
     def tip_world(self, x):
         """World (x, y, z) of the spec's tip point at states x (numpy or torch, batched)."""
         if not self.model.tip:

@@ -381,11 +381,3 @@ def load_model(request: ModelRequest, use_cache: bool = True) -> MultibodyModel:
 def _with_info(model: MultibodyModel, **info) -> MultibodyModel:
     from dataclasses import replace
     return replace(model, info={**model.info, **info})
-
-
-def equilibrium_residual(plant, x: Sequence[float]) -> np.ndarray:
-    """Drake's time derivatives at state ``x`` with zero input (an equilibrium has all zeros)."""
-    context = plant.CreateDefaultContext()
-    context.SetContinuousState(np.asarray(x, dtype=float))
-    plant.get_actuation_input_port().FixValue(context, np.zeros(plant.num_actuators()))
-    return plant.EvalTimeDerivatives(context).CopyToVector()
