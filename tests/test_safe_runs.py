@@ -524,3 +524,18 @@ def test_mesh_checkpoints_by_time(tmp_path, monkeypatch):
     (tmp_path / "c.npz").write_bytes(b"garbage")
     with pytest.raises(ValueError, match="mesh checkpoint .*c.npz is damaged"):
         build_mesh(*args, checkpoint=tmp_path / "c.npz", resume=True, progress=False)
+
+
+def test_a_deployed_swingup_ignores_training_only_and_gate_sections(ssac_checkpoint):
+    """The episode length never reaches a deployed policy; the gate section only a learned gate reads:
+    ``with_gate=False`` (the ``ssac-costgate:`` controller) loads beside another gate scale."""
+    longer = systems.load("acrobot", **{"episode.duration": 20.0})
+    policy, gate, _ = load_controller(ssac_checkpoint, longer)
+    assert gate is not None
+    rescaled = systems.load("acrobot", **{"gate.cost_scale": 7.0})
+    with pytest.raises(CheckpointError, match=r"gate.cost_scale=.*this system has 7.0"):
+        load_controller(ssac_checkpoint, rescaled)   # the learned gate's cost feature reads the scale
+    policy, gate, _ = load_controller(ssac_checkpoint, rescaled, with_gate=False)
+    assert gate is None and policy is not None
+    with pytest.raises(CheckpointError, match=r"link_mass"):   # the plant is still checked
+        load_controller(ssac_checkpoint, systems.load("acrobot", link_mass=[2, 1]), with_gate=False)

@@ -74,7 +74,7 @@ def controller_parts(system: System, controller: str = "energy") -> ControllerPa
     if sep and kind in ("ssac", "sac", "ssac-costgate"):
         if not path:
             raise ValueError(f"controller {controller!r} needs a checkpoint path after '{kind}:'")
-        policy, gate, meta = load_controller(path, system)
+        policy, gate, meta = load_controller(path, system, with_gate=kind != "ssac-costgate")
         if kind == "ssac-costgate":   # the spec's cost-to-go gate (None) in place of the checkpoint's gate
             return ControllerParts(policy)
         if kind == "ssac" and gate is None:

@@ -397,10 +397,14 @@ def _shown(value) -> str:
     return json.dumps(to_jsonable(value))
 
 
-TRAINING_ONLY_SECTIONS = ("reward.", "initial_state.")
-"""Spec keys that shape training but not the plant or its controllers: the reward and the
-distribution episodes start from. A deployed policy (:func:`hybridctl.learn.load_controller`)
-ignores them; resuming a run does not."""
+TRAINING_ONLY_SECTIONS = ("reward.", "initial_state.", "episode.")
+"""Spec keys that shape training but not the plant or its controllers: the reward, the
+distribution episodes start from and how long training episodes last. A deployed policy
+(:func:`hybridctl.learn.load_controller`) ignores them; resuming a run does not."""
+
+GATE_SECTION = "gate."
+"""Spec keys only a learned gate uses (its cost feature's scale, its warm-start spreads and
+labels): ignored when only the swing-up policy of a checkpoint is deployed."""
 
 
 def plant_differences(found: Path, recorded: dict | None, system,

@@ -16,7 +16,8 @@ from .gate import GateConfig, GateNet
 from .networks import Actor, DeterministicPolicy, ObsTransform
 
 
-def load_controller(path: str | Path, system, force: bool = False) -> tuple[DeterministicPolicy, GateNet | None, dict]:
+def load_controller(path: str | Path, system, force: bool = False,
+                    with_gate: bool = True) -> tuple[DeterministicPolicy, GateNet | None, dict]:
     """The deterministic swing-up policy and (SSAC) the gate of a checkpoint directory.
 
     Args:
@@ -29,8 +30,11 @@ def load_controller(path: str | Path, system, force: bool = False) -> tuple[Dete
             (:data:`~hybridctl.learn.checkpoint.TRAINING_ONLY_SECTIONS`) may differ: a deployed
             policy does not see them.
         force: load a checkpoint trained on another plant anyway (with a warning).
+        with_gate: False when only the swing-up policy is deployed (beside the spec's
+            cost-to-go gate): the checkpoint's gate is not loaded, and the spec's ``gate``
+            section (which only a learned gate reads) may differ too.
 
-    Returns (policy, gate or None for SAC, the checkpoint's config.json dict).
+    Returns (policy, gate or None for SAC or ``with_gate=False``, the checkpoint's config.json dict).
     Raises :class:`CheckpointError` naming the missing or damaged file (model.pt and its keys,
     config.json, normalization.json) or what differs from ``system``.
     """
@@ -44,7 +48,8 @@ def load_controller(path: str | Path, system, force: bool = False) -> tuple[Dete
     if meta.get("algorithm") not in ("SAC", "SSAC"):
         raise ckpt.CheckpointError(f"checkpoint {found} was written by {meta.get('algorithm')}, not SAC or SSAC: "
                                    f"it holds no swing-up policy and gate")
-    ckpt.check_plant(found, meta.get("system"), system, force, ignore=ckpt.TRAINING_ONLY_SECTIONS)
+    ignore = ckpt.TRAINING_ONLY_SECTIONS + (() if with_gate else (ckpt.GATE_SECTION,))
+    ckpt.check_plant(found, meta.get("system"), system, force, ignore=ignore)
     cfg = meta.get("config", {})
     try:
         obs_dim, action_dim = int(meta["obs_dim"]), int(meta["action_dim"])
@@ -71,7 +76,7 @@ def load_controller(path: str | Path, system, force: bool = False) -> tuple[Dete
                                    f"of {obs_dim} states ({exc})") from exc
     policy = DeterministicPolicy(actor)
     gate = None
-    if meta.get("algorithm") == "SSAC":
+    if meta.get("algorithm") == "SSAC" and with_gate:
         gate_state = model.get("extra", {}).get("gate")
         if gate_state is None:
             raise ckpt.CheckpointError(f"{found / ckpt.MODEL_FILE} is an SSAC checkpoint without gate weights")
