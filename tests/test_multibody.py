@@ -350,7 +350,8 @@ def test_an_optional_key_a_spec_leaves_out_can_be_overridden():
 
 
 def test_the_command_line_trains_fine_tunes_and_simulates_a_multibody_system_by_name(tmp_path, capsys):
-    """SSAC (learned swing-up + gate), PAPG with the LQR takeover, fine-tuning and simulate, by system name:
+    """SSAC (learned swing-up + gate), PAPG and CE-APG with the LQR takeover, ARS, fine-tuning (of SSAC and ARS),
+    simulate and both balance-map engines, by system name:
     tiny budgets, only that every path runs on generated dynamics and writes what it says."""
     from hybridctl.cli import main
 
@@ -363,12 +364,28 @@ def test_the_command_line_trains_fine_tunes_and_simulates_a_multibody_system_by_
     assert main(["train", "papg", "furuta", "--takeover", "lqr", "--policy", "mlp:8", "--population", "2",
                  "--elites", "1", "--batch", "2", "--horizon", "10", "--apg-iterations", "2", "--epochs", "1",
                  "--eval-episodes", "2", "--out", str(papg), "--quiet"]) == 0
+    ceapg = tmp_path / "ce-apg"
+    assert main(["train", "ce-apg", "reaction_wheel", "--takeover", "lqr", "--policy", "mlp:8", "--population", "2",
+                 "--elites", "1", "--batch", "2", "--horizon", "10", "--apg-iterations", "1", "--epochs", "1",
+                 "--eval-episodes", "2", "--out", str(ceapg), "--quiet"]) == 0
+    ars = tmp_path / "ars"
+    assert main(["train", "ars", "furuta", "--epochs", "1", "--n-directions", "2", "--top-directions", "1",
+                 "--episode-steps", "20", "--transient-steps", "2", "--backend", "serial", "--eval-episodes", "1",
+                 "--out", str(ars), "--quiet"]) == 0
     assert main(["finetune", "reaction_wheel", "--policy", f"ssac:{ssac / 'final'}", "--updates", "1",
                  "--directions", "2", "--eval-episodes", "2", "--out", str(tmp_path / "ft")]) == 0
-    for name, policy in (("reaction_wheel", f"ssac:{ssac / 'final'}"), ("furuta", f"papg:{papg / 'final'}")):
-        assert main(["simulate", name, "--controller", policy, "--duration", "0.5",
-                     "--out", str(tmp_path / f"sim-{name}")]) == 0
-        assert (tmp_path / f"sim-{name}" / "replay.html").is_file()
+    assert main(["finetune", "furuta", "--policy", f"ars:{ars / 'final'}", "--updates", "1",
+                 "--directions", "2", "--eval-episodes", "2", "--out", str(tmp_path / "ft-ars")]) == 0
+    for name, policy in (("reaction_wheel", f"ssac:{ssac / 'final'}"), ("furuta", f"papg:{papg / 'final'}"),
+                         ("reaction_wheel", f"ce-apg:{ceapg / 'final'}")):
+        out = tmp_path / f"sim-{name}-{policy.partition(':')[0]}"
+        assert main(["simulate", name, "--controller", policy, "--duration", "0.5", "--out", str(out)]) == 0
+        assert (out / "replay.html").is_file()
+    for engine in ("drake", "torch"):
+        out = tmp_path / f"map-{engine}"
+        assert main(["balance-map", "reaction_wheel", "--controller", f"ssac-costgate:{ssac / 'final'}", "--grid", "2",
+                     "--duration", "0.5", "--engine", engine, "--workers", "1", "--out", str(out)]) == 0
+        assert len(json.loads((out / "balance_map.json").read_text())["balanced"]) == 2
     capsys.readouterr()
 
 
