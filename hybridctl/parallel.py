@@ -127,8 +127,21 @@ def unguarded_script_line() -> tuple[str, int] | None:
     return path, line
 
 
+def unreadable_main_script() -> str | None:
+    """The main script's name when spawned workers could not re-import it (code read from
+    standard input, ``python -``: ``__file__`` is ``'<stdin>'``), else None. Such workers die at
+    start-up, and a ``multiprocessing.Pool`` would start new ones forever."""
+    path = getattr(sys.modules.get("__main__"), "__file__", None)
+    return path if path and not os.path.isfile(path) else None
+
+
 def require_main_guard() -> None:
-    """Raise RuntimeError in one line when :func:`unguarded_script_line` finds unguarded script code."""
+    """Raise RuntimeError in one line when :func:`unguarded_script_line` finds unguarded script code,
+    or when the main script cannot be re-imported by spawned workers (:func:`unreadable_main_script`)."""
+    unreadable = unreadable_main_script()
+    if unreadable is not None:
+        raise RuntimeError(f"the main script is {unreadable!r}, which spawned worker processes cannot re-import: "
+                           "save the code to a file and run that (or use one worker / backend='serial')")
     found = unguarded_script_line()
     if found is not None:
         path, line = found

@@ -69,6 +69,21 @@ def test_no_check_outside_scripts():
     assert out.stdout.strip() == "None"  # python -c: no script file to re-import
 
 
+def test_a_script_read_from_standard_input_is_refused_before_workers_start():
+    """``python -`` names its main script '<stdin>': spawned workers cannot re-import it and would die at
+    start-up (a multiprocessing Pool then starts new ones forever)."""
+    code = textwrap.dedent("""
+        from hybridctl.parallel import ProcessBackend
+        try:
+            ProcessBackend(workers=2).map(abs, [-1, -2])
+        except RuntimeError as exc:
+            print(exc)
+    """)
+    out = subprocess.run([sys.executable, "-"], input=code, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert "'<stdin>', which spawned worker processes cannot re-import" in out.stdout
+
+
 # --------------------------------------------------------------------------- workers die with their parent
 POOL_PARENT = """\
 import sys, time
