@@ -7,8 +7,10 @@ STAMP := $(VENV)/.installed
 
 DOCS_STAMP := $(VENV)/.installed-docs
 # The extras whose code paths the README claims are installed for the tests, so CI runs their tests
-# instead of skipping them: SB3 zips and agents (sb3), the MuJoCo envs of Ch. 4-6 (mujoco). About 20 s of tests.
-TEST_EXTRAS := test,sb3,mujoco
+# instead of skipping them: SB3 zips and agents (sb3), the MuJoCo envs of Ch. 4-6 (mujoco), the Ray backend on
+# a local instance the test session starts on 127.0.0.1 (ray). HYBRIDCTL_REQUIRE_EXTRAS makes a missing one an
+# error at the start of the session (tests/conftest.py) instead of a quiet skip.
+TEST_EXTRAS := test,sb3,mujoco,ray
 
 .PHONY: demo test test-all bench docs venv clean
 
@@ -27,13 +29,14 @@ venv: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/hybridctl demo --out runs/demo
 
-# two test processes (pytest-xdist): CI's 2 cores; each test still uses one torch thread
+# two test processes (pytest-xdist): CI's 2 cores; each test still uses one torch thread. --dist loadgroup keeps
+# the tests marked xdist_group("ray") on one process, so the session starts one local Ray instance, not two.
 test: $(STAMP)
-	$(BIN)/python -m pytest -q -n 2
+	HYBRIDCTL_REQUIRE_EXTRAS=$(TEST_EXTRAS) $(BIN)/python -m pytest -q -n 2 --dist loadgroup
 
 # Everything, the slow tests too (the documentation build in headless Chromium among them).
 test-all: $(DOCS_STAMP)
-	$(BIN)/python -m pytest -q -m "slow or not slow"
+	HYBRIDCTL_REQUIRE_EXTRAS=$(TEST_EXTRAS),docs $(BIN)/python -m pytest -q -m "slow or not slow"
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/dynamics.py

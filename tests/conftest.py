@@ -39,3 +39,57 @@ def cli_error(capsys):
         assert "Traceback" not in err, err
         return err
     return run
+
+
+# `make test` sets HYBRIDCTL_REQUIRE_EXTRAS to the extras it installed: a missing one is then an error at the
+# start of the session, so the tests of its paths cannot quietly skip in CI (a skipped test proves nothing).
+EXTRA_MODULES = {
+    "test": ("pytest_timeout", "xdist", "nbclient", "nbformat", "ipykernel"),
+    "sb3": ("stable_baselines3", "sb3_contrib"),
+    "mujoco": ("mujoco", "mujoco.batch"),
+    "ray": ("ray",),
+    "docs": ("mkdocs", "mkdocstrings", "mkdocs_jupyter", "material"),
+}
+
+
+def pytest_sessionstart(session):
+    """Refuse to run when an extra that ``make test`` installed cannot be imported."""
+    import importlib
+
+    required = [name for name in os.environ.get("HYBRIDCTL_REQUIRE_EXTRAS", "").split(",") if name]
+    unknown = sorted(set(required) - set(EXTRA_MODULES))
+    if unknown:
+        raise pytest.UsageError(f"HYBRIDCTL_REQUIRE_EXTRAS names unknown extras {unknown}; known: {sorted(EXTRA_MODULES)}")
+    missing = []
+    for extra in required:
+        for module in EXTRA_MODULES[extra]:
+            try:
+                importlib.import_module(module)
+            except ImportError as exc:
+                missing.append(f"{module} (extra '{extra}': {exc})")
+    if missing:
+        raise pytest.UsageError("HYBRIDCTL_REQUIRE_EXTRAS: not importable, so their tests would skip: "
+                                + "; ".join(missing))
+
+
+@pytest.fixture(scope="session")
+def local_ray():
+    """One real local Ray instance (2 CPUs, bound to 127.0.0.1, no dashboard) for the whole test session.
+
+    Tests that use it carry ``@pytest.mark.xdist_group("ray")`` so that ``make test`` (``--dist loadgroup``)
+    runs them on one process, which starts the instance once. hybridctl's Ray backend joins a running
+    instance (it passes no ``num_cpus``) and leaves it running. Skipped when Ray is not installed, which
+    ``make test`` turns into an error (HYBRIDCTL_REQUIRE_EXTRAS)."""
+    ray = pytest.importorskip("ray")
+    import sys
+
+    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")     # nothing leaves the machine
+    started = not ray.is_initialized()
+    if started:
+        # the workers import hybridctl and these test modules as this process does
+        env = {"env_vars": {"PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}}
+        ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, _node_ip_address="127.0.0.1",
+                 runtime_env=env)
+    yield ray
+    if started:
+        ray.shutdown()

@@ -133,8 +133,8 @@ def test_bad_parallel_settings_name_the_field(field, value, message):
         tiny("ce-apg", **{field: value})
 
 
-def test_ray_gives_the_serial_result():
-    pytest.importorskip("ray")
+@pytest.mark.xdist_group("ray")
+def test_ray_gives_the_serial_result(local_ray):
     split = trained("ce-apg", backend="ray", workers=2)
     assert_same_run(split, trained("ce-apg"))
 

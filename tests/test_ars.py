@@ -47,8 +47,8 @@ def test_processes_and_serial_backends_agree():
     np.testing.assert_array_equal(serial.stats.sum, parallel.stats.sum)
 
 
-def test_ray_backend_agrees():
-    pytest.importorskip("ray")
+@pytest.mark.xdist_group("ray")
+def test_ray_backend_agrees(local_ray):
     serial = ARS(point_reach, ARSConfig(seed=3, **SMALL)).learn(epochs=2, progress=False)
     with rollouts.make_backend("ray", workers=2) as backend:
         remote = ARS(point_reach, ARSConfig(seed=3, **SMALL)).learn(epochs=2, progress=False, backend=backend)

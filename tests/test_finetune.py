@@ -219,8 +219,8 @@ def test_a_killed_worker_neither_hangs_nor_changes_the_result():
     np.testing.assert_array_equal(t.theta, reference.theta)
 
 
-def test_ray_gives_the_serial_result():
-    pytest.importorskip("ray")
+@pytest.mark.xdist_group("ray")
+def test_ray_gives_the_serial_result(local_ray):
     a = tuner().learn(progress=False)
     b = tuner(backend="ray", workers=2).learn(progress=False)
     np.testing.assert_array_equal(a.theta, b.theta)

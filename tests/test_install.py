@@ -90,3 +90,48 @@ def test_user_specs_come_from_HYBRIDCTL_SYSTEMS(installed, tmp_path):
     assert "my_pendulum" in out.stdout and "acrobot" in out.stdout
     out = run([hybridctl, "systems"], work, HYBRIDCTL_SYSTEMS=str(tmp_path / "missing"))
     assert out.returncode == 2 and "HYBRIDCTL_SYSTEMS" in out.stderr and "Traceback" not in out.stderr
+
+
+# not pinned on purpose: this checkout itself and the installer's own tools
+UNPINNED = {"hybridctl", "pip", "setuptools", "wheel"}
+
+
+def _canonical(name: str) -> str:
+    import re
+    return re.sub(r"[-_.]+", "-", name).lower()
+
+
+def test_every_installed_distribution_is_pinned_in_constraints():
+    """What `make test` installed (the extras of TEST_EXTRAS and everything they pull in) is pinned exactly in
+    constraints.txt, so a fresh machine gets the versions the suite was checked with."""
+    import importlib.metadata
+
+    pins = {}
+    for line in (ROOT / "constraints.txt").read_text().splitlines():
+        requirement = line.split("#")[0].strip()
+        if "==" in requirement:
+            name, version = requirement.split("==", 1)
+            pins[_canonical(name)] = version.strip()
+    unpinned = {}
+    for dist in importlib.metadata.distributions():
+        name = _canonical(dist.metadata["Name"])
+        # a local version label (torch's "+cpu") is the build, not the version
+        if name not in UNPINNED and pins.get(name) != dist.version.split("+")[0]:
+            unpinned[name] = (dist.version, pins.get(name))
+    assert not unpinned, f"installed (version, pin): {unpinned}"
+
+
+def test_make_test_requires_every_extra_it_installs():
+    """The Makefile's TEST_EXTRAS are extras of pyproject.toml and each has modules that conftest checks, so
+    `make test` fails at the start instead of skipping their tests when one is missing."""
+    import tomllib
+
+    import conftest
+
+    makefile = (ROOT / "Makefile").read_text()
+    (line,) = [row for row in makefile.splitlines() if row.startswith("TEST_EXTRAS :=")]
+    extras = line.split(":=")[1].strip().split(",")
+    declared = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"]
+    assert set(extras) <= set(declared) and set(extras) <= set(conftest.EXTRA_MODULES)
+    assert {"sb3", "mujoco", "ray"} <= set(extras)
+    assert "HYBRIDCTL_REQUIRE_EXTRAS=$(TEST_EXTRAS)" in makefile and "--dist loadgroup" in makefile

@@ -101,6 +101,18 @@ def test_bad_input():
         batch.step(np.zeros((2, 3)), ids=[1, 0])
 
 
+def test_without_mujoco_the_stepper_names_the_extra_and_callers_fall_back(monkeypatch):
+    """With MuJoCo hidden (as on an install without the mujoco extra) the batched stepper is one ImportError that
+    says what to install, and ``supports`` says no, so ARS and the failure rates step gymnasium's env instead."""
+    import sys
+
+    monkeypatch.setitem(sys.modules, "mujoco", None)
+    monkeypatch.setitem(sys.modules, "mujoco.batch", None)
+    assert not supports("Hopper-v5")
+    with pytest.raises(ImportError, match=r"mujoco >= 3.17 .*pip install -c constraints.txt -e '\.\[mujoco\]'"):
+        MujocoBatchEnv("Hopper-v5")
+
+
 # ----------------------------------------------------------------------------- ARS and failure rates on it
 
 from hybridctl.learn.ars import ARS, ARSConfig, RolloutTask, batchable, run_episode, run_episodes_batched  # noqa: E402

@@ -160,3 +160,66 @@ def test_process_workers_die_with_a_killed_parent(tmp_path):
 def test_each_way_of_dying_with_the_parent_works_alone(tmp_path, pdeathsig):
     """The kernel's parent-death signal, and the portable fallback (a thread polling getppid)."""
     assert _kill_parent_and_watch(tmp_path, WATCHED_PARENT, pdeathsig) == []
+
+
+
+# 127.0.0.1, ::ffff:127.0.0.1 and ::1 as /proc/net writes them
+LOOPBACK = {"0100007F", "0000000000000000FFFF00000100007F", "00000000000000000000000001000000"}
+
+
+def _square(x):
+    """A task for the Ray workers (a module function: Ray cannot wrap a builtin)."""
+    return x * x
+
+
+def _listening_sockets() -> dict[int, tuple[str, int]]:
+    """Socket inode -> (address, port) of every listening TCP socket on this machine, from /proc/net."""
+    found = {}
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        try:
+            rows = open(table).read().splitlines()[1:]
+        except OSError:
+            continue
+        for row in rows:
+            fields = row.split()
+            if fields[3] == "0A":                                   # LISTEN
+                address, port = fields[1].split(":")
+                found[int(fields[9])] = (address, int(port, 16))
+    return found
+
+
+def _sockets_of_processes(marker: str) -> set[int]:
+    """Socket inodes held open by the processes whose command line contains ``marker``."""
+    import os
+
+    inodes = set()
+    for pid in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            if marker not in open(f"/proc/{pid}/cmdline", "rb").read().decode(errors="replace"):
+                continue
+            for fd in os.listdir(f"/proc/{pid}/fd"):
+                target = os.readlink(f"/proc/{pid}/fd/{fd}")
+                if target.startswith("socket:["):
+                    inodes.add(int(target[8:-1]))
+        except OSError:        # the process ended or is not ours
+            continue
+    return inodes
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+@pytest.mark.xdist_group("ray")
+def test_the_local_ray_instance_listens_on_loopback_only_and_the_backend_joins_it(local_ray):
+    """The Ray instance the tests start binds to 127.0.0.1 only (no Ray process listens on another address),
+    and the ray backend joins an instance that is already running without passing num_cpus (which Ray
+    refuses) and leaves it running."""
+    from hybridctl.parallel import make_backend
+
+    with make_backend("ray", workers=2) as backend:
+        assert backend.map(_square, [-1, 2, -3]) == [1, 4, 9]
+    assert local_ray.is_initialized() and local_ray.cluster_resources().get("CPU") == 2
+    assert local_ray.get_runtime_context().gcs_address.startswith("127.0.0.1:")
+    listening = _listening_sockets()
+    ray_listening = {listening[inode] for inode in _sockets_of_processes("ray") if inode in listening}
+    assert ray_listening, "found no listening socket of a Ray process"
+    public = {(address, port) for address, port in ray_listening if address not in LOOPBACK}
+    assert not public, public

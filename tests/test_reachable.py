@@ -172,22 +172,7 @@ def test_monte_carlo_chunks_give_the_same_result_on_every_backend():
         monte_carlo_mfpt(WHEEL, [[w]], SLOPES, episodes=10, chunks=11)
 
 
-@pytest.fixture(scope="module")
-def local_ray():
-    """A local 2-CPU Ray instance for this module's Ray tests (skipped when Ray is not installed)."""
-    ray = pytest.importorskip("ray")
-    import os
-    import sys
-    started = not ray.is_initialized()
-    if started:
-        env = {"env_vars": {"PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}}
-        ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, _node_ip_address="127.0.0.1",
-                 runtime_env=env)
-    yield ray
-    if started:
-        ray.shutdown()
-
-
+@pytest.mark.xdist_group("ray")
 def test_ray_backend_builds_the_same_mesh_and_monte_carlo(local_ray):
     """build_mesh and monte_carlo_mfpt on a local 2-CPU Ray instance equal the serial backend."""
     assert local_ray.cluster_resources().get("CPU") == 2
