@@ -42,6 +42,34 @@ def test_derivatives_match_drake(name, rng):
     np.testing.assert_allclose(ours, drake, rtol=1e-9, atol=1e-9)
 
 
+@pytest.mark.parametrize("name", ["acrobot", "pendulum"])
+def test_the_plants_own_default_context_holds_the_spec_parameters(name, rng):
+    """The newcomer's path: ``plant.CreateDefaultContext()`` of ``drake_plant()`` holds the spec's parameters (the
+    thesis acrobot's lc2 0.5, Ic2 1.0), not Drake's defaults (1.0, 0.33), so Drake agrees with our dynamics; in a
+    Diagram of one's own, ``apply_drake_parameters`` writes them into the plant's subcontext."""
+    from pydrake.systems.framework import DiagramBuilder
+
+    system = systems.load(name)
+    plant = system.drake_plant()
+    X = rng.uniform(-np.pi, np.pi, size=(20, system.n_states))
+    U = rng.uniform(-1, 1, size=(20, system.n_actions)) * system.action_limit
+    ours = system.derivatives(torch.tensor(X), torch.tensor(U)).numpy()
+    own = plant.CreateDefaultContext()
+    np.testing.assert_allclose([system.drake_derivatives(plant, own, x, u) for x, u in zip(X, U)], ours,
+                               rtol=1e-9, atol=1e-9)
+    builder = DiagramBuilder()
+    builder.AddSystem(plant)
+    diagram = builder.Build()
+    root = diagram.CreateDefaultContext()
+    sub = plant.GetMyMutableContextFromRoot(root)
+    drakes_defaults = [system.drake_derivatives(plant, sub, x, u) for x, u in zip(X, U)]
+    if name == "acrobot":                  # Drake's own AcrobotParams differ from the thesis acrobot's
+        assert not np.allclose(drakes_defaults, ours, rtol=1e-6)
+    system.apply_drake_parameters(plant, sub)
+    np.testing.assert_allclose([system.drake_derivatives(plant, sub, x, u) for x, u in zip(X, U)], ours,
+                               rtol=1e-9, atol=1e-9)
+
+
 @pytest.mark.parametrize("name", ALL)
 def test_lqr_closed_loop_is_stable(name):
     system = systems.load(name)

@@ -502,8 +502,11 @@ class System:
     def drake_plant(self):
         """A fresh Drake plant (AcrobotPlant, PendulumPlant or continuous MultibodyPlant).
 
-        AcrobotPlant and PendulumPlant keep parameters in the Context: create contexts
-        with :meth:`drake_context`, which writes the spec's parameters.
+        AcrobotPlant and PendulumPlant keep parameters in the Context; this plant's
+        ``CreateDefaultContext()`` (and :meth:`drake_context`) writes the spec's parameters
+        there. A Diagram's context is made in C++ with Drake's defaults: in a Diagram of
+        your own, call :meth:`apply_drake_parameters` on the plant's subcontext
+        (``hybridctl.drake``'s builders do it for you).
         """
         plant, _ = _plants().make_plant(self)
         return plant
@@ -511,8 +514,14 @@ class System:
     def drake_context(self, plant):
         """A Context of ``plant`` (from :meth:`drake_plant`) holding the spec's parameters."""
         context = plant.CreateDefaultContext()
-        _plants().make_plant_parameter_setter(self, plant)(context)
+        self.apply_drake_parameters(plant, context)
         return context
+
+    def apply_drake_parameters(self, plant, context) -> None:
+        """Write the spec's parameters into ``context``, a Context of ``plant`` (in a Diagram:
+        ``plant.GetMyMutableContextFromRoot(root_context)``). Nothing to write for a
+        MultibodyPlant, whose model holds them."""
+        _plants().make_plant_parameter_setter(self, plant)(context)
 
     def to_drake_state(self, x: np.ndarray) -> np.ndarray:
         """Our state convention -> the Drake plant's (differs only in the acrobot's th1)."""

@@ -90,15 +90,40 @@ def input_matrix(system: "HybridSystem", plant) -> np.ndarray:
     return np.eye(system.n_actions)
 
 
+class _SpecDefaults:
+    """Mixin for Drake's example plants, whose parameters live in the Context: ``CreateDefaultContext`` writes
+    the spec's parameters, not Drake's own defaults (an AcrobotPlant's default lc2 is 1.0 and Ic2 0.33;
+    the thesis acrobot's are 0.5 and 1.0). A Diagram's context is made in C++ and does not see this: diagrams
+    add the plant with ``add_plant``, whose handle writes the parameters."""
+
+    def __init__(self, setter_factory):
+        super().__init__()
+        self._write_spec_parameters = setter_factory(self)
+
+    def CreateDefaultContext(self):  # noqa: N802 - Drake's name
+        """A Context of this plant holding the spec's parameters."""
+        context = super().CreateDefaultContext()
+        self._write_spec_parameters(context)
+        return context
+
+
+class SpecAcrobotPlant(_SpecDefaults, AcrobotPlant):
+    """Drake's AcrobotPlant whose default Context holds the spec's parameters."""
+
+
+class SpecPendulumPlant(_SpecDefaults, PendulumPlant):
+    """Drake's PendulumPlant whose default Context holds the spec's parameters."""
+
+
 def make_plant(system: "HybridSystem"):
     """A fresh, unowned Drake plant and the function that writes the spec's parameters into a Context."""
     kind = system.spec.get("model.drake", "multibody")
     if kind == "acrobot":
-        plant = AcrobotPlant()
-        return plant, _acrobot_parameter_setter(system, plant)
+        plant = SpecAcrobotPlant(lambda plant: _acrobot_parameter_setter(system, plant))
+        return plant, plant._write_spec_parameters
     if kind == "pendulum":
-        plant = PendulumPlant()
-        return plant, _pendulum_parameter_setter(system, plant)
+        plant = SpecPendulumPlant(lambda plant: _pendulum_parameter_setter(system, plant))
+        return plant, plant._write_spec_parameters
     if system.family == "multibody":
         return _symbolic().parse_plant(system.model_request), (lambda context: None)
     if kind.startswith("multibody:"):
