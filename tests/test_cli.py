@@ -432,3 +432,14 @@ def test_output_into_a_closed_pipe_is_not_an_error():
                           capture_output=True, text=True, timeout=120, executable="/bin/bash")
     assert proc.stdout.startswith("acrobot")
     assert "Broken pipe" not in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_top_level_help_lists_every_learner_of_train(capsys):
+    """`hybridctl --help` names every learner `train` takes (eight), not only SAC / SSAC / ARS."""
+    from hybridctl.cli import main
+    from hybridctl.experiments.training import ALGORITHMS
+
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    shown = " ".join(capsys.readouterr().out.split())
+    assert len(ALGORITHMS) == 8 and f"({', '.join(ALGORITHMS)})" in shown

@@ -295,3 +295,21 @@ def test_two_training_runs_started_together_one_refused_one_consistent_run(tmp_p
     assert int(rows[-1]["env_steps"]) <= final and final >= 4000
     assert json.loads((out / "eval.json").read_text())["env_steps"] == final
     assert not list(out.glob("*.tmp*")) and not list(out.glob("*.bak-*"))
+
+
+def test_training_commands_without_out_number_their_run_folders(tmp_path, monkeypatch, capsys):
+    """Two training commands of the same settings without --out (the README's second command after its first)
+    each get a run folder, as the RL Zoo numbers runs: runs/train/ars-Pendulum-v1-s0, then ...-s0-2; --resume
+    without --out continues the newest."""
+    from hybridctl.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    base = Path("runs/train/ars-Pendulum-v1-s0")
+    for _ in range(2):
+        assert main(["train", "ars", "Pendulum-v1", "--epochs", "1", "--quiet", *ARS_FLAGS]) == 0
+    assert (base / "final").is_dir() and (tmp_path / f"{base}-2" / "final").is_dir()
+    assert f"wrote {base}-2/final" in capsys.readouterr().out
+    assert main(["train", "ars", "Pendulum-v1", "--epochs", "2", "--resume", "--quiet", *ARS_FLAGS]) == 0
+    assert json.loads((tmp_path / f"{base}-2" / "final" / "progress.json").read_text())["epoch"] == 2
+    assert json.loads((base / "final" / "progress.json").read_text())["epoch"] == 1    # untouched
+    assert not (tmp_path / f"{base}-3").exists()

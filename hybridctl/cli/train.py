@@ -290,7 +290,7 @@ def add_common_flags(parser: argparse.ArgumentParser, algorithm: str) -> set[str
     option strings."""
     run = parser.add_argument_group("run")
     actions = [
-        run.add_argument("--out", metavar="DIR", help="run folder (default runs/train/ALGO-SYSTEM-sSEED)"),
+        run.add_argument("--out", metavar="DIR", help="run folder (default runs/train/ALGO-SYSTEM-sSEED; a new run beside an earlier one of the same settings gets -2, -3, ...; --resume and --overwrite take the newest)"),
         run.add_argument("--resume", action="store_true", help="continue from the run folder's newest checkpoint "
                          "(see 'Resuming' below)"),
         run.add_argument("--force", action="store_true",
@@ -332,8 +332,9 @@ def add_common_flags(parser: argparse.ArgumentParser, algorithm: str) -> set[str
 
 
 def add_parser(sub) -> None:
-    """Register ``train`` and its learners ``sac``, ``ssac``, ``ars`` on the top-level sub-parsers."""
-    p = sub.add_parser("train", help="train SAC / Switched SAC (thesis Ch. 3) on a system, or ARS (Ch. 4) on an env",
+    """Register ``train`` and its learners (every name of ``ALGORITHMS``) on the top-level sub-parsers."""
+    p = sub.add_parser("train", help=f"train a learner ({', '.join(ALGORITHMS)}): SAC / Switched SAC (thesis Ch. 3) "
+                                     f"and the analytic policy gradients (Ch. 7) on a system, ARS (Ch. 4) on an env",
                        description="Train a learner; `hybridctl train ALGO --help` lists its flags.")
     add_debug_flag(p)
     learners = p.add_subparsers(dest="algorithm", required=True, metavar="{" + ",".join(ALGORITHMS) + "}",

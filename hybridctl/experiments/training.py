@@ -302,7 +302,7 @@ def train_and_evaluate(algorithm: str, system: str, out: str | Path | None = Non
     Args:
         algorithm: ``"sac"``, ``"ssac"`` (a system name) or ``"ars"`` (a gymnasium env id or a
             system name).
-        out: the run folder (default :func:`default_run_dir`): ``progress.csv``, ``checkpoint/``,
+        out: the run folder (default :func:`numbered_run_dir`): ``progress.csv``, ``checkpoint/``,
             ``final/``, ``eval.json`` (and for SAC/SSAC ``training_curves.png``). A folder that
             already holds a run is refused unless ``resume`` or ``overwrite``
             (:func:`prepare_run_folder`); so are an empty ``out``, a checkpoint folder and an
@@ -358,7 +358,7 @@ def train_and_evaluate(algorithm: str, system: str, out: str | Path | None = Non
         # (a name alone is loaded by the learner with config.reward as its reward.kind)
         spec.setdefault("reward.kind", config.reward)
     plant = load(system, **spec) if spec else system  # a bad override fails here, naming the key
-    out = _run_folder_of(out, algorithm, system, settings.get("seed", 0))
+    out = _run_folder_of(out, algorithm, system, settings.get("seed", 0), resume, overwrite)
     with open_run_folder(out, resume, overwrite, inputs={"SYSTEM spec": _input_file(system)}) as folder:
         start = time.perf_counter()
         agent = _sac_agent(algo, algorithm, system, system_name, plant, spec, config, settings, variant, out, resume,
@@ -376,9 +376,41 @@ def train_and_evaluate(algorithm: str, system: str, out: str | Path | None = Non
     return TrainingRun(agent, out, record)
 
 
-def _run_folder_of(out: str | Path | None, algorithm: str, system: str, seed: int) -> Path:
-    """The ``out`` argument as a Path (an empty one refused, naming --out), :func:`default_run_dir` if None."""
-    return default_run_dir(algorithm, system, seed) if out is None else io.folder_argument(out, "--out")
+MAX_NUMBERED_RUNS = 9999
+"""The most numbered default run folders (``ALGO-SYSTEM-sSEED-N``) one setting may have."""
+
+
+def numbered_run_dir(algorithm: str, system: str, seed: int = 0, resume: bool = False,
+                     overwrite: bool = False) -> Path:
+    """The run folder of a training command given no ``--out``, numbered as the RL Zoo numbers its runs:
+    :func:`default_run_dir` for the first run of these settings, then ``...-2``, ``...-3`` for new runs beside
+    it. ``resume`` and ``overwrite`` take the newest existing one (the unnumbered one if none holds a run)."""
+    base = default_run_dir(algorithm, system, seed)
+    held = [base] if _held_runs(base) else []
+    for n in range(2, MAX_NUMBERED_RUNS + 1):
+        numbered = base.with_name(f"{base.name}-{n}")
+        if not numbered.exists():
+            break
+        if _held_runs(numbered):
+            held.append(numbered)
+    else:
+        raise RunFolderError(f"{base.parent} holds {MAX_NUMBERED_RUNS} runs named {base.name}-N: give --out")
+    if resume or overwrite:
+        return held[-1] if held else base
+    if not held:
+        return base
+    newest = held[-1]
+    if newest == base:
+        return base.with_name(f"{base.name}-2")
+    return base.with_name(f"{base.name}-{int(newest.name.rsplit('-', 1)[1]) + 1}")
+
+
+def _run_folder_of(out: str | Path | None, algorithm: str, system: str, seed: int, resume: bool = False,
+                   overwrite: bool = False) -> Path:
+    """The ``out`` argument as a Path (an empty one refused, naming --out), :func:`numbered_run_dir` if None."""
+    if out is not None:
+        return io.folder_argument(out, "--out")
+    return numbered_run_dir(algorithm, system, seed, resume=resume, overwrite=overwrite)
 
 
 def _sac_agent(algo, algorithm: str, system: str, system_name: str, plant, spec: dict, config, settings: dict,
@@ -434,7 +466,7 @@ def _train_ars(env: str, out, settings: dict, variant: str, resume: bool, init, 
                overwrite: bool = False) -> TrainingRun:
     """:func:`train_and_evaluate` for ARS V2-t with optional dimension post-processing (thesis Ch. 4)."""
     make_config("ars", variant, **settings)  # bad settings fail before any checkpoint is read
-    out = _run_folder_of(out, "ars", env, settings.get("seed", 0))
+    out = _run_folder_of(out, "ars", env, settings.get("seed", 0), resume, overwrite)
     with open_run_folder(out, resume, overwrite, inputs={"--init": init, "ENV spec": _input_file(env)}) as folder:
         found = newest_run_checkpoint(out, strict=not force) if resume else None
         if found is not None:
@@ -471,7 +503,7 @@ def _train_apg(method: str, system: str, out, settings: dict, preset: str | None
         raise ValueError(f"unknown preset {preset!r} for {method}; known: {', '.join(APG_PRESETS)}")
     system_name = load(system).name  # a clear error for an unknown system name, before any work
     config = make_config(method, preset or "thesis", **settings)
-    out = _run_folder_of(out, method, system, config.seed)
+    out = _run_folder_of(out, method, system, config.seed, resume, overwrite)
     with open_run_folder(out, resume, overwrite, inputs={"SYSTEM spec": _input_file(system)}) as folder:
         agent = _apg_agent(method, system, system_name, config, settings, preset, out, resume, force, report)
         folder.clear()   # --overwrite: only now that the new run's inputs are read
