@@ -234,7 +234,8 @@ class RayBackend(SerialBackend):
         try:
             import ray
         except ImportError as exc:
-            raise ImportError("backend 'ray' needs Ray: pip install 'hybridctl[ray]'") from exc
+            raise ImportError("backend 'ray' needs Ray: pip install 'hybridctl[ray]' (in a checkout: "
+                              "pip install -c constraints.txt -e '.[ray]')") from exc
         self._ray = ray
         self._started_here = not ray.is_initialized()
         if self._started_here:

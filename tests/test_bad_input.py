@@ -405,4 +405,4 @@ def test_cli_names_a_missing_optional_extra(tmp_path, capsys, monkeypatch):
               "--out", str(tmp_path / "ars")])
     err = capsys.readouterr().err
     assert stop.value.code == 2 and "Traceback" not in err
-    assert "backend 'ray' needs Ray: pip install 'hybridctl[ray]'" in err
+    assert "backend 'ray' needs Ray: pip install 'hybridctl[ray]' (in a checkout: pip install -c constraints.txt -e '.[ray]')" in err

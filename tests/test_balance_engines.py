@@ -36,8 +36,15 @@ def test_default_diagram_runs_no_python_between_periodic_updates():
     continuous state, so Drake never calls Python at a derivative evaluation."""
     system = systems.load("acrobot")
     diagram = build_named_diagram(system, SSAC)
-    python_blocks = [s for s in diagram.GetSystems()
-                     if type(s).__module__.startswith("hybridctl") and not isinstance(s, Diagram)]
+    from pydrake.examples import AcrobotPlant
+
+    from hybridctl.systems.plants import SpecAcrobotPlant
+
+    # Drake's C++ AcrobotPlant, subclassed in Python only for CreateDefaultContext (which C++ never calls)
+    assert {name for cls in SpecAcrobotPlant.__mro__[:2] for name in vars(cls) if not name.startswith("__")} \
+        == {"CreateDefaultContext"}
+    python_blocks = [s for s in diagram.GetSystems() if type(s).__module__.startswith("hybridctl")
+                     and not isinstance(s, (Diagram, AcrobotPlant))]
     assert {s.get_name() for s in python_blocks} == {"swingup", "gate"}
     assert all(type(s).__module__.startswith("pydrake") for s in diagram.balance.GetSystems())
     for block in python_blocks:
@@ -192,3 +199,33 @@ def test_policy_numpy_forward_is_its_torch_forward(kind, hidden):
         policy.population.l0_bias.add_(0.5)          # parameters changed in place: the copies follow
         u = module(torch.as_tensor(x), torch.as_tensor(h))[0]
     np.testing.assert_allclose(module.numpy_forward(x, h)[0], u.numpy(), rtol=1e-12, atol=1e-12)
+
+
+def test_a_saved_map_names_its_axes_with_units_and_titles_no_absolute_path(tmp_path, monkeypatch):
+    """The cart-pole map varies the cart position and the pole angle: its axes say so, in m and rad (not "initial
+    th1 / th2"); a checkpoint given by absolute path is shown relative to the working folder, unbroken."""
+    import matplotlib.pyplot as plt
+
+    from hybridctl.experiments.controllers import display_name
+    from hybridctl.viz import plots
+
+    shown = {}
+    real = plots.plot_balance_map
+
+    def spy(*args, **kwargs):
+        fig = real(*args, **kwargs)
+        shown.update(x=fig.axes[0].get_xlabel(), y=fig.axes[0].get_ylabel(), title=fig.axes[0].get_title())
+        return fig
+
+    import importlib
+    monkeypatch.setattr(importlib.import_module("hybridctl.experiments.balance_map"), "plot_balance_map", spy)
+    result = balance_map("cartpole", "lqr", grid=2, engine="torch", progress=False, duration=0.5)
+    assert result.axes[0] == "x"
+    result.save(tmp_path / "map")
+    plt.close("all")
+    assert shown["x"] == f"initial {result.axes[0]} [m]" and shown["y"] == f"initial {result.axes[1]} [rad]"
+    monkeypatch.chdir(tmp_path)
+    checkpoint = tmp_path / "runs" / "ssac-cartpole-with-a-long-name" / "final"
+    assert display_name(f"ssac:{checkpoint}") == "ssac:runs/ssac-cartpole-with-a-long-name/final"
+    assert display_name("ssac:/elsewhere/policies/ssac-cartpole/final") == "ssac:.../ssac-cartpole/final"
+    assert display_name("energy") == "energy" and display_name("ssac:models/x") == "ssac:models/x"

@@ -82,6 +82,21 @@ def test_replay_html_default_server_and_torch_states():
     assert len(animation_tracks(html)[("/drake/replay/arm", ".quaternion")]) == 25
 
 
+def test_an_echoed_replay_page_is_one_line_and_replays_reuse_one_server(tmp_path):
+    """Echoing ``viz.replay_html(...)`` in a notebook shows the replay (``_repr_html_``), and its repr is one
+    line instead of megabytes of HTML; calls without ``meshcat`` share one server instead of starting one each."""
+    system = systems.load("pendulum")
+    times, states = swing(system, duration=0.5)
+    first = viz.replay_html(system, times, states, path=tmp_path / "a.html")
+    server = viz.shared_meshcat()
+    second = viz.replay_html(system, times, states)
+    assert viz.shared_meshcat() is server
+    assert isinstance(first, str) and len(first) > 10_000 and (tmp_path / "a.html").read_text() == first
+    assert "\n" not in repr(first) and len(repr(first)) < 200 and str(tmp_path / "a.html") in repr(first)
+    assert repr(second).startswith("<meshcat replay page:") and "written" not in repr(second)
+    assert second._repr_html_().startswith("<iframe srcdoc=") and "&lt;" in second._repr_html_()
+
+
 def test_replay_html_rejects_bad_input(meshcat):
     system = systems.load("acrobot")
     times, states = swing(system, duration=0.2)
@@ -179,6 +194,11 @@ def test_plot_trajectory(name, tmp_path):
         assert labels[system.angle_indices[0]].endswith("[rad]")
         limit_lines = [ln for ln in fig.axes[system.n_states].get_lines() if ln.get_linestyle() == "--"]
         assert sorted(ln.get_ydata()[0] for ln in limit_lines) == [-system.action_limit, system.action_limit]
+        # the input panel has its unit (every shipped spec gives one) and the limit lines a legend entry
+        assert system.action_unit in ("N", "N m") and labels[system.n_states].endswith(f"[{system.action_unit}]")
+        legend = [t.get_text() for t in fig.axes[system.n_states].get_legend().get_texts()]
+        assert f"limit +-{system.action_limit:g} {system.action_unit}" in legend
+        assert all(label.endswith(("[rad]", "[rad/s]", "[m]", "[m/s]")) for label in labels[:system.n_states])
     finally:
         plt.close(fig)
     with pytest.raises(ValueError, match="gate"):

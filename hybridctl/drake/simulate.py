@@ -61,7 +61,8 @@ class Trajectory:
         return episode_return(states, self.system) if len(states) else 0.0
 
     def summary(self) -> dict:
-        """JSON-ready summary: balanced, return, diverged, durations, first LQR time."""
+        """JSON-ready summary: balanced, return, diverged, durations, first LQR time, the final state
+        (``final_state`` with angles wrapped into [goal - pi, goal + pi), ``final_state_unwrapped``)."""
         on = np.flatnonzero(self.gate > 0.5)
         return {
             "system": self.system.name,
@@ -74,7 +75,10 @@ class Trajectory:
             "fraction_in_balance_mode": float(np.mean(self.gate > 0.5)) if len(self.gate) else 0.0,
             "max_abs_input": float(np.abs(self.u).max()) if self.u.size else 0.0,
             "x0": self.x[0].tolist() if len(self.x) else None,
-            "final_state": self.x[-1].tolist() if len(self.x) else None,
+            # angles wrapped about the goal, as the plots draw them (an elbow that made full turns on the
+            # way up ends at the goal, not at 4 pi); the unwrapped state is kept beside it
+            "final_state": (self.system.goal + self.system.state_error(self.x[-1])).tolist() if len(self.x) else None,
+            "final_state_unwrapped": self.x[-1].tolist() if len(self.x) else None,
             "wall_time_s": self.wall_time,
             "realtime_factor": (float(self.t[-1]) / self.wall_time) if self.wall_time > 0 and len(self.t) else None,
             **self.meta,

@@ -36,7 +36,7 @@ from ..parallel import require_main_guard, worker_initializer
 from ..systems import System, control, load
 from ..systems.success import decision_indices, episode_return, is_balanced
 from ..viz import plot_balance_map
-from .controllers import build_named_diagram, controller_parts
+from .controllers import build_named_diagram, controller_parts, display_name
 
 ENGINES = ("drake", "torch")
 
@@ -56,6 +56,7 @@ class BalanceMap:
     duration: float
     wall_time: float
     meta: dict = field(default_factory=dict)
+    units: tuple[str, str] = ("rad", "rad")     # of the two axes (System.state_unit)
 
     @property
     def fraction(self) -> float:
@@ -83,7 +84,8 @@ class BalanceMap:
         io.atomic_write_text(out / "balance_map.json", json.dumps(summary, indent=1))
         fig = plot_balance_map(self.values1, self.values2, self.balanced, diverged=self.diverged,
                                path=out / "balance_map.png",
-                               title=f"{self.system}, {self.controller}, {self.duration:g} s")
+                               title=f"{self.system}, {display_name(self.controller)}, {self.duration:g} s",
+                               axis_labels=tuple(f"initial {name} [{unit}]" for name, unit in zip(self.axes, self.units)))
         plt.close(fig)
         return summary
 
@@ -307,12 +309,13 @@ def balance_map(system: System | str, controller: str = "energy", grid: int = 41
     duration, workers = check_balance_map(system, grid, duration, engine, workers, force)
     (a1, a2), values1, values2, grid_states = _grid_starts(system, grid, axes, ranges)
     names = (system.state_names[a1], system.state_names[a2])
+    units = (system.state_unit(a1), system.state_unit(a2))
     start_time = time.perf_counter()
     if engine == "torch":
         result = torch_rollouts(system, controller, grid_states, duration)
         return BalanceMap(system.name, controller, names, values1, values2, result["balanced"].reshape(grid, grid),
                           result["returns"].reshape(grid, grid), result["diverged"].reshape(grid, grid), duration,
-                          time.perf_counter() - start_time, meta={"engine": "torch", "workers": 1})
+                          time.perf_counter() - start_time, meta={"engine": "torch", "workers": 1}, units=units)
     build_named_diagram(system, controller, log=False)  # bad names/checkpoints fail here, not in a worker
     starts = list(enumerate(grid_states))
     workers = max(1, min(cpu_count() if workers is None else int(workers), len(starts)))
@@ -347,7 +350,7 @@ def balance_map(system: System | str, controller: str = "energy", grid: int = 41
     return BalanceMap(system.name, controller, names, values1, values2, balanced.reshape(grid, grid),
                       returns.reshape(grid, grid), diverged.reshape(grid, grid), duration,
                       time.perf_counter() - start_time,
-                      meta={"engine": "drake", "workers": workers, "cpu_s": cpu, "load_average": list(os.getloadavg())})
+                      meta={"engine": "drake", "workers": workers, "cpu_s": cpu, "load_average": list(os.getloadavg())}, units=units)
 
 
 def divergence_time(times, a, b, tol: float = 1e-3) -> float | None:

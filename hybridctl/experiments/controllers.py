@@ -3,7 +3,9 @@ and worker processes pass around, since Drake systems and closures do not pickle
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -58,6 +60,19 @@ class ControllerParts:
     gate_on: float | None = None
     gate_off: float | None = None
     swingup_period: float | None = None
+
+
+def display_name(controller: str) -> str:
+    """``controller`` for a plot title: a checkpoint path relative to the working folder when it lies
+    inside it, else its last two parts after ``.../`` (so titles show no machine's absolute paths)."""
+    kind, sep, path = controller.partition(":")
+    if not sep or not os.path.isabs(path):
+        return controller
+    absolute = Path(path)
+    try:
+        return f"{kind}:{absolute.relative_to(Path.cwd())}"
+    except ValueError:
+        return f"{kind}:.../{Path(*absolute.parts[-2:])}"
 
 
 def controller_parts(system: System, controller: str = "energy") -> ControllerParts:

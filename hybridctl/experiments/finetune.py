@@ -22,6 +22,7 @@ from pathlib import Path
 from ..io import read_json, write_json
 from ..learn.finetune import FineTune, FineTuneConfig, parse_source
 from ..parallel import make_backend
+from .controllers import display_name
 from .training import machine, open_run_folder
 
 FINETUNE_MARKERS = ("checkpoint", "final", "progress.csv", "before.json", "after.json", "report.json")
@@ -93,5 +94,5 @@ def _finetune_in(out: Path, env: str, policy: str, tuner: FineTune, config: Fine
     write_json(out / "report.json", report)
     if figures:
         from ..viz.finetune import plot_finetune_report
-        plot_finetune_report(before, after, tuner.history, out / "finetune.png", title=f"{env}: {policy}")
+        plot_finetune_report(before, after, tuner.history, out / "finetune.png", title=f"{env}: {display_name(policy)}")
     return report

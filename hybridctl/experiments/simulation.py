@@ -17,7 +17,7 @@ from ..drake import simulate
 from ..drake.simulate import check_duration
 from ..systems import System, load
 from ..viz import plot_trajectory, replay_html
-from .controllers import build_named_diagram
+from .controllers import build_named_diagram, display_name
 
 def simulate_and_write(system: System | str, controller: str = "energy", out: str | Path = "runs/simulate",
                        x0=None, duration: float | None = None, html: bool = True, meshcat=None,
@@ -55,7 +55,7 @@ def simulate_and_write(system: System | str, controller: str = "energy", out: st
     written = ["trajectory.npz", "summary.json"]
     if len(traj.t) >= 2:  # else it diverged within the first step: nothing to draw, the summary says why
         fig = plot_trajectory(traj.t, traj.x, traj.u, traj.gate, system, path=out / "plot.png",
-                              title=f"{system.name}, {controller}: balanced={summary['balanced']}")
+                              title=f"{system.name}, {display_name(controller)}: balanced={summary['balanced']}")
         plt.close(fig)
         written.append("plot.png")
         if html:

@@ -201,6 +201,8 @@ class System:
                 raise spec.error("action.limit", f"is needed: the model's actuators give no single finite effort "
                                                  f"limit ({limits.tolist()}); set action.limit in the spec")
             spec.values["action.limit"], spec.sources["action.limit"] = float(limits[0]), f"{where} (effort limit)"
+            if all(model.revolute):          # every actuator then drives a revolute joint: a torque
+                spec.units["action.limit"] = "N m"
         # the model file's bytes are part of the plant: a checkpoint records this with the spec values
         # (learn.checkpoint.system_record), so a changed model is refused on load unless forced
         spec.values["model.file_sha256"] = model.info["file_sha256"]
@@ -499,6 +501,18 @@ class System:
         return x0
 
     # --------------------------------------------------------------------- Drake
+    def state_unit(self, i: int) -> str:
+        """The unit of state coordinate ``i``: rad or rad/s for angles (the spec's ``state.angles``), m or m/s
+        for the other positions (a cart, a prismatic joint) and their rates."""
+        n_q = self.n_states // 2
+        unit = "rad" if i % n_q in self.angle_indices else "m"
+        return f"{unit}/s" if i >= n_q else unit
+
+    @property
+    def action_unit(self) -> str:
+        """The unit of the action, as the spec gives it for ``action.limit`` (N m, N); empty if it gives none."""
+        return self.spec.units.get("action.limit", "")
+
     def drake_plant(self):
         """A fresh Drake plant (AcrobotPlant, PendulumPlant or continuous MultibodyPlant).
 

@@ -13,7 +13,7 @@ Names load on first use (PEP 562): plotting training curves does not import pydr
 from .. import lazy_exports
 
 _HOMES = {
-    "meshcat": ("add_meshcat", "replay_html", "start_meshcat"),
+    "meshcat": ("add_meshcat", "replay_html", "start_meshcat", "shared_meshcat", "ReplayPage"),
     "markov": ("plot_cumulative_mass", "plot_mesh_sizes", "plot_mesh_states", "plot_transition_sparsity"),
     "plots": ("plot_balance_map", "plot_trajectory", "wrap_about_goal"),
     "training": ("plot_training_curves",),

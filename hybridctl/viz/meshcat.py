@@ -162,8 +162,34 @@ def _aspect(xmin: float, xmax: float, zmin: float, zmax: float) -> tuple[float, 
     return xmin, xmax, zmin, zmax
 
 
+class ReplayPage(str):
+    """The self-contained HTML page of a replay: a ``str`` (write it, embed it) whose echo in a notebook is the
+    replay itself in an iframe, and whose ``repr`` is one line, not megabytes of HTML."""
+
+    path: Path | None = None
+
+    def __repr__(self) -> str:
+        where = f", written to {self.path}" if self.path is not None else ""
+        return f"<meshcat replay page: {len(self):,} characters{where}>"
+
+    def _repr_html_(self) -> str:
+        import html
+        return f'<iframe srcdoc="{html.escape(self)}" style="width: 100%; height: 420px; border: 0"></iframe>'
+
+
+_SHARED_MESHCAT: list[Meshcat] = []
+
+
+def shared_meshcat() -> Meshcat:
+    """The one localhost Meshcat server of this process that replays without a ``meshcat`` argument use
+    (started on first use; each replay replaces its ``replay/`` content)."""
+    if not _SHARED_MESHCAT:
+        _SHARED_MESHCAT.append(start_meshcat())
+    return _SHARED_MESHCAT[0]
+
+
 def replay_html(system: "System", times, states, path: str | Path | None = None,
-                meshcat: Meshcat | None = None, fps: float = DEFAULT_FPS) -> str:
+                meshcat: Meshcat | None = None, fps: float = DEFAULT_FPS) -> ReplayPage:
     """Record a trajectory as a meshcat animation; returns (and writes) a self-contained HTML page.
 
     ``times`` (T,) strictly increasing seconds, ``states`` (T, n_states) in the
@@ -175,15 +201,17 @@ def replay_html(system: "System", times, states, path: str | Path | None = None,
     other window shapes meshcat keeps the height and the left edge. The animation
     plays once on load (replay it from "Open Controls" > Animations).
 
-    ``path`` writes the HTML there. ``meshcat`` defaults to a fresh localhost
-    server; a given one keeps its other content and gets its ``replay/`` prefix
-    replaced and its animation and camera set.
+    ``path`` writes the HTML there. ``meshcat`` defaults to this process' one
+    localhost server (:func:`shared_meshcat`, started once); a given one keeps its
+    other content and gets its ``replay/`` prefix replaced and its animation and
+    camera set. The page is a :class:`ReplayPage`: a ``str`` that a notebook shows as
+    the replay.
     """
     times, states = _check_trajectory(system, times, states)
     if not fps > 0:
         raise ValueError(f"fps must be > 0, got {fps}")
     if meshcat is None:
-        meshcat = start_meshcat()
+        meshcat = shared_meshcat()
     meshcat.Delete("replay")
     scene = _Scene(system, meshcat, fps)
     n_frames = int(np.floor((times[-1] - times[0]) * fps + 1e-9)) + 1
@@ -200,7 +228,8 @@ def replay_html(system: "System", times, states, path: str | Path | None = None,
     scene.publish(0.0, states[0])
     xmin, xmax, zmin, zmax = _view_box(system, states)
     meshcat.Set2dRenderMode(_camera_pose(system), xmin, xmax, zmin, zmax)
-    html = meshcat.StaticHtml()
+    page = ReplayPage(meshcat.StaticHtml())
     if path is not None:
-        Path(path).write_text(html)
-    return html
+        Path(path).write_text(page)
+        page.path = Path(path)
+    return page

@@ -117,15 +117,17 @@ def plot_trajectory(times, states, inputs, gate, system: "System",
                     fontsize=7, color="0.4")
         else:
             ax.plot(times, states[:, i], lw=1.2)
-        unit = "rad" if is_angle else "m"
-        ax.set_ylabel(f"{name} [{unit}/s]" if is_rate else f"{name} [{unit}]")
+        ax.set_ylabel(f"{name} [{system.state_unit(i)}]")
         ax.axhline(system.goal[i], color="0.6", lw=0.8, ls=":")
     ax = axes[system.n_states]
+    unit = system.action_unit
     for j, name in enumerate(system.action_names):
         ax.plot(times, inputs[:, j], lw=1.0, label=name)
-    for limit in (system.action_limit, -system.action_limit):
-        ax.axhline(limit, color="k", ls="--", lw=0.8)
-    ax.set_ylabel(", ".join(system.action_names))
+    for k, limit in enumerate((system.action_limit, -system.action_limit)):
+        ax.axhline(limit, color="k", ls="--", lw=0.8,
+                   label=f"limit +-{system.action_limit:g}{' ' + unit if unit else ''}" if k == 0 else None)
+    ax.set_ylabel(", ".join(system.action_names) + (f" [{unit}]" if unit else ""))
+    ax.legend(loc="upper right", fontsize=7, ncol=system.n_actions + 1, frameon=False)
     ax = axes[-1]
     ax.step(times, gate, where="post", color="tab:green")
     ax.set_yticks([0, 1], ["swing-up", "LQR"])
@@ -141,15 +143,17 @@ def plot_trajectory(times, states, inputs, gate, system: "System",
 
 
 def plot_balance_map(th1_values, th2_values, balanced, path: str | Path | None = None,
-                     title: str | None = None, diverged=None):
+                     title: str | None = None, diverged=None,
+                     axis_labels: tuple[str, str] = ("initial th1 [rad]", "initial th2 [rad]")):
     """Balance map (thesis Fig. 3.6 style): black where the run from (th1, th2) balanced, red where not.
 
     ``th1_values`` (N1,) and ``th2_values`` (N2,) are the initial angles (rad) of
     the grid, ``balanced`` an (N1, N2) boolean array indexed [th1, th2]. ``diverged``
     (optional, same shape) marks runs that diverged: drawn orange, and labelled in the
     legend when any did. The legend names each colour (balanced, not balanced[, diverged]);
-    the title gets the balanced fraction. Saves a PNG at ``path`` when given; returns the
-    open Figure.
+    the title gets the balanced fraction (wrapped between words, never inside a path).
+    ``axis_labels``: the x and y labels (a cart-pole map varies the cart position and the pole
+    angle, not two link angles). Saves a PNG at ``path`` when given; returns the open Figure.
     """
     th1 = _array("th1_values", th1_values, (1,))
     th2 = _array("th2_values", th2_values, (1,))
@@ -183,12 +187,13 @@ def plot_balance_map(th1_values, th2_values, balanced, path: str | Path | None =
                for label in ("balanced", *[lb for lb in labels if lb != "balanced"])]
     ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=len(handles),
               fontsize=8, frameon=False)
-    ax.set_xlabel("initial th1 [rad]")
-    ax.set_ylabel("initial th2 [rad]")
+    ax.set_xlabel(axis_labels[0])
+    ax.set_ylabel(axis_labels[1])
     ax.set_aspect("equal" if _span(th1) and _span(th2) else "auto")
     heading = title or "balance map"
     full = f"{heading}: {100 * fraction:.1f}% balanced ({balanced.sum()}/{balanced.size})"
-    ax.set_title("\n".join(textwrap.wrap(full, 48)), fontsize=10)  # controller paths make long titles
+    # controller paths make long titles: wrap between words only, so a path is never broken mid-word
+    ax.set_title("\n".join(textwrap.wrap(full, 48, break_long_words=False, break_on_hyphens=False)), fontsize=10)
     fig.tight_layout()
     _save(fig, path)
     return fig
