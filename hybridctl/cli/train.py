@@ -1,4 +1,4 @@
-"""``hybridctl train sac|ssac|ars SYSTEM``: one sub-command per learner.
+"""``hybridctl train ALGO SYSTEM`` (ALGO: sac, ssac, ars, apg, shapg, papg, cem, ce-apg): one sub-command per learner.
 
 Each learner's flags are generated from its config dataclass (SACConfig, SSACConfig,
 ARSConfig): ``--field-name VALUE`` typed as the field, ``--flag/--no-flag`` for booleans,

@@ -30,6 +30,7 @@ import torch
 
 from .. import io
 from ..learn.apg import APG, APGConfig
+from ..learn.run import EVAL_SEED
 from ..systems import System, load
 from ..systems.success import stabilisation
 from .training import machine
@@ -78,7 +79,7 @@ class StudySettings:
     compile: bool = True
     sac_steps: int = 200_000          # a tenth of the APG family's interactions (8 x 4 x 100 x 600 = 1.92e6): ~2-4 min here
     eval_episodes: int = 16
-    eval_seed: int = 12345
+    eval_seed: int = EVAL_SEED
     extra: dict = field(default_factory=dict)   # more APGConfig fields for every APG run
 
     @property

@@ -21,6 +21,7 @@ from pathlib import Path
 
 from ..io import read_json, write_json
 from ..learn.finetune import FineTune, FineTuneConfig, parse_source
+from ..learn.run import EVAL_SEED
 from ..parallel import make_backend
 from .controllers import display_name
 from .training import machine, open_run_folder
@@ -41,7 +42,7 @@ def summary(result: dict) -> dict:
 
 def finetune_and_report(env: str, policy: str, out: str | Path, config: FineTuneConfig | None = None,
                         resume: bool = False, overwrite: bool = False, trust: bool = False,
-                        normalizer: str | None = None, eval_episodes: int | None = None, eval_seed: int = 12345,
+                        normalizer: str | None = None, eval_episodes: int | None = None, eval_seed: int = EVAL_SEED,
                         progress: bool = True, command: str | None = None, figures: bool = True) -> dict:
     """Evaluate the pretrained ``policy`` on ``env``, fine-tune it, evaluate again, write the report.
 

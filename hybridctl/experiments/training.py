@@ -63,7 +63,8 @@ def _silent(line: str) -> None:
 
 
 def learner_class(algorithm: str):
-    """SAC, SSAC or ARS by name (``"sac"``, ``"ssac"``, ``"ars"``)."""
+    """The learner class of ``algorithm``, a name of :data:`ALGORITHMS` (``"sac"``, ``"ssac"``, ``"ars"`` and the
+    APG family's ``"apg"``, ``"shapg"``, ``"papg"``, ``"cem"``, ``"ce-apg"``)."""
     try:
         return ALGORITHMS[algorithm]
     except KeyError:

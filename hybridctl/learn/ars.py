@@ -57,7 +57,7 @@ from ..systems import known_systems
 from ..systems import load as load_system
 from . import checkpoint as ckpt
 from .config_check import check_types
-from .run import PROGRESS_FILE, EvalResult, Learner, Saved, check_fields, check_finite, seeded, set_torch_threads
+from .run import EVAL_SEED, PROGRESS_FILE, EvalResult, Learner, Saved, check_fields, check_finite, seeded, set_torch_threads
 
 
 @dataclass
@@ -653,7 +653,7 @@ class ARS(Learner):
             frozen = self._predictor = self.frozen_policy()
         return frozen(obs)
 
-    def evaluate(self, episodes: int | None = None, seed: int = 12345, episode_steps: int | None = None,
+    def evaluate(self, episodes: int | None = None, seed: int = EVAL_SEED, episode_steps: int | None = None,
                  postprocess: str = "identity", backend=None, keep_states: bool = False, measure: bool = False,
                  **noise) -> EvalResult:
         """Deterministic rollouts of the current policy: raw returns, episode lengths, dimensions.

@@ -54,7 +54,7 @@ from .ars import make_env as _make_env
 from .ars import recorded_env_id, recorded_env_kwargs
 from .config_check import check_types
 from .robustness import wilson_interval
-from .run import PROGRESS_FILE, EvalResult, Learner, Saved, check_fields, check_finite, set_torch_threads
+from .run import EVAL_SEED, PROGRESS_FILE, EvalResult, Learner, Saved, check_fields, check_finite, set_torch_threads
 
 SELECTIONS = ("action", "all", "last")
 DIMENSION_SETTINGS = ("author", "ch4")
@@ -666,7 +666,7 @@ class FineTune(Learner):
             p.requires_grad_(False)
         return module
 
-    def evaluate(self, episodes: int | None = None, seed: int = 12345, theta: np.ndarray | None = None,
+    def evaluate(self, episodes: int | None = None, seed: int = EVAL_SEED, theta: np.ndarray | None = None,
                  backend=None, episode_steps: int | None = None, keep_states: bool = False) -> EvalResult:
         """Deterministic episodes of theta (default the current; ``theta0`` is the pretrained agent):
         raw returns, episode lengths, early terminations with a 95 % Wilson interval, the mesh-mean

@@ -65,6 +65,8 @@ __all__ = ["Learner", "Saved", "check_fields", "RESUME_APPLIED", "resume_changes
            "check_finite", "progress_bar", "seeded", "set_torch_threads", "MODEL_FILE", "PROGRESS_FILE"]
 
 PROGRESS_CSV = "progress.csv"
+EVAL_SEED = 12345
+"""The seed of every learner's held-out evaluation (``evaluate``), apart from the training seeds."""
 CURVES_PNG = "training_curves.png"
 
 
@@ -268,7 +270,7 @@ class Callback:
     :meth:`on_update` to stop training (the final checkpoint is still written).
 
     SAC/SSAC: a step is one vector-env step, an update one update round. ARS: a step and
-    an update are one epoch.
+    an update are one epoch; fine-tuning: one update; the APG family: one epoch.
     """
 
     def on_training_start(self, learner) -> None:

@@ -1,6 +1,7 @@
-"""What every learner on a batched torch swing-up env shares (SAC, SSAC; next: analytic policy
-gradients on the same envs): env set-up, episode statistics, inference, evaluation, and the
-checkpoint's config / progress / load. The algorithms (:mod:`.sac`) keep only their own parts.
+"""What the learners on a batched torch swing-up env with a replay buffer share (SAC, SSAC): env set-up,
+episode statistics, inference, evaluation, and the checkpoint's config / progress / load. The algorithms
+(:mod:`.sac`, :mod:`.ssac`) keep only their own parts; the analytic policy gradients (:mod:`.apg`) run on the
+same envs with their own loop.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from . import checkpoint as ckpt
 from ..envs import TorchVectorEnv
 from ..systems import System
 from ..systems import load as load_system
-from .run import PROGRESS_FILE, EvalResult, Learner, Saved, set_torch_threads
+from .run import EVAL_SEED, PROGRESS_FILE, EvalResult, Learner, Saved, set_torch_threads
 
 
 def progress_entry(key: str, attr: str, **options) -> Saved:
@@ -158,7 +159,7 @@ class VectorEnvAgent(Learner):
         return TorchVectorEnv(self.system, num_envs, decision_period=getattr(self.env, "decision_period", None),
                               device=self.device, seed=seed)
 
-    def evaluate(self, episodes: int = 100, seed: int = 12345, deterministic: bool = True) -> EvalResult:
+    def evaluate(self, episodes: int = 100, seed: int = EVAL_SEED, deterministic: bool = True) -> EvalResult:
         """Run ``episodes`` fresh episodes (initial states from the spec, numpy seed ``seed``)
         with the deterministic policy; returns mean/std/min return, success rate and the returns."""
         if not isinstance(episodes, (int, np.integer)) or episodes < 1:
