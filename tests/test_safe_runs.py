@@ -539,3 +539,19 @@ def test_a_deployed_swingup_ignores_training_only_and_gate_sections(ssac_checkpo
     assert gate is None and policy is not None
     with pytest.raises(CheckpointError, match=r"link_mass"):   # the plant is still checked
         load_controller(ssac_checkpoint, systems.load("acrobot", link_mass=[2, 1]), with_gate=False)
+
+
+@pytest.mark.parametrize("learner, shipped", [("SSAC", "ssac-acrobot"), ("APG", "papg-cartpole")])
+def test_a_checkpoint_with_a_field_the_config_no_longer_has_loads_with_a_warning(learner, shipped, tmp_path):
+    """A config field dropped since the checkpoint was written is ignored with a warning naming it, for the
+    SAC family and the APG family alike (both read config.json through checkpoint.config_from_meta)."""
+    import hybridctl.learn as learn
+
+    old = tmp_path / shipped
+    shutil.copytree(Path("models/policies") / shipped, old)
+    meta = json.loads((old / "config.json").read_text())
+    meta["config"]["a_field_dropped_since"] = 3
+    (old / "config.json").write_text(json.dumps(meta))
+    with pytest.warns(UserWarning, match=r"no longer has the recorded field\(s\) \['a_field_dropped_since'\]"):
+        agent = getattr(learn, learner).load(old)
+    assert not hasattr(agent.config, "a_field_dropped_since")

@@ -461,7 +461,7 @@ def refuse_unless_forced(problems: list[str], force: bool = False) -> bool:
 
 def config_from_meta(config_class: type, meta: dict, overrides: dict | None = None, found: Path | None = None):
     """The ``config_class`` recorded in a checkpoint's config.json (fields it no longer has are
-    dropped, so older checkpoints load), validated, with ``overrides`` applied.
+    dropped with a warning naming them, so older checkpoints load), validated, with ``overrides`` applied.
 
     A recorded value the config refuses raises :class:`CheckpointError` naming the file (the
     checkpoint at ``found``) and the field; an override it refuses stays the caller's ValueError.
@@ -470,6 +470,10 @@ def config_from_meta(config_class: type, meta: dict, overrides: dict | None = No
     where = found / CONFIG_FILE if found is not None else CONFIG_FILE
     if not isinstance(meta.get("config"), dict):
         raise CheckpointError(f"{where}: 'config' must be an object {{...}}, got {_shown_short(meta.get('config'))}")
+    dropped = sorted(set(meta["config"]) - names)
+    if dropped:
+        warnings.warn(f"{where}: {config_class.__name__} no longer has the recorded field(s) {dropped}: "
+                      f"loaded without them", UserWarning, stacklevel=2)
     try:
         config = config_class(**{k: v for k, v in meta["config"].items() if k in names})
         if hasattr(config, "validate"):
