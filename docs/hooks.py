@@ -6,6 +6,11 @@ as a reference link), so a small Markdown preprocessor fences every run of ``>>>
 (with their ``...`` continuations and printed results) as Python code before the docstrings
 and pages are converted. It also drops Sphinx roles (``:func:`name``` -> ``name``), which
 Markdown would print literally.
+
+The home page includes README.md, whose links are written for the repository
+(``docs/systems.md``, ``ARCHITECTURE.md``, ``CHANGELOG.md``); a second preprocessor, after the
+snippets are included, points them at the site's pages (``systems.md``, ``architecture.md``,
+``changelog.md``), so the README's links work on GitHub and on the site alike.
 """
 
 from __future__ import annotations
@@ -50,8 +55,33 @@ class DoctestFences(Extension):
         md.preprocessors.register(_DoctestFences(md), "hybridctl_doctest_fences", 40)
 
 
+# Repository paths of the README's links -> the site's pages (docs/X.md -> X.md).
+_REPO_LINK = re.compile(r"\]\((?:docs/([^)#\s]+)|(ARCHITECTURE|CHANGELOG)\.md)(#[^)\s]*)?\)")
+
+
+def site_links(line: str) -> str:
+    """``](docs/x.md)`` -> ``](x.md)``; ``](ARCHITECTURE.md)`` -> ``](architecture.md)`` (and CHANGELOG)."""
+    def repl(match: re.Match) -> str:
+        target = match.group(1) or f"{match.group(2).lower()}.md"
+        return f"]({target}{match.group(3) or ''})"
+    return _REPO_LINK.sub(repl, line)
+
+
+class _SiteLinks(Preprocessor):
+    def run(self, lines: list[str]) -> list[str]:
+        return [site_links(line) for line in lines]
+
+
+class SiteLinks(Extension):
+    """Point the included README's repository links at the site's pages."""
+
+    def extendMarkdown(self, md):  # noqa: N802 (Markdown's API name)
+        md.preprocessors.register(_SiteLinks(md), "hybridctl_site_links", 31)  # after snippets (32)
+
+
 @event_priority(100)  # before mkdocstrings reads the Markdown extensions
 def on_config(config):
-    """Add the doctest fences to the site's Markdown extensions."""
+    """Add the doctest fences and the README link rewriting to the site's Markdown extensions."""
     config.markdown_extensions.append(DoctestFences())
+    config.markdown_extensions.append(SiteLinks())
     return config
