@@ -398,3 +398,18 @@ def test_the_shipped_reaction_wheel_swing_up_balances_from_hanging_down_in_drake
     summary = simulate_and_write(system, "ssac-costgate:models/policies/ssac-reaction-wheel", out=tmp_path / "run",
                                  html=False)
     assert summary["balanced"] is True and 0.5 < summary["first_balance_time"] < 4.5, summary
+
+
+def test_the_shipped_furuta_swing_up_balances_from_hanging_down_in_drake(tmp_path):
+    """models/policies/ssac-furuta: trained beside another gate scale and with 5 s episodes (both recorded as
+    spec overrides), it loads by name as ``ssac-costgate:`` (only a learned gate reads the gate section) and,
+    with the spec's cost-to-go gate and Drake's LQR, balances from hanging down within the spec's 10 s."""
+    from hybridctl.experiments.simulation import simulate_and_write
+    from hybridctl.learn import CheckpointError
+
+    system = systems.load("furuta")
+    shipped = "models/policies/ssac-furuta"
+    summary = simulate_and_write(system, f"ssac-costgate:{shipped}", out=tmp_path / "run", html=False)
+    assert summary["balanced"] is True and 1.0 < summary["first_balance_time"] < 6.0, summary
+    with pytest.raises(CheckpointError, match="gate.cost_scale"):   # its own learned gate reads the scale
+        simulate_and_write(system, f"ssac:{shipped}", out=tmp_path / "learned-gate", html=False)

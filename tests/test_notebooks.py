@@ -61,7 +61,8 @@ EXPECTED_LINES = {
     "07_your_robot.ipynb": [
         "generated = Drake to 1e-9: True",   # a URDF's generated torch dynamics against Drake's plant (issue 30)
         "balanced: True",                    # Drake's LQR on the MultibodyPlant in the hybrid diagram
-        "swing-up balanced: True",           # the shipped SSAC reaction-wheel swing-up + gate + LQR, in Drake
+        "furuta: swing-up balanced: True",   # the shipped SSAC Furuta swing-up + cost-to-go gate + LQR, in Drake
+        "reaction_wheel: swing-up balanced: True",   # the same for the shipped reaction-wheel swing-up
         "gradients finite: True",            # a PAPG run through the generated dynamics
     ],
     "03_trajectory_dimension.ipynb": [
