@@ -16,6 +16,7 @@ from ..limits import MAX_SIMULATION_STEPS, check_at_most, check_fits_memory
 from ..systems import System
 from ..systems.control import DIVERGENCE_BOUND
 from ..systems.success import decision_indices, episode_return, is_balanced
+from ..viz.plots import wrap_about_goal
 
 _DRAKE_INTEGRATOR = {"euler": "explicit_euler", "runge_kutta2": "runge_kutta2"}
 # A state this large means the simulation has left any physical regime.
@@ -77,7 +78,7 @@ class Trajectory:
             "x0": self.x[0].tolist() if len(self.x) else None,
             # angles wrapped about the goal, as the plots draw them (an elbow that made full turns on the
             # way up ends at the goal, not at 4 pi); the unwrapped state is kept beside it
-            "final_state": (self.system.goal + self.system.state_error(self.x[-1])).tolist() if len(self.x) else None,
+            "final_state": wrap_about_goal(self.x[-1:], self.system)[0].tolist() if len(self.x) else None,
             "final_state_unwrapped": self.x[-1].tolist() if len(self.x) else None,
             "wall_time_s": self.wall_time,
             "realtime_factor": (float(self.t[-1]) / self.wall_time) if self.wall_time > 0 and len(self.t) else None,
