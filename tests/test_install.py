@@ -113,9 +113,12 @@ def test_every_installed_distribution_is_pinned_in_constraints():
             name, version = requirement.split("==", 1)
             pins[_canonical(name)] = version.strip()
     unpinned = {}
+    # what pip installed lies directly in site-packages; copies a package bundles and puts on sys.path
+    # (setuptools/_vendor, Ray's thirdparty_files once ray is imported) are not installs of their own
+    site_packages = {Path(sysconfig.get_paths()[key]).resolve() for key in ("purelib", "platlib")}
     for dist in importlib.metadata.distributions():
-        if "_vendor" in Path(str(getattr(dist, "_path", ""))).parts:
-            continue            # a package's vendored copies (setuptools/_vendor), not installed distributions
+        if Path(str(getattr(dist, "_path", ""))).resolve().parent not in site_packages:
+            continue
         name = _canonical(dist.metadata["Name"])
         # a local version label (torch's "+cpu") is the build, not the version
         if name not in UNPINNED and pins.get(name) != dist.version.split("+")[0]:
