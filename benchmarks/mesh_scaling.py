@@ -6,7 +6,7 @@ with a projection to a cluster. Prints one JSON document; writes a PNG figure.
 
 The default section map is the Ch. 5 hopper (``HopperApexMap``: gymnasium Hopper-v5 under the
 shipped ARS policy, 25 pushes along x in [-100, 100] N, boxes in the policy's observation
-std, as ``notebooks/data/ch5/hopper.py``). The same mesh is built once per worker count on the
+std, as :mod:`hybridctl.reproduce.hopper`). The same mesh is built once per worker count on the
 ``processes`` backend, in this one run, so ``ratio_vs_1_worker`` compares like with like;
 every build must give the same mesh (the script fails otherwise). ``--quick`` uses the
 rimless wheel (pure Python, a second per build) for the structure tests.
@@ -42,7 +42,7 @@ DEFAULT_FIGURE = ROOT / "notebooks" / "data" / "ch5" / "mesh_scaling.png"
 
 
 def hopper_problem(box_size: float) -> dict:
-    """The Ch. 5 hopper mesh problem of notebooks/data/ch5/hopper.py (its recorded settings)."""
+    """The Ch. 5 hopper mesh problem of hybridctl.reproduce.hopper (its recorded settings)."""
     from hybridctl.envs.sections import HopperApexMap, x_pushes
     from hybridctl.learn.ars import ARS
 

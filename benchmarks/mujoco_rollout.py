@@ -186,7 +186,7 @@ def section_map_rates(quick: bool, frozen) -> dict:
 def ars_epoch_rates(quick: bool) -> dict:
     """One ARS epoch at the thesis' N = 50 (b = 20) on HalfCheetah-v5 (episodes always 1000 steps), one core:
     one gymnasium rollout per task against the batched stepper (1 thread), with the projection to the
-    Ch. 4 lane (100 identity epochs + 3 x 40 continued, run_table41.sh) at N = 50."""
+    Ch. 4 lane (100 identity epochs + 3 x 40 continued, python -m hybridctl.reproduce.table41 --train) at N = 50."""
     from hybridctl.learn.ars import ARS, ARSConfig
     from hybridctl.parallel import make_backend
     n, steps = (2, 50) if quick else (50, None)

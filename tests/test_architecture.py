@@ -10,7 +10,7 @@ Rooms, bottom to top (one level per line; rooms on one level never import each o
     drake, envs
     learn
     experiments
-    cli
+    cli, reproduce
 
 Every ``import`` and ``from ... import`` is checked, also those inside functions (a lazy
 import hides a cycle, it does not remove it).
@@ -19,6 +19,7 @@ import hides a cycle, it does not remove it).
 from __future__ import annotations
 
 import ast
+import importlib
 import subprocess
 import sys
 from pathlib import Path
@@ -29,7 +30,7 @@ import hybridctl
 
 PACKAGE_DIR = Path(hybridctl.__file__).resolve().parent
 LEVELS = {"limits": -1, "io": 0, "parallel": 0, "systems": 1, "analysis": 2, "viz": 3, "drake": 4, "envs": 4, "learn": 5,
-          "experiments": 6, "cli": 7}
+          "experiments": 6, "cli": 7, "reproduce": 7}
 
 
 def module_name(path: Path) -> str:
@@ -110,6 +111,8 @@ def test_no_module_imports_from_a_room_above_its_own():
     ("import hybridctl.drake\n", "hybridctl.envs.single", "envs -> drake, sideways"),
     ("from .. import experiments\n", "hybridctl.analysis.mesh", "analysis -> experiments, up"),
     ("from ..systems import System\n", "hybridctl.drake", None),
+    ("from hybridctl.reproduce import table51\n", "hybridctl.cli.train", "cli -> reproduce, sideways"),
+    ("from ..experiments import apg_study\n", "hybridctl.reproduce.fig71", None),
 ])
 def test_the_checker_finds_upward_lazy_and_sideways_imports(source, module, expected):
     found = violations(source, module, is_package=module.count(".") == 1)
@@ -147,3 +150,54 @@ def test_learners_and_their_plots_do_not_need_drake(module, forbidden):
             f"print({forbidden!r} in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False", f"import {module} loaded {forbidden}"
+
+
+REPRODUCE = PACKAGE_DIR / "reproduce"
+
+
+@pytest.mark.parametrize("path", sorted(p for p in REPRODUCE.glob("*.py") if p.stem not in ("__init__", "common")),
+                         ids=lambda p: p.stem)
+def test_every_reproduction_driver_imports_and_runs_as_a_module(path):
+    """``python -m hybridctl.reproduce.NAME``: each driver imports as a module, has ``main(argv=None)`` and
+    the ``__main__`` guard, and the package docstring names it."""
+    module = importlib.import_module(f"hybridctl.reproduce.{path.stem}")
+    assert callable(getattr(module, "main", None)), f"{path.stem} has no main()"
+    assert "argv" in module.main.__code__.co_varnames[:1], f"{path.stem}.main does not take argv"
+    assert 'if __name__ == "__main__":' in path.read_text(), f"{path.stem} does not run as python -m"
+    assert f"hybridctl.reproduce.{path.stem}" in (REPRODUCE / "__init__.py").read_text(), \
+        f"hybridctl/reproduce/__init__.py does not list {path.stem}"
+
+
+def _path_hacks(source: str) -> list[tuple[int, str]]:
+    """``sys.path.insert`` / ``sys.path.append`` calls and ``spec_from_file_location`` loads in ``source``."""
+    found = []
+    for node in ast.walk(ast.parse(source)):
+        if not isinstance(node, ast.Call):
+            continue
+        name = ast.unparse(node.func)
+        if name in ("sys.path.insert", "sys.path.append") or name.endswith("spec_from_file_location"):
+            found.append((node.lineno, ast.unparse(node)[:100]))
+    return found
+
+
+# Loads by file path that are not drivers: the docs build's hook module (it lives in docs/, not in the package).
+PATH_LOADS_ALLOWED = {("tests/test_docs.py", "hooks.py")}
+
+
+def test_no_module_or_test_edits_sys_path_or_loads_a_script_by_its_path():
+    """Drivers are imported as hybridctl.reproduce modules: nothing under hybridctl/ or tests/ edits
+    ``sys.path`` or loads a file with ``spec_from_file_location`` (the docs hook aside)."""
+    root = PACKAGE_DIR.parent
+    bad = []
+    for path in sorted(PACKAGE_DIR.rglob("*.py")) + sorted((root / "tests").rglob("*.py")):
+        rel = str(path.relative_to(root))
+        for line, call in _path_hacks(path.read_text()):
+            if not any(rel == name and marker in call for name, marker in PATH_LOADS_ALLOWED):
+                bad.append(f"{rel}:{line}: {call}")
+    assert not bad, "path edits or loads by file path:\n" + "\n".join(bad)
+
+
+def test_the_path_check_finds_them():
+    assert len(_path_hacks("import sys\nsys.path.insert(0, 'x')\nsys.path.append('y')\n")) == 2
+    assert len(_path_hacks("import importlib.util\nimportlib.util.spec_from_file_location('t', 'a/t.py')\n")) == 1
+    assert _path_hacks("from hybridctl.reproduce import table51\n") == []

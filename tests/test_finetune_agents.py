@@ -1,9 +1,7 @@
-"""benchmarks/finetune_agents.py: one tiny Pendulum agent end to end, the files and record, the resume skip."""
+"""hybridctl.reproduce.ch6_agents: one tiny Pendulum agent end to end, the files and record, the resume skip."""
 
-import importlib.util
 import json
 import os
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,15 +9,12 @@ import pytest
 pytest.importorskip("stable_baselines3")
 pytest.importorskip("sb3_contrib")
 
-ROOT = Path(__file__).resolve().parents[1]
-
 
 @pytest.fixture(scope="module")
 def fa():
-    spec = importlib.util.spec_from_file_location("finetune_agents", ROOT / "benchmarks" / "finetune_agents.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    from hybridctl.reproduce import ch6_agents
+
+    return ch6_agents
 
 
 def test_zoo_conventions(fa):

@@ -34,20 +34,20 @@ EXPECTED_LINES = {
         "swing-up block: TorchPolicy held for 0.2 s",
         "balanced: True",              # the pretrained SSAC from hanging down, in Drake
         "engines agree on >= 99 % of cells: True",   # the balance map's Drake and torch engines (issue 15)
-        "second build (C++ wrapper, overlapped refits) (notebooks/data/ch3/fast/):",   # the issue-15 record
+        "second build (C++ wrapper, overlapped refits) (results/ch3/fast/):",   # the issue-15 record
         "cart-pole balanced: True",    # the shipped SSAC cart-pole from hanging down, in Drake (issue 16)
     ],
     "04_reachable_mesh_mfpt.ipynb": [
         "finest mesh inside the Monte Carlo 95 % interval: True",   # mesh MFPT vs the true map
-        "hopper record: notebooks/data/ch5/hopper.json",            # the shipped Ch. 5 hopper record is read
-        "hopper error record: notebooks/data/ch5/hopper_error.json",   # the mesh-error decomposition (issue 16)
-        "Table 5.1 record: notebooks/data/ch5/table51.json",         # four training regimes' mesh sizes (issue 16)
-        "Ulam record: notebooks/data/ch5/hopper_ulam.json",          # several samples per box (issue 16)
+        "hopper record: results/ch5/hopper.json",            # the shipped Ch. 5 hopper record is read
+        "hopper error record: results/ch5/hopper_error.json",   # the mesh-error decomposition (issue 16)
+        "Table 5.1 record: results/ch5/table51.json",         # four training regimes' mesh sizes (issue 16)
+        "Ulam record: results/ch5/hopper_ulam.json",          # several samples per box (issue 16)
     ],
     "05_analytic_policy_gradients.ipynb": [
         "balanced: True",                 # the shipped PAPG cart-pole swing-up + gate + LQR in Drake
         "torch = Drake to 1e-9: True",    # the switched torch rollout it was trained on
-        "Ch. 7 record: notebooks/data/ch7/table71.json",
+        "Ch. 7 record: results/ch7/table71.json",
     ],
     "06_fine_tuning.ipynb": [
         "written back as an SB3 zip: True",   # the shipped SB3 PPO, read without unpickling, fine-tuned
@@ -56,7 +56,7 @@ EXPECTED_LINES = {
         "SB3's own load of our output ran the payload: False",
         "SB3's own load of the planted input ran the payload: True",   # ... and would have run under SB3
         "balanced: True",                     # the fine-tuned SSAC swing-up in the Drake diagram
-        "Ch. 6 record: notebooks/data/ch6/results.json",
+        "Ch. 6 record: results/ch6/results.json",
     ],
     "07_your_robot.ipynb": [
         "generated = Drake to 1e-9: True",   # a URDF's generated torch dynamics against Drake's plant (issue 30)
@@ -67,10 +67,10 @@ EXPECTED_LINES = {
     ],
     "03_trajectory_dimension.ipynb": [
         "same curve: True",            # vectorised box count equals the thesis' dict of tuples
-        "MuJoCo record: notebooks/data/ch4/results.json",   # the shipped Table 4.1 / 4.4 record is read
-        "Table 4.4 record: notebooks/data/ch4/table44.json",   # the grid-searched failure rates (issue 16)
-        "Walker2d seeds record: notebooks/data/ch4/walker_seeds.json",   # the walker seeds for Table 4.4
-        "Table 4.4 record: notebooks/data/ch4/table44-walker2d.json",   # the walker's grid-searched failure rates
+        "MuJoCo record: results/ch4/results.json",   # the shipped Table 4.1 / 4.4 record is read
+        "Table 4.4 record: results/ch4/table44.json",   # the grid-searched failure rates (issue 16)
+        "Walker2d seeds record: results/ch4/walker_seeds.json",   # the walker seeds for Table 4.4
+        "Table 4.4 record: results/ch4/table44-walker2d.json",   # the walker's grid-searched failure rates
     ],
 }
 

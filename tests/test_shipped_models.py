@@ -18,8 +18,8 @@ POLICIES = ROOT / "models" / "policies"
 
 
 def recorded_ssac_eval() -> dict:
-    """The record of the shipped SSAC acrobot (seed 0, 2e6 steps) in notebooks/data/ch3/results.json."""
-    record = json.loads((ROOT / "notebooks" / "data" / "ch3" / "results.json").read_text())
+    """The record of the shipped SSAC acrobot (seed 0, 2e6 steps) in results/ch3/results.json."""
+    record = json.loads((ROOT / "results" / "ch3" / "results.json").read_text())
     (run,) = [r for r in record["runs"] if r.get("run") == "ssac-acrobot-s0"]
     return run["eval"]
 
@@ -42,7 +42,7 @@ def test_shipped_ars_hopper_reproduces_its_recorded_return():
     from hybridctl.learn import ARS
 
     pytest.importorskip("mujoco", reason="the ARS hopper runs on gymnasium's MuJoCo Hopper-v5 (mujoco extra)")
-    record = json.loads((ROOT / "notebooks" / "data" / "ch4" / "results.json").read_text())
+    record = json.loads((ROOT / "results" / "ch4" / "results.json").read_text())
     recorded = next(run for key, run in _walk(record) if key == "Hopper-v5-s1/identity")
     torch.set_num_threads(1)
     agent = ARS.load(POLICIES / "ars-hopper")
@@ -129,7 +129,7 @@ def test_shipped_ssac_cartpole_reproduces_its_evaluation_and_balances_from_hangi
 
     torch.set_num_threads(1)
     path = POLICIES / "ssac-cartpole"
-    recorded = json.loads((ROOT / "notebooks" / "data" / "ch3" / "cartpole" / "eval.json").read_text())
+    recorded = json.loads((ROOT / "results" / "ch3" / "cartpole" / "eval.json").read_text())
     result = SSAC.load(path).evaluate(episodes=recorded["episodes"], seed=recorded["seed"])
     # the same scheme as the SB3 returns above: the VM of 2026-12-02 18:20 UTC (Xeon, AVX-512) gives
     # 165.81803863 against the recorded 165.81804083 (2.2e-6, relative 1.3e-8), also at the commit that

@@ -1,11 +1,9 @@
-"""benchmarks/ssac_baselines.py: every algorithm for a tiny budget in two chunks, the resume that trains
+"""hybridctl.reproduce.ssac_baselines: every algorithm for a tiny budget in two chunks, the resume that trains
 only the difference, the VecNormalize .npz round trip, the report's JSON and figure, and bad input."""
 
 import contextlib
-import importlib.util
 import io
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,7 +11,6 @@ import pytest
 pytest.importorskip("stable_baselines3")
 pytest.importorskip("sb3_contrib")
 
-ROOT = Path(__file__).resolve().parents[1]
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -25,20 +22,23 @@ BUDGETS = {"ppo": (8192, 4096, 12288), "trpo": (4096, 2048, 6144), "a2c": (160, 
 
 
 def _load_module():
-    spec = importlib.util.spec_from_file_location("ssac_baselines", ROOT / "benchmarks" / "ssac_baselines.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    from hybridctl.reproduce import ssac_baselines
+
+    return ssac_baselines
 
 
 @pytest.fixture(scope="module")
 def sb():
-    """The script as a module, with TD3's warm-up shortened for tiny budgets."""
+    """The driver module, with TD3's warm-up shortened for tiny budgets (restored afterwards: the module
+    is shared with the rest of the session)."""
     module = _load_module()
     # TD3's zoo warm-up (learning_starts 10000) would leave a few hundred steps untrained; start at 100
     # so that the resumed run updates its networks from the reloaded replay buffer
-    module.ZOO["td3"]["kwargs"]["learning_starts"] = 100
-    return module
+    kwargs = module.ZOO["td3"]["kwargs"]
+    before = kwargs["learning_starts"]
+    kwargs["learning_starts"] = 100
+    yield module
+    kwargs["learning_starts"] = before
 
 
 def _run(sb, capsys, *argv):

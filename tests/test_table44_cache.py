@@ -1,21 +1,15 @@
-"""notebooks/data/ch4/table44.py's cell cache: a measured per-seed cell is read back (from memory and
+"""hybridctl.reproduce.table44's cell cache: a measured per-seed cell is read back (from memory and
 from disk) instead of run again, only for the same policy weights, condition, episodes and env seed,
 and the pooled numbers are the same either way."""
 
-import importlib.util
-from pathlib import Path
-
 import pytest
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
 def t44():
-    spec = importlib.util.spec_from_file_location("table44", ROOT / "notebooks" / "data" / "ch4" / "table44.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    from hybridctl.reproduce import table44
+
+    return table44
 
 
 @pytest.fixture

@@ -1,0 +1,94 @@
+"""What the drivers share: the machine record, the command line as recorded, paths as recorded.
+
+Records hold paths relative to the working directory the driver ran in (the repository root, for
+the commands the docs give), never the absolute path of the machine that made them:
+:func:`recorded_path` turns a path into that form and :func:`command_line` writes the command as
+``python -m hybridctl.reproduce.NAME ARGS`` with its path arguments relative as well.
+"""
+
+from __future__ import annotations
+
+import importlib.metadata
+import json
+import os
+import platform
+import shlex
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from hybridctl.systems.spec import DATA_DIR
+
+__all__ = ["RESULTS", "machine_info", "emit", "shipped_policy", "recorded_path", "command_line"]
+
+# The records tree, one folder per chapter, relative to the working directory (the repository root).
+RESULTS = Path("results")
+
+
+def _version(dist: str) -> str | None:
+    try:
+        return importlib.metadata.version(dist)
+    except importlib.metadata.PackageNotFoundError:
+        return None
+
+
+def machine_info() -> dict:
+    """Where the numbers come from: platform, cores, load, library versions, torch threads."""
+    return {
+        "platform": platform.platform(),
+        "machine": platform.machine(),
+        "processor": platform.processor() or None,
+        "python": platform.python_version(),
+        "cpu_count": os.cpu_count(),
+        "cpus_available": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
+        "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
+        "numpy": np.__version__,
+        "torch": torch.__version__,
+        "torch_threads": torch.get_num_threads(),
+        "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(),
+        "drake": _version("drake"),
+        "gymnasium": _version("gymnasium"),
+    }
+
+
+def emit(report: dict, out: Path | None) -> None:
+    """Print ``report`` as one JSON document; also write it to ``out`` if given."""
+    text = json.dumps(report, indent=2, allow_nan=False)
+    print(text)
+    if out is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(text + "\n")
+
+
+def shipped_policy(name: str) -> Path:
+    """The folder of a pretrained checkpoint that ships in the package (``models/policies/NAME``)."""
+    return DATA_DIR / "models" / "policies" / name
+
+
+def recorded_path(path: str | os.PathLike, base: str | os.PathLike | None = None) -> str:
+    """``path`` as a record holds it: a file shipped in the package as ``models/...`` or ``systems/...``
+    (the repository's links to ``hybridctl/data``), else relative to ``base`` (default: the working
+    directory) when it lies below it, else as given with the home folder written ``~``.
+
+    >>> recorded_path(Path.cwd() / "results" / "ch5")
+    'results/ch5'
+    """
+    text = os.fspath(path)
+    if not os.path.isabs(text):
+        return Path(text).as_posix()
+    resolved = Path(text).resolve()
+    for root in (DATA_DIR.resolve(), (Path(base) if base is not None else Path.cwd()).resolve()):
+        if resolved.is_relative_to(root):
+            return resolved.relative_to(root).as_posix() or "."
+    home = str(Path.home())
+    return "~" + text[len(home):] if text.startswith(home + os.sep) else text
+
+
+def command_line(module: str, argv: list[str] | None = None) -> str:
+    """The command as recorded: ``python -m MODULE ARGS`` (``argv``: default ``sys.argv[1:]``), each
+    argument that is an absolute path below the working directory written relative to it."""
+    args = sys.argv[1:] if argv is None else list(argv)
+    args = [recorded_path(a) if os.path.isabs(str(a)) else str(a) for a in args]
+    return shlex.join(["python", "-m", module, *args])
