@@ -99,12 +99,12 @@ def time_paths(env_id: str, zip_path: Path, workers: int, repeats: int, directio
     for name, backend in (("batched_serial", make_backend("serial")),
                           ("batched_processes", make_backend("processes", workers))):
         with backend:
-            tuner.learn(updates=tuner.update + 1, progress=False, backend=backend)   # warm-up (worker start)
+            tuner.learn(total=tuner.update + 1, progress=False, backend=backend)   # warm-up (worker start)
             times = []
             for _ in range(repeats):
                 before = tuner.env_steps
                 start = time.perf_counter()
-                tuner.learn(updates=tuner.update + 1, progress=False, backend=backend)
+                tuner.learn(total=tuner.update + 1, progress=False, backend=backend)
                 times.append(time.perf_counter() - start)
                 update_steps = tuner.env_steps - before
         t = statistics.median(times)

@@ -260,14 +260,14 @@ def test_bad_gradients_are_skipped_counted_and_isolated():
 
 def test_nan_parameters_stop_training_and_keep_the_last_checkpoint(tmp_path, monkeypatch):
     agent = APG("cartpole", small("papg", epochs=3))
-    agent.learn(epochs=1, log_dir=tmp_path, progress=False)
+    agent.learn(total=1, out=tmp_path, progress=False)
     saved = agent.members.clone()
 
     def broken(self, theta, grad, mask, lr):
         return theta * float("nan")
     monkeypatch.setattr(BatchedAdam, "step", broken)
     with pytest.raises(FloatingPointError, match="APG parameters"):
-        agent.learn(epochs=3, log_dir=tmp_path, progress=False)
+        agent.learn(total=3, out=tmp_path, progress=False)
     again = APG.load(tmp_path / "final")
     assert again.epoch == 1 and torch.equal(again.members, saved)
 
@@ -275,10 +275,10 @@ def test_nan_parameters_stop_training_and_keep_the_last_checkpoint(tmp_path, mon
 @pytest.mark.parametrize("method", ["ce-apg", "papg", "shapg", "cem"])
 def test_save_load_resume_reproduces(tmp_path, method):
     cfg = small(method, short_horizon=5)
-    straight = APG("cartpole", cfg).learn(epochs=2, progress=False)
-    first = APG("cartpole", cfg).learn(epochs=1, log_dir=tmp_path, progress=False)
+    straight = APG("cartpole", cfg).learn(total=2, progress=False)
+    first = APG("cartpole", cfg).learn(total=1, out=tmp_path, progress=False)
     assert first.epoch == 1
-    resumed = APG("cartpole", cfg).learn(epochs=2, log_dir=tmp_path, resume=True, progress=False)
+    resumed = APG("cartpole", cfg).learn(total=2, out=tmp_path, resume=True, progress=False)
     for name in ("mean", "std", "members", "best"):
         assert torch.equal(getattr(straight, name), getattr(resumed, name)), name
     assert torch.equal(straight.pop.obs_std, resumed.pop.obs_std)

@@ -97,7 +97,7 @@ def test_named_controller_runs_an_apg_checkpoint(tmp_path):
 
     agent = APG("cartpole", APGConfig(method="ce-apg", population=3, elites=2, apg_iterations=1, horizon=5,
                                       epochs=1, dtype="float64"))
-    agent.learn(log_dir=tmp_path, progress=False)
+    agent.learn(out=tmp_path, progress=False)
     system = systems.load("cartpole")
     diagram = build_named_diagram(system, f"ce-apg:{tmp_path / 'final'}")
     assert isinstance(diagram.swingup, RecurrentTorchPolicy) and diagram.swingup.period == agent.period

@@ -93,7 +93,7 @@ CONFIG_CASES = [
     ("ssac", "progress.json", "env_steps", 1e300, r"progress\.json: 'env_steps' must be an integer in \[0, 2\*\*53\]"),
     ("ssac", "normalization.json", None, [], r"normalization\.json is damaged: expected an object"),
     ("papg", "config.json", "plant", "x", r"config\.json: 'plant' must be an object"),
-    ("papg", "config.json", "system", "../../evil", r"config\.json: 'system' must be a system name"),
+    ("papg", "config.json", "system", "../../evil", r"config\.json: 'system' must be a system record"),
     ("papg", "config.json", "system_overrides", [], r"config\.json: 'system_overrides' must be an object"),
     ("papg", "config.json", "config", None, r"config\.json: 'config' must be an object"),
     ("papg", "config.json", "policy.hidden", "x", r"config\.json: 'policy\.hidden' must be a list"),
@@ -279,5 +279,5 @@ def test_a_run_within_exploration_steps_says_it_makes_no_gradient_step():
                 replay_batch_size=128, minibatch_size=64, buffer_size=2_000, needle_buffer_size=2_000,
                 tensorboard=False)
     with pytest.warns(UserWarning, match=r"16 env steps are no more than exploration_steps \(400\)"):
-        agent.learn(total_steps=16, progress=False)
+        agent.learn(total=16, progress=False)
     assert agent.num_gradient_steps == 0

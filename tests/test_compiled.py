@@ -75,7 +75,7 @@ def test_bad_compile_modes_are_refused():
 def test_short_learn_runs_stay_eager(one_torch_thread):
     agent = SAC("acrobot", seed=0, num_envs=4, exploration_steps=64, steps_per_update=64, replay_batch_size=8,
                 minibatch_size=8)
-    agent.learn(total_steps=128, progress=False)
+    agent.learn(total=128, progress=False)
     assert agent._grads is None and agent.env.compile == "off"
 
 

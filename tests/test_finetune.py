@@ -87,10 +87,10 @@ def test_same_seed_same_result_on_serial_and_processes_and_another_seed_differs(
 def test_resume_continues_exactly(tmp_path):
     whole = tuner(updates=4).learn(progress=False)
     part = tuner(updates=4, checkpoint_every=1)
-    part.learn(updates=2, log_dir=tmp_path, progress=False)
-    resumed = tuner(updates=4).learn(log_dir=tmp_path, resume=True, progress=False)
+    part.learn(total=2, out=tmp_path, progress=False)
+    resumed = tuner(updates=4).learn(out=tmp_path, resume=True, progress=False)
     np.testing.assert_array_equal(resumed.theta, whole.theta)
-    loaded = FineTune.load(tmp_path / "final", env=point_reach, policy=pd_module())
+    loaded = FineTune.load(tmp_path / "final", system=point_reach, policy=pd_module())
     np.testing.assert_array_equal(loaded.theta, whole.theta)
     np.testing.assert_allclose(loaded.predict(np.ones(4)), whole.predict(np.ones(4)))
 
@@ -211,11 +211,11 @@ def test_a_killed_worker_neither_hangs_nor_changes_the_result():
     reference = tuner(updates=3, n_directions=8, chunk_size=2).learn(progress=False)
     t = tuner(updates=3, n_directions=8, chunk_size=2)
     with make_backend("processes", 2) as backend:
-        t.learn(updates=1, progress=False, backend=backend)
+        t.learn(total=1, progress=False, backend=backend)
         pid = next(iter(backend._pool._processes.values())).pid
         os.kill(pid, signal.SIGKILL)   # the next map finds the pool broken, rebuilds it and reruns
         time.sleep(0.5)
-        t.learn(updates=3, progress=False, backend=backend)
+        t.learn(total=3, progress=False, backend=backend)
     np.testing.assert_array_equal(t.theta, reference.theta)
 
 
@@ -232,7 +232,7 @@ def test_ars_source_acts_like_the_ars_agent_with_its_frozen_statistics(policy, t
 
     ars = ARS("Pendulum-v1", ARSConfig(n_directions=4, top_directions=2, backend="serial", policy=policy,
                                        episode_steps=50))
-    ars.learn(epochs=2, log_dir=tmp_path, progress=False)
+    ars.learn(total=2, out=tmp_path, progress=False)
     t = FineTune("Pendulum-v1", f"ars:{tmp_path / 'final'}", updates=1, n_directions=2, backend="serial")
     obs = np.random.default_rng(0).uniform(-1, 1, size=(10, 3))
     expected = np.stack([ars.predict(o) for o in obs])

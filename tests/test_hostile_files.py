@@ -70,9 +70,9 @@ def ars_run(tmp_path_factory):
 
     root = tmp_path_factory.mktemp("ars")
     ARS("Pendulum-v1", ARSConfig(n_directions=2, top_directions=1, backend="serial", episode_steps=20)
-        ).learn(epochs=1, log_dir=root / "ars", progress=False)
+        ).learn(total=1, out=root / "ars", progress=False)
     FineTune("Pendulum-v1", f"ars:{root / 'ars' / 'final'}", updates=1, n_directions=2, backend="serial",
-             episode_steps=20, eval_episodes=2).learn(log_dir=root / "ft", progress=False)
+             episode_steps=20, eval_episodes=2).learn(out=root / "ft", progress=False)
     return root / "ars" / "final", root / "ft" / "final"
 
 
@@ -82,20 +82,37 @@ def _copy_with_config(src: Path, dst: Path, **changes) -> Path:
     for file in src.iterdir():
         (dst / file.name).write_bytes(file.read_bytes())
     meta = json.loads((dst / "config.json").read_text())
-    meta.update(changes)
+    for key, value in changes.items():   # "a.b": b inside object a; DELETE removes the key
+        *parents, last = key.split(".")
+        where = meta
+        for part in parents:
+            where = where[part]
+        if value is DELETE:
+            where.pop(last, None)
+        else:
+            where[last] = value
     (dst / "config.json").write_text(json.dumps(meta))
     return dst
 
 
+DELETE = object()
+
+
 # (id, config.json changes ("PAYLOAD": the planted module's id), what the one-line error says)
 ENV_ID_CASES = [
-    ("module-part", {"env": "PAYLOAD"}, r"config\.json: 'env' is .*'module:' part would import code"),
-    ("stdlib-module", {"env": "json:Pendulum-v1"}, r"config\.json: 'env' is 'json:Pendulum-v1'.*'module:' part"),
-    ("not-a-string", {"env": 5}, r"config\.json: 'env' must be a string .*got int 5"),
-    ("list", {"env": ["Pendulum-v1"]}, r"config\.json: 'env' must be a string"),
-    ("unregistered", {"env": "NoSuchEnv-v0"}, r"config\.json: 'env' is 'NoSuchEnv-v0', not a hybridctl system "
-                                              r"name or an id already registered"),
-    ("kwargs-list", {"env_kwargs": []}, r"config\.json: 'env_kwargs' must be null or an object"),
+    ("module-part", {"system.name": "PAYLOAD"}, r"config\.json: 'system\.name' is .*'module:' part would import code"),
+    ("stdlib-module", {"system.name": "json:Pendulum-v1"},
+     r"config\.json: 'system\.name' is 'json:Pendulum-v1'.*'module:' part"),
+    ("not-a-string", {"system.name": 5}, r"config\.json: 'system\.name' must be a string .*got int 5"),
+    ("list", {"system.name": ["Pendulum-v1"]}, r"config\.json: 'system\.name' must be a string"),
+    ("unregistered", {"system.name": "NoSuchEnv-v0"}, r"config\.json: 'system\.name' is 'NoSuchEnv-v0', not a "
+                                                      r"hybridctl system name or an id already registered"),
+    ("kwargs-list", {"system.kwargs": []}, r"config\.json: 'system\.kwargs' must be null or an object"),
+    # a format-1 checkpoint recorded the env as 'env' and 'env_kwargs': read as the system record, refused the same
+    ("format-1-module-part", {"system": DELETE, "env": "PAYLOAD"},
+     r"config\.json: 'system\.name' is .*'module:' part would import code"),
+    ("format-1-kwargs-list", {"system": DELETE, "env": "Pendulum-v1", "env_kwargs": []},
+     r"config\.json: 'system\.kwargs' must be null or an object"),
 ]
 
 
@@ -155,7 +172,7 @@ def test_an_id_with_a_module_part_the_user_passes_directly_is_allowed(ars_run, p
     assert payload.marker.exists() and agent.policy.obs_dim == 3
     # and ARS.load with env= given by the caller does not read the recorded id at all
     with pytest.warns(UserWarning, match="trained on env 'Pendulum-v1'"):
-        again = ARS.load(ars_run[0], env=payload.id, force=True)
+        again = ARS.load(ars_run[0], system=payload.id, force=True)
     assert again.policy.act_dim == 1
 
 

@@ -316,7 +316,7 @@ def test_a_checkpoint_refuses_a_changed_model_file_unless_forced(tmp_path, monke
     (folder / "my_pendulum.toml").write_text(spec)
     monkeypatch.setenv("HYBRIDCTL_SYSTEMS", str(folder))
     agent = SAC("my_pendulum", num_envs=2, exploration_steps=100, hidden_size=8, seed=0)
-    agent.learn(total_steps=100, progress=False, log_dir=tmp_path / "run")
+    agent.learn(total=100, progress=False, out=tmp_path / "run")
     SAC.load(tmp_path / "run" / "final")                    # the same model: loads
     (folder / "pendulum.urdf").write_text(_pendulum_urdf(mass=2.0))
     with pytest.raises(CheckpointError, match="trained on my_pendulum with model.file_sha256="):

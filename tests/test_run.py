@@ -8,14 +8,18 @@ import pytest
 import torch
 
 from hybridctl.learn import checkpoint as ckpt
-from hybridctl.learn.run import (PROGRESS_FILE, Callback, CallbackList, EvalResult, Learner, RunLog, Saved,
-                                 check_finite, progress_bar, seeded, set_torch_threads)
+from hybridctl.learn.base import Learner
+from hybridctl.learn.callbacks import Callback, CallbackList, progress_bar
+from hybridctl.learn.checkpoint import PROGRESS_FILE, Saved
+from hybridctl.learn.run import EvalResult, check_finite, seeded, set_torch_threads
+from hybridctl.learn.runlog import RunLog
 
 
 class Counter(Learner):
     """A toy learner: theta += 1 per epoch, a linear module, an RNG, a bulky buffer."""
 
     algorithm_name = "COUNTER"
+    budget_field, unit = "epochs", "epoch"
     log_key = "epoch"
     log_columns = ("epoch", "value")
     saved = (Saved("theta", "theta", "array"), Saved("net", "net", "state"), Saved("gen", "gen", "rng"),
@@ -30,6 +34,7 @@ class Counter(Learner):
         @dataclasses.dataclass
         class Config:
             seed: int = 0
+            epochs: int = 1
             torch_threads: int = 1
 
         self.config = Config(seed)
@@ -49,19 +54,23 @@ class Counter(Learner):
     def after_restore(self, found, meta, bulky):
         self.restored_from = (found.name, bulky)
 
-    def learn(self, epochs, log_dir=None, resume=False, progress=False, callback=None):
-        with self.run(log_dir, resume, progress, callback, total=epochs, unit="epoch") as run:
-            while self.epoch < epochs and not run.stopped:
-                self.epoch += 1
-                self.theta = self.theta + 1
-                self.seen = (*self.seen, float(torch.rand(1, generator=self.gen)))
-                self.data = torch.cat([self.data, torch.tensor([float(self.epoch)])])
-                run.log({"epoch": self.epoch, "value": float(self.theta[0])})
-                run.advance(1)
-                run.after_update()
-                if self.epoch % 2 == 0:
-                    run.checkpoint()
-        return self
+    def system_record(self):
+        return {"name": "toy"}
+
+    def learn(self, total=None, **kwargs):
+        return super().learn(total, **{"progress": False, **kwargs})
+
+    def train(self, run, epochs, backend):
+        while self.epoch < epochs and not run.stopped:
+            self.epoch += 1
+            self.theta = self.theta + 1
+            self.seen = (*self.seen, float(torch.rand(1, generator=self.gen)))
+            self.data = torch.cat([self.data, torch.tensor([float(self.epoch)])])
+            run.log({"epoch": self.epoch, "value": float(self.theta[0])})
+            run.advance(1)
+            run.after_update()
+            if self.epoch % 2 == 0:
+                run.checkpoint()
 
 
 def csv_epochs(path):
@@ -135,25 +144,25 @@ def test_a_failed_write_leaves_the_old_checkpoint(tmp_path):
 
 # ------------------------------------------------------------------ the run: log, resume, final checkpoint
 def test_run_log_is_fresh_truncated_on_resume_and_keyed(tmp_path):
-    Counter().learn(5, log_dir=tmp_path)
+    Counter().learn(5, out=tmp_path)
     assert csv_epochs(tmp_path / "progress.csv") == [1, 2, 3, 4, 5]
     assert json.loads((tmp_path / "checkpoint" / "progress.json").read_text())["epoch"] == 4
     assert json.loads((tmp_path / "final" / "progress.json").read_text())["epoch"] == 5
     # resume: the newest checkpoint (final, epoch 5), rows up to it kept
-    resumed = Counter().learn(7, log_dir=tmp_path, resume=True)
+    resumed = Counter().learn(7, out=tmp_path, resume=True)
     assert resumed.restored_from == ("final", True) and resumed.epoch == 7
     assert csv_epochs(tmp_path / "progress.csv") == [1, 2, 3, 4, 5, 6, 7]
     straight = Counter().learn(7)
     assert resumed.seen == straight.seen and torch.equal(resumed.data, straight.data)   # RNG and data restored
     # a fresh learner in the same folder starts a fresh log
-    Counter().learn(1, log_dir=tmp_path)
+    Counter().learn(1, out=tmp_path)
     assert csv_epochs(tmp_path / "progress.csv") == [1]
     # a loaded learner continuing without resume keeps the rows up to its counter
-    Counter().learn(3, log_dir=tmp_path / "b")           # checkpoint at epoch 2, final at 3
+    Counter().learn(3, out=tmp_path / "b")           # checkpoint at epoch 2, final at 3
     at2 = Counter()
     at2.checkpointer.restore(tmp_path / "b" / "checkpoint")
     assert at2.epoch == 2
-    at2.learn(3, log_dir=tmp_path / "b")
+    at2.learn(3, out=tmp_path / "b")
     assert csv_epochs(tmp_path / "b" / "progress.csv") == [1, 2, 3]
 
 
@@ -161,7 +170,7 @@ def test_a_log_without_the_key_column_is_refused(tmp_path):
     (tmp_path / "progress.csv").write_text("a,b\n1,2\n")
     learner = Counter().learn(1)
     with pytest.raises(ValueError, match="no 'epoch' column"):
-        learner.learn(2, log_dir=tmp_path)
+        learner.learn(2, out=tmp_path)
     with pytest.raises(ValueError, match="no 'epoch' column"):
         RunLog(tmp_path, ("epoch",), "epoch", upto=1)
     RunLog(tmp_path, ("epoch",), "epoch", upto=0).close()   # a fresh run replaces it
@@ -170,8 +179,8 @@ def test_a_log_without_the_key_column_is_refused(tmp_path):
 
 def test_resume_without_a_checkpoint_warns_and_needs_a_log_dir(tmp_path):
     with pytest.warns(UserWarning, match="no checkpoint"):
-        Counter().learn(1, log_dir=tmp_path, resume=True)
-    with pytest.raises(ValueError, match="log_dir"):
+        Counter().learn(1, out=tmp_path, resume=True)
+    with pytest.raises(ValueError, match="needs out="):
         Counter().learn(1, resume=True)
 
 
@@ -181,7 +190,7 @@ def test_an_error_in_the_loop_writes_no_final_checkpoint(tmp_path):
             raise FloatingPointError("boom")
 
     with pytest.raises(FloatingPointError):
-        Counter().learn(6, log_dir=tmp_path, callback=fail_at_3)
+        Counter().learn(6, out=tmp_path, callback=fail_at_3)
     assert not (tmp_path / "final").exists()
     assert json.loads((tmp_path / "checkpoint" / "progress.json").read_text())["epoch"] == 2
 

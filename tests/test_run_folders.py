@@ -56,9 +56,9 @@ def made(tmp_path_factory):
     """Runs to copy into each case: ``ars`` (Pendulum-v1, 2 epochs), ``sac`` (acrobot, 8 env steps, with
     replay), ``zip`` (a folder with the shipped PPO zip), ``spec`` (a folder with an acrobot spec file)."""
     root = tmp_path_factory.mktemp("made")
-    ARS("Pendulum-v1", **ARS_TINY).learn(epochs=2, log_dir=root / "ars", progress=False)
+    ARS("Pendulum-v1", **ARS_TINY).learn(total=2, out=root / "ars", progress=False)
     with pytest.warns(UserWarning, match="no gradient step"):
-        SAC("acrobot", **SAC_TINY).learn(total_steps=8, log_dir=root / "sac", progress=False)
+        SAC("acrobot", **SAC_TINY).learn(total=8, out=root / "sac", progress=False)
     (root / "zip").mkdir()
     shutil.copy(PPO_ZIP, root / "zip" / "model.zip")
     (root / "spec").mkdir()
@@ -250,8 +250,8 @@ def test_the_cli_and_the_learners_loop_refuse_a_locked_folder(tmp_path, holder, 
     assert f"--out {run} is locked by pid {holder.pid}" in err
     err = cli_error(["mesh", "rimless-wheel", "--box-size", "0.01", "--quiet", "--out", str(run)])
     assert f"is locked by pid {holder.pid}" in err
-    with pytest.raises(RunFolderError, match=f"log_dir {run} is locked by pid {holder.pid}"):
-        ARS("Pendulum-v1", **ARS_TINY).learn(epochs=1, log_dir=run, progress=False)
+    with pytest.raises(RunFolderError, match=f"out {run} is locked by pid {holder.pid}"):
+        ARS("Pendulum-v1", **ARS_TINY).learn(total=1, out=run, progress=False)
     assert sorted(p.name for p in run.iterdir()) == [io.LOCK_FILE]     # nothing was written
 
 

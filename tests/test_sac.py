@@ -70,7 +70,7 @@ def test_networks_follow_the_thesis_architecture():
 # --------------------------------------------------------------------- tiny runs
 def test_tiny_run_writes_progress_checkpoint_and_curves(tmp_path):
     agent = tiny_agent()
-    agent.learn(total_steps=1600, progress=False, log_dir=tmp_path)
+    agent.learn(total=1600, progress=False, out=tmp_path)
     assert agent.num_timesteps == 1600
     # 8 rounds; the one at 200 steps is still exploration: 7 updates of 128 rows in minibatches of 64
     assert (agent.num_rounds, agent.num_updates, agent.num_gradient_steps) == (8, 7, 14)
@@ -96,7 +96,7 @@ def test_tiny_run_writes_progress_checkpoint_and_curves(tmp_path):
 def test_same_seed_same_weights_different_seed_different():
     a, b, c = tiny_agent(seed=3), tiny_agent(seed=3), tiny_agent(seed=4)
     for agent in (a, b, c):
-        agent.learn(total_steps=1200, progress=False)
+        agent.learn(total=1200, progress=False)
     assert_same_weights(a, b)
     assert a.recent_returns == b.recent_returns
     assert not torch.equal(weights(a)["actor.net.0.weight"], weights(c)["actor.net.0.weight"])
@@ -110,7 +110,7 @@ def test_callback_every_round_can_stop_training():
         return len(seen) < 3
 
     agent = tiny_agent()
-    agent.learn(total_steps=4000, progress=False, callback=callback)
+    agent.learn(total=4000, progress=False, callback=callback)
     assert seen == [200, 400, 600] and agent.num_timesteps == 600
 
 
@@ -135,7 +135,7 @@ def test_callback_objects_get_every_hook_with_the_agent(tmp_path):
             self.calls.append(("end", learner.num_timesteps))
 
     recorder, agent = Recorder(), tiny_agent()
-    agent.learn(total_steps=800, progress=False, log_dir=tmp_path, callback=[recorder])
+    agent.learn(total=800, progress=False, out=tmp_path, callback=[recorder])
     calls = recorder.calls
     assert calls[0] == ("start", 0) and calls[-1] == ("end", 800)
     assert [c[1] for c in calls if c[0] == "step"] == list(range(8, 801, 8))      # every vector step
@@ -147,19 +147,19 @@ def test_callback_objects_get_every_hook_with_the_agent(tmp_path):
             return learner.num_timesteps < 48
 
     agent = tiny_agent()
-    agent.learn(total_steps=800, progress=False, callback=StopAtStep())
+    agent.learn(total=800, progress=False, callback=StopAtStep())
     assert agent.num_timesteps == 48
 
 
 def test_learned_alpha_moves():
     agent = tiny_agent(alpha="auto", alpha_lr=0.05, exploration_steps=0)
-    agent.learn(total_steps=800, progress=False)
+    agent.learn(total=800, progress=False)
     assert agent.log_alpha.requires_grad and abs(float(agent.alpha) - 0.05) > 1e-3
 
 
 def test_truncation_bootstraps_and_final_obs_is_stored():
     agent = tiny_agent(num_envs=2, steps_per_update=10_000)
-    agent.learn(total_steps=2 * 200, progress=False)  # exactly one episode per env
+    agent.learn(total=2 * 200, progress=False)  # exactly one episode per env
     data = agent.replay.data
     assert agent.replay.size == 400 and agent.num_episodes == 2
     assert float(data["dones"][:400].abs().sum()) == 0.0  # truncated, never terminated
@@ -172,7 +172,7 @@ def test_truncation_bootstraps_and_final_obs_is_stored():
 # ------------------------------------------------------------------ save and load
 def test_save_load_round_trip_gives_identical_actions(tmp_path):
     agent = tiny_agent(obs_transform="angle_sincos")
-    agent.learn(total_steps=800, progress=False)
+    agent.learn(total=800, progress=False)
     agent.save(tmp_path / "ckpt")
     assert not (tmp_path / "ckpt" / "replay.pt").exists()
     loaded = SAC.load(tmp_path / "ckpt")
@@ -183,7 +183,7 @@ def test_save_load_round_trip_gives_identical_actions(tmp_path):
     assert json.loads((tmp_path / "ckpt" / "normalization.json").read_text())["type"] == "angle_sincos"
     # optimizer state comes back too, and the loaded agent trains on
     assert loaded.actor_opt.state_dict()["state"][0]["step"] == agent.actor_opt.state_dict()["state"][0]["step"]
-    loaded.learn(total_steps=1200, progress=False)
+    loaded.learn(total=1200, progress=False)
     assert loaded.num_timesteps == 1200
 
 
@@ -209,9 +209,9 @@ def test_load_errors_name_the_missing_file_and_both_systems(tmp_path):
     agent = tiny_agent()
     agent.save(tmp_path / "ckpt")
     with pytest.raises(CheckpointError, match="acrobot.*pendulum|pendulum.*acrobot"):
-        SAC.load(tmp_path / "ckpt", env="acrobot")
+        SAC.load(tmp_path / "ckpt", system="acrobot")
     with pytest.raises(CheckpointError, match="pendulum.*acrobot"):
-        SAC.load(tmp_path / "ckpt", env=TorchVectorEnv("acrobot", 2))
+        SAC.load(tmp_path / "ckpt", system=TorchVectorEnv("acrobot", 2))
     for missing in ("normalization.json", "model.pt"):
         broken = tmp_path / f"broken-{missing}"
         shutil.copytree(tmp_path / "ckpt", broken)
@@ -236,18 +236,18 @@ def test_resume_continues_steps_weights_and_replay(tmp_path):
 
     agent = tiny_agent()
     with pytest.raises(Crash):  # checkpoint at 800, crash at 1000
-        agent.learn(total_steps=2000, progress=False, log_dir=tmp_path, callback=crash_after_1000)
+        agent.learn(total=2000, progress=False, out=tmp_path, callback=crash_after_1000)
     assert not (tmp_path / "final").exists()
     at_checkpoint = SAC.load(tmp_path / "checkpoint")
     assert at_checkpoint.num_timesteps == 800
 
     resumed = tiny_agent()
-    resumed.learn(total_steps=800, progress=False, log_dir=tmp_path, resume=True)  # nothing left to do
+    resumed.learn(total=800, progress=False, out=tmp_path, resume=True)  # nothing left to do
     assert resumed.num_timesteps == 800 and resumed.replay.size == 800 and resumed.num_rounds == 4
     assert_same_weights(resumed, at_checkpoint)
     assert [int(r["env_steps"]) for r in read_csv(tmp_path / "progress.csv")] == [400, 800]
 
-    resumed.learn(total_steps=1600, progress=False, log_dir=tmp_path, resume=True)
+    resumed.learn(total=1600, progress=False, out=tmp_path, resume=True)
     assert resumed.num_timesteps == 1600 and resumed.replay.size == 1600
     assert resumed.num_updates == 1600 // 200 - 1
     assert [int(r["env_steps"]) for r in read_csv(tmp_path / "progress.csv")] == [400, 800, 1200, 1600]
@@ -257,7 +257,7 @@ def test_resume_continues_steps_weights_and_replay(tmp_path):
 def test_resume_without_checkpoint_starts_fresh(tmp_path):
     agent = tiny_agent()
     with pytest.warns(UserWarning, match="no checkpoint"):
-        agent.learn(total_steps=400, progress=False, log_dir=tmp_path, resume=True)
+        agent.learn(total=400, progress=False, out=tmp_path, resume=True)
     assert agent.num_timesteps == 400
 
 
@@ -268,7 +268,7 @@ def test_nan_loss_stops_training_and_keeps_the_checkpoint(tmp_path):
 
     agent = tiny_agent()
     with pytest.raises(FloatingPointError, match=r"q_loss became nan at env step 1200"):
-        agent.learn(total_steps=2000, progress=False, log_dir=tmp_path, callback=poison)
+        agent.learn(total=2000, progress=False, out=tmp_path, callback=poison)
     assert all(torch.isfinite(w).all() for w in weights(agent).values())  # the bad step was not applied
     good = SAC.load(tmp_path / "checkpoint")
     assert good.num_timesteps == 800
@@ -365,7 +365,7 @@ def test_successful_episodes_reach_the_needle_buffer():
             ended_calls.append(int(ended.sum()))
 
     agent = Hooked("pendulum", **{**TINY, "num_envs": 4, "needle_prob": 0.5})
-    agent.learn(total_steps=4 * 200 * 2, progress=False)
+    agent.learn(total=4 * 200 * 2, progress=False)
     assert ended_calls == [4, 4] and agent.num_needle_episodes == 8
     assert agent.needle.size == 8 * 200
     # the needle copy of env 0's first episode is that episode, in order
@@ -382,7 +382,7 @@ def test_default_needle_rule_is_the_env_success_flag():
 # --------------------------------------------------------------- the policy module
 def test_deterministic_policy_module_matches_predict():
     agent = tiny_agent("acrobot")
-    agent.learn(total_steps=400, progress=False)
+    agent.learn(total=400, progress=False)
     module = agent.deterministic_policy()
     # a frozen copy: no gradients, eval mode, its own parameters
     assert not module.training and not any(p.requires_grad for p in module.parameters())
@@ -397,7 +397,7 @@ def test_deterministic_policy_module_matches_predict():
     assert agent.predict(x.float(), deterministic=False).shape == (32, 1)
     # a frozen copy: further training does not change it
     before = module(x)
-    agent.learn(total_steps=1200, progress=False)
+    agent.learn(total=1200, progress=False)
     assert torch.equal(module(x), before)
 
 
@@ -426,7 +426,7 @@ def test_sac_learns_the_pendulum_swingup(tmp_path):
     start = time.perf_counter()
     agent = SAC("pendulum", num_envs=16, exploration_steps=5_000, gamma=0.99, polyak=0.9, seed=0,
                 log_every=5_000, checkpoint_every=0, tensorboard=False)
-    agent.learn(total_steps=80_000, progress=False, log_dir=tmp_path)
+    agent.learn(total=80_000, progress=False, out=tmp_path)
     elapsed = time.perf_counter() - start
     env = TorchVectorEnv("pendulum", 64, seed=123)
     obs, _ = env.reset(seed=123)

@@ -228,7 +228,7 @@ def test_cli_resume_on_another_system_refuses(tmp_path, sac_checkpoint, capsys):
 
 
 def test_ars_load_refuses_a_sac_checkpoint(sac_checkpoint):
-    with pytest.raises(CheckpointError, match="damaged or not an ARS checkpoint"):
+    with pytest.raises(CheckpointError, match="written by SAC, not ARS"):
         ARS.load(sac_checkpoint)
 
 
@@ -238,11 +238,11 @@ def test_load_and_load_controller_refuse_another_plant_naming_the_value(sac_chec
     heavy = systems.load("acrobot", link_mass=[2, 1])
     expected = r"trained on acrobot with params.link_mass=\[1.0, 1.0\]; this system has \[2.0, 1.0\]"
     with pytest.raises(CheckpointError, match=expected):
-        SAC.load(sac_checkpoint, env=heavy)
+        SAC.load(sac_checkpoint, system=heavy)
     with pytest.raises(CheckpointError, match=expected):
         load_controller(ssac_checkpoint, heavy)
     with pytest.warns(UserWarning, match="force: loading anyway.*link_mass"):
-        agent = SAC.load(sac_checkpoint, env=heavy, force=True)
+        agent = SAC.load(sac_checkpoint, system=heavy, force=True)
     assert agent.system.spec.values["params.link_mass"].tolist() == [2.0, 1.0]
     with pytest.warns(UserWarning, match="force"):
         policy, gate, _ = load_controller(ssac_checkpoint, heavy, force=True)
@@ -286,15 +286,15 @@ def test_the_shipped_ssac_acrobot_records_its_plant():
 def test_ars_refuses_a_checkpoint_of_another_env_unless_forced(tmp_path):
     folder = tmp_path / "ars"
     ARS("Pendulum-v1", n_directions=2, top_directions=1, episode_steps=10, transient_steps=2,
-        backend="serial").learn(epochs=1, log_dir=tmp_path / "run", progress=False)
+        backend="serial").learn(total=1, out=tmp_path / "run", progress=False)
     shutil.copytree(tmp_path / "run" / "final", folder)
     meta = json.loads((folder / "config.json").read_text())
-    meta["env"] = "MountainCarContinuous-v0"
+    meta["system"]["name"] = "MountainCarContinuous-v0"
     (folder / "config.json").write_text(json.dumps(meta))
     with pytest.raises(CheckpointError, match="trained on env 'MountainCarContinuous-v0'; this env is 'Pendulum-v1'"):
-        ARS.load(folder, env="Pendulum-v1")
+        ARS.load(folder, system="Pendulum-v1")
     with pytest.warns(UserWarning, match="force: loading anyway"):
-        assert ARS.load(folder, env="Pendulum-v1", force=True).epoch > 0
+        assert ARS.load(folder, system="Pendulum-v1", force=True).epoch > 0
 
 
 def test_load_controller_reads_and_checks_normalization_and_model_keys(tmp_path, ssac_checkpoint):
@@ -329,13 +329,13 @@ def test_resume_refuses_a_missing_bulky_file_unless_forced(tmp_path, sac_checkpo
     (run / "checkpoint" / name).unlink()
     agent = agent_class.load(run / "checkpoint")
     with pytest.raises(CheckpointError, match=f"missing file '{name}'.*--force"):
-        agent.learn(total_steps=8, log_dir=run, resume=True, progress=False)
+        agent.learn(total=8, out=run, resume=True, progress=False)
     (run / "checkpoint" / name).write_bytes(b"garbage")
     with pytest.raises(CheckpointError, match=f"{name}"):   # the damaged file is named (checkpoint.py words it)
-        agent.learn(total_steps=8, log_dir=run, resume=True, progress=False)
+        agent.learn(total=8, out=run, resume=True, progress=False)
     (run / "checkpoint" / name).unlink()
     with pytest.warns(UserWarning, match=f"force: .* has no {name}: the resumed run starts without"):
-        agent.learn(total_steps=8, log_dir=run, resume=True, progress=False, force=True)
+        agent.learn(total=8, out=run, resume=True, progress=False, force=True)
     assert (run / "final").is_dir()
 
 
@@ -344,7 +344,7 @@ def test_a_checkpoint_saved_without_replay_resumes_saying_so(tmp_path):
     assert "replay.pt" not in json.loads((tmp_path / "run" / "checkpoint" / "config.json").read_text())["files"]
     agent = SAC.load(tmp_path / "run" / "checkpoint")
     with pytest.warns(UserWarning, match="was saved without replay.pt .*starts without replay, needle"):
-        agent.learn(total_steps=8, log_dir=tmp_path / "run", resume=True, progress=False)
+        agent.learn(total=8, out=tmp_path / "run", resume=True, progress=False)
 
 
 def test_cli_resume_without_gate_data_refuses_before_training_and_force_continues(tmp_path, ssac_checkpoint,
@@ -492,16 +492,16 @@ def test_checkpoints_by_time_in_the_skeleton(tmp_path):
     """ARS with an epoch cadence beyond the run: checkpoint/ comes from the time cadence alone."""
     small = dict(n_directions=2, top_directions=1, episode_steps=10, transient_steps=2, backend="serial",
                  checkpoint_every=1000)
-    ARS("Pendulum-v1", checkpoint_minutes=1e-9, **small).learn(epochs=3, log_dir=tmp_path / "by-time", progress=False)
+    ARS("Pendulum-v1", checkpoint_minutes=1e-9, **small).learn(total=3, out=tmp_path / "by-time", progress=False)
     assert progress_of(tmp_path / "by-time" / "checkpoint", "epoch") == 2     # after epochs 1, 2; final/ at 3
-    ARS("Pendulum-v1", checkpoint_minutes=0, **small).learn(epochs=3, log_dir=tmp_path / "off", progress=False)
+    ARS("Pendulum-v1", checkpoint_minutes=0, **small).learn(total=3, out=tmp_path / "off", progress=False)
     assert not (tmp_path / "off" / "checkpoint").exists() and (tmp_path / "off" / "final").is_dir()
     with pytest.raises(ValueError, match="checkpoint_minutes must be a finite number >= 0"):
-        ARS("Pendulum-v1", checkpoint_minutes=-1, **small).learn(epochs=1, log_dir=tmp_path / "bad", progress=False)
+        ARS("Pendulum-v1", checkpoint_minutes=-1, **small).learn(total=1, out=tmp_path / "bad", progress=False)
     with pytest.raises(ValueError, match="checkpoint_minutes must be a finite number"):
         make_config("ssac", checkpoint_minutes=math.inf)      # before any work (the gate's warm start)
     agent = SAC("pendulum", **{**SAC_TINY, "checkpoint_every": 0}, checkpoint_minutes=1e-9)
-    agent.learn(total_steps=64, log_dir=tmp_path / "sac", progress=False)
+    agent.learn(total=64, out=tmp_path / "sac", progress=False)
     assert progress_of(tmp_path / "sac" / "checkpoint", "env_steps") == 56   # the last step before the end
 
 

@@ -118,7 +118,7 @@ def test_gate_data_are_lqr_active_decisions_labelled_by_success(warm):
     system = near_top()
     env = SwitchedVectorEnv(system, 8, gate=always_lqr_gate(system), seed=0)
     agent = SSAC(env, gate_data=(np.zeros((4, 4)), [0, 0, 0, 1]), **TINY)
-    agent.learn(total_steps=8 * 10, progress=False)  # exactly one 10-decision episode per env
+    agent.learn(total=8 * 10, progress=False)  # exactly one 10-decision episode per env
     wins = round(agent.success_rate * 8)
     assert agent.num_episodes == 8 and 0 < wins < 8  # random actions in the first 0.01 s: some fail
     # the first decision of each episode starts in swing-up mode, the other 9 under the LQR;
@@ -133,7 +133,7 @@ def test_failed_lqr_episodes_give_negative_gate_labels(warm):
     system = systems.load("acrobot", duration=2.0)  # random starts far from the top: the LQR fails
     env = SwitchedVectorEnv(system, 8, gate=always_lqr_gate(system), seed=0)
     agent = SSAC(env, gate_data=(np.zeros((4, 4)), [0, 0, 0, 1]), **TINY)
-    agent.learn(total_steps=8 * 10, progress=False)
+    agent.learn(total=8 * 10, progress=False)
     assert agent.success_rate == 0.0 and agent.needle.size == 0
     assert len(agent.gate_data) > 4 and not bool(agent.gate_data.labels[4:].any())
 
@@ -145,7 +145,7 @@ def test_rollout_labels_put_lqr_active_states_in_the_relabel_pool_not_in_gate_da
     env = SwitchedVectorEnv(system, 8, gate=always_lqr_gate(system), seed=0)
     agent = SSAC(env, gate_data=(np.zeros((4, 4)), [0, 0, 0, 1]), gate_lqr_labels="rollout",
                  gate_relabel_per_refit=50, **{**TINY, "gate_refit_every": 10_000})
-    agent.learn(total_steps=8 * 10, progress=False)
+    agent.learn(total=8 * 10, progress=False)
     assert agent.success_rate == 0.0 and len(agent.gate_data) == 4          # nothing labelled by the episodes
     pooled = len(agent._relabel_pool)
     assert pooled >= 8 * 9                                                   # 9 LQR-active decisions per episode
@@ -162,7 +162,7 @@ def test_rollout_labels_put_lqr_active_states_in_the_relabel_pool_not_in_gate_da
 def test_gate_is_refit_on_schedule_and_env_uses_it(warm):
     agent = tiny_ssac(warm)
     before = [p.clone() for p in agent.gate.parameters()]
-    agent.learn(total_steps=2000, progress=False)
+    agent.learn(total=2000, progress=False)
     assert agent.num_gate_refits == 2  # at 800 and 1600 env steps
     assert any(not torch.equal(a, b) for a, b in zip(before, agent.gate.parameters()))
     assert agent.env.gate is agent.gate
@@ -172,7 +172,7 @@ def test_gate_is_refit_on_schedule_and_env_uses_it(warm):
 def test_same_seed_repeats(warm):
     a, b = tiny_ssac(warm, seed=3), tiny_ssac(warm, seed=3)
     for agent in (a, b):
-        agent.learn(total_steps=1200, progress=False)
+        agent.learn(total=1200, progress=False)
     for x, y in zip([*a.actor.parameters(), *a.gate.parameters()], [*b.actor.parameters(), *b.gate.parameters()]):
         assert torch.equal(x, y)
     assert a.recent_returns == b.recent_returns
@@ -191,13 +191,13 @@ def test_act_uses_the_lqr_where_the_gate_hands_over(warm):
 # ------------------------------------------------------------- checkpoints
 def test_save_load_keeps_policy_gate_and_resume_restores_gate_data(tmp_path, warm):
     agent = tiny_ssac(warm)
-    agent.learn(total_steps=1600, progress=False, log_dir=tmp_path)
+    agent.learn(total=1600, progress=False, out=tmp_path)
     loaded = SSAC.load(tmp_path / "final")
     x = torch.as_tensor(systems.load("acrobot").sample_initial_states(16, np.random.default_rng(0)))
     assert torch.equal(loaded.act(x), agent.act(x))
     assert len(loaded.gate_data) == 0  # load() is for inference: no data
     resumed = tiny_ssac(warm)
-    resumed.learn(total_steps=2400, progress=False, log_dir=tmp_path, resume=True)
+    resumed.learn(total=2400, progress=False, out=tmp_path, resume=True)
     assert resumed.num_timesteps == 2400
     assert resumed.gate_data.n_warm == agent.gate_data.n_warm and len(resumed.gate_data) >= len(agent.gate_data)
     assert (agent.num_gate_refits, resumed.num_gate_refits) == (2, 3)  # at 800, 1600; then 2400
@@ -226,7 +226,7 @@ def test_load_errors(tmp_path, warm):
     with pytest.raises(CheckpointError, match="trained on system 'acrobot'.*'cartpole'"):
         load_controller(tmp_path / "ssac", systems.load("cartpole"))
     with pytest.raises(CheckpointError, match="trained on system 'acrobot'"):
-        SSAC.load(tmp_path / "ssac", env="cartpole")
+        SSAC.load(tmp_path / "ssac", system="cartpole")
     (tmp_path / "ssac" / "model.pt").unlink()
     with pytest.raises(CheckpointError, match="model.pt"):
         SSAC.load(tmp_path / "ssac")
@@ -246,7 +246,7 @@ def test_nan_loss_stops_and_keeps_the_last_checkpoint(tmp_path, warm):
 
     agent = tiny_ssac(warm)
     with pytest.raises(FloatingPointError, match="q_loss became nan"):
-        agent.learn(total_steps=2000, progress=False, log_dir=tmp_path, callback=poison)
+        agent.learn(total=2000, progress=False, out=tmp_path, callback=poison)
     good = SSAC.load(tmp_path / "checkpoint")
     assert good.num_timesteps == 800 and not (tmp_path / "final").exists()
 

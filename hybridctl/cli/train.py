@@ -21,7 +21,7 @@ from typing import Any, Callable
 from ..analysis.postprocess import FORMS as POSTPROCESS_FORMS
 from ..analysis.postprocess import KINDS as POSTPROCESS_KINDS
 from ..experiments import ALGORITHMS, SSAC_VARIANTS, train_and_evaluate
-from ..learn.run import RESUME_APPLIED
+from ..experiments.resume import RESUME_APPLIED
 from ..learn.apg import METHODS as APG_METHODS
 from ..learn.apg import OBSERVATIONS as APG_OBSERVATIONS
 from ..learn.apg import PRESETS as APG_PRESETS

@@ -154,7 +154,7 @@ def _train_apg(method: str, system_name: str, seed: int, settings: StudySettings
     system = task_system(system_name)
     config = apg_config(method, system_name, seed, settings)
     agent = APG(system, config)
-    agent.learn(log_dir=out / "run", progress=False, resume=(out / "run" / "checkpoint").exists())
+    agent.learn(out=out / "run", progress=False, resume=(out / "run" / "checkpoint").exists())
     x0 = held_out_starts(agent.system, settings.eval_episodes, settings.eval_seed)
     closed = agent.closed_loop_policy()
     metrics = rollout_metrics(agent.system, lambda x, h: closed(x, h if h is not None else closed.initial_state(len(x))),
@@ -175,7 +175,7 @@ def _train_sac(system_name: str, seed: int, settings: StudySettings, out: Path) 
     system = load(system_name, **task.overrides, episode__duration=task.horizon * period)
     agent = SAC(system, SACConfig(seed=seed, total_steps=settings.sac_steps))
     start = time.perf_counter()
-    agent.learn(log_dir=out / "run", progress=False)
+    agent.learn(out=out / "run", progress=False)
     wall = time.perf_counter() - start
     x0 = held_out_starts(system, settings.eval_episodes, settings.eval_seed)
     metrics = rollout_metrics(system, lambda x, h: (agent.predict(x.float(), deterministic=True), None), x0,

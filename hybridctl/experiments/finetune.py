@@ -77,7 +77,7 @@ def _finetune_in(out: Path, env: str, policy: str, tuner: FineTune, config: Fine
         else:
             before = tuner.evaluate(episodes, seed=eval_seed, theta=tuner.theta0, backend=backend).to_dict()
             write_json(before_file, before)
-        tuner.learn(log_dir=out, resume=resume, progress=progress, backend=backend)
+        tuner.learn(out=out, resume=resume, progress=progress, backend=backend)
         after = tuner.evaluate(episodes, seed=eval_seed, backend=backend).to_dict()
     write_json(out / "after.json", after)
     exported = None

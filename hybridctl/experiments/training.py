@@ -9,7 +9,6 @@ it with checkpoints and logs in a run folder, evaluate it and write ``eval.json`
 from __future__ import annotations
 
 import contextlib
-import inspect
 import os
 import platform
 import shutil
@@ -27,8 +26,9 @@ from ..learn import APG, ARS, SAC, SSAC, ARSConfig, SACConfig, SSACConfig
 from ..learn.apg import METHODS as APG_METHODS
 from ..learn.apg import PRESETS as APG_PRESETS
 from ..learn.apg import APGConfig
-from ..learn.checkpoint import CheckpointError, newest_checkpoint, read_json, system_record
-from ..learn.run import checkpoint_minutes, describe_refused, resume_changes
+from ..learn.checkpoint import CheckpointError, newest_checkpoint, read_meta, system_record
+from ..learn.config_check import checkpoint_minutes
+from .resume import resume_settings
 from ..systems import load
 
 
@@ -263,20 +263,6 @@ def _input_file(text: str | Path | None) -> str | Path | None:
     return text if text is not None and str(text) and Path(text).exists() else None
 
 
-def resume_settings(found: Path, recorded: dict, settings: dict, force: bool, report: Callable[[str], None]) -> dict:
-    """The ``settings`` a resume from ``found`` applies (see :data:`~hybridctl.learn.run.RESUME_APPLIED`):
-    run settings always, math settings equal to the recorded ones; changed math settings raise
-    ValueError naming each field with its recorded and given value, unless ``force`` (applied,
-    and reported)."""
-    take, refused = resume_changes(recorded, settings)
-    if refused and not force:
-        raise ValueError(describe_refused(found, refused))
-    for name, old, new in refused:
-        report(f"--force: resuming with {name}={new!r} (the checkpoint's run had {old!r})")
-        take[name] = new
-    return take
-
-
 def _as_record(result) -> dict:
     """An evaluation result (a dict, a mapping or a dataclass) as a plain dict."""
     if isinstance(result, Mapping):
@@ -286,11 +272,6 @@ def _as_record(result) -> dict:
     if hasattr(result, "keys"):
         return {key: result[key] for key in result.keys()}
     raise TypeError(f"cannot record an evaluation result of type {type(result).__name__}")
-
-
-def _learn_accepts(agent, name: str) -> bool:
-    """Whether ``agent.learn`` takes the keyword ``name``."""
-    return name in inspect.signature(agent.learn).parameters
 
 
 def train_and_evaluate(algorithm: str, system: str, out: str | Path | None = None, settings: dict | None = None,
@@ -310,7 +291,7 @@ def train_and_evaluate(algorithm: str, system: str, out: str | Path | None = Non
             ``out`` that is, holds or lies inside ``init`` or a spec file given as ``system``.
             The folder is locked while the run writes it (:func:`open_run_folder`).
         settings: config fields to change (see :func:`make_config`). On ``resume`` the run
-            settings (:data:`~hybridctl.learn.run.RESUME_APPLIED`: total_steps / epochs,
+            settings (:data:`~hybridctl.experiments.resume.RESUME_APPLIED`: total_steps / epochs,
             checkpoint and log cadence, eval episodes, tensorboard, threads, backend) are
             applied; any other field given with another value than the checkpoint's refuses
             the resume, naming it (``force`` applies it anyway).
@@ -343,38 +324,97 @@ def train_and_evaluate(algorithm: str, system: str, out: str | Path | None = Non
     report = report or _silent
     settings = dict(settings or {})
     algo = learner_class(algorithm)
-    if algorithm in APG_METHODS:
-        return _train_apg(algorithm, system, out, settings, variant, resume, eval_episodes, progress, command, report,
-                          force, overwrite)
-    if algorithm == "ars":
-        return _train_ars(system, out, settings, variant or "hybridctl", resume, init, eval_episodes, progress,
-                          command, report, force, overwrite)
-    if init is not None:
-        raise ValueError("--init applies to ars only")
-    spec = dict(spec or {})
-    system_name = load(system).name  # a clear error for an unknown system name, before any work
-    config = make_config(algorithm, variant or "hybridctl", **settings)
+    if init is not None and not algo.warm_starts:
+        raise ValueError(f"--init applies to {', '.join(n for n, c in ALGORITHMS.items() if c.warm_starts)} only")
+    preset = variant if variant is not None else "hybridctl"
+    config = make_config(algorithm, preset, **settings)   # bad settings fail before any work
+    target, system_name = _training_target(algo, system, config, dict(spec or {}))
+    out = _run_folder_of(out, algorithm, system, config.seed, resume, overwrite)
+    inputs = {"SYSTEM spec": _input_file(system), **({"--init": init} if init is not None else {})}
+    with open_run_folder(out, resume, overwrite, inputs=inputs) as folder:
+        start = time.perf_counter()
+        agent = _starting_learner(algo, algorithm, system, target, system_name, config, settings, variant, init, out,
+                                  resume, force, bool(spec), report)
+        folder.clear()   # --overwrite: only now that the new run's inputs are read
+        agent.learn(out=out, resume=resume, force=force, progress=progress)
+        record = _as_record(agent.evaluate(eval_episodes, **algo.record_evaluation))
+        if command is not None:
+            record["command"] = command
+        record.update(agent.training_record())
+        record["session_wall_time_s"] = time.perf_counter() - start
+        io.write_json(out / "eval.json", record)
+    return TrainingRun(agent, out, record)
+
+
+def _training_target(algo, system: str, config, spec: dict):
+    """What a new learner of class ``algo`` is built on, and the name its checkpoints record: a
+    system (with the ``spec`` overrides; a name alone is loaded by the learner, with the config's
+    reward) or, for a learner that takes gymnasium envs (ARS), the env id as given."""
+    if spec and not algo.takes_spec:
+        raise ValueError(f"--spec applies to {', '.join(n for n, c in ALGORITHMS.items() if c.takes_spec)} only")
+    if algo.takes_gym_envs:
+        return system, system
+    name = load(system).name  # a clear error for an unknown system name, before any work
     if spec and getattr(config, "reward", None) is not None:
         # --reward with --spec: the system is loaded here with the overrides, so the reward goes with them
         # (a name alone is loaded by the learner with config.reward as its reward.kind)
         spec.setdefault("reward.kind", config.reward)
-    plant = load(system, **spec) if spec else system  # a bad override fails here, naming the key
-    out = _run_folder_of(out, algorithm, system, settings.get("seed", 0), resume, overwrite)
-    with open_run_folder(out, resume, overwrite, inputs={"SYSTEM spec": _input_file(system)}) as folder:
-        start = time.perf_counter()
-        agent = _sac_agent(algo, algorithm, system, system_name, plant, spec, config, settings, variant, out, resume,
-                           force, report)
-        folder.clear()   # --overwrite: only now that the new run's inputs are read
-        agent.learn(progress=progress, log_dir=out, resume=resume, force=force)
-        record = _as_record(agent.evaluate(episodes=eval_episodes or DEFAULT_EVAL_EPISODES[algorithm]))
-        if command is not None:
-            record["command"] = command
-        record.update({"env_steps": agent.num_timesteps, "train_wall_time_s": agent.wall_time,
-                       "session_wall_time_s": time.perf_counter() - start,
-                       "train_mean_return_last100": agent.mean_return,
-                       "train_success_rate_last100": agent.success_rate})
-        io.write_json(out / "eval.json", record)
-    return TrainingRun(agent, out, record)
+    return (load(system, **spec) if spec else system), name  # a bad override fails here, naming the key
+
+
+def _starting_learner(algo, algorithm: str, system: str, target, system_name: str, config, settings: dict,
+                      variant: str | None, init, out: Path, resume: bool, force: bool, spec_given: bool,
+                      report: Callable[[str], None]):
+    """The learner a run starts with: resumed from ``out``'s newest checkpoint, warm-started from
+    ``init``, or new."""
+    found = newest_run_checkpoint(out, strict=not force) if resume else None
+    if found is not None:
+        return _resumed_learner(algo, algorithm, system, target, system_name, found, settings, variant, force,
+                                spec_given, report)
+    if resume:
+        report(f"--resume: no checkpoint under {out}; starting a new run")
+    if init is not None:
+        agent = algo.load(init, system=system, force=force, **settings)
+        report(f"starting from {init} ({agent.log_key} {agent.progress_count}); training to "
+               f"{getattr(agent.config, agent.budget_field)} {agent.unit}s")
+        return agent
+    report(f"{algo.run_label(config)} on {system}: {config.describe_budget()}")
+    return algo(target, config)
+
+
+def _resumed_learner(algo, algorithm: str, system: str, target, system_name: str, found: Path, settings: dict,
+                     variant: str | None, force: bool, spec_given: bool, report: Callable[[str], None]):
+    """The learner of the checkpoint ``found`` with the run settings applied
+    (:func:`~hybridctl.experiments.resume.resume_settings`): refused, naming what differs, when it
+    was trained on another system, with other spec values or other math settings (``force``: go on)."""
+    recorded = read_meta(found)
+    trained_on = (recorded.get("system") or {}).get("name")
+    if trained_on != system_name and not force:
+        raise CheckpointError(f"cannot resume: checkpoint {found} was trained on system {trained_on!r}, not "
+                              f"{system_name!r} (--force resumes it on its own system {trained_on!r})")
+    if spec_given:
+        _check_spec_on_resume(found, recorded, target, force, report)
+    given = {**_preset_changes(algorithm, variant, recorded.get("config", {})), **settings}
+    applied = resume_settings(found, recorded.get("config", {}), given, force, report)
+    # a learner on gymnasium envs is loaded on the env as given (an id, or a spec file the recorded name
+    # cannot find); one on systems on the recorded system with its spec overrides
+    agent = algo.load(found, system=system if algo.takes_gym_envs else None, force=force, **applied)
+    agent.checkpointer.check_resumable(found, force)
+    report(f"resuming {found} at {agent.log_key} {agent.progress_count}"
+           + (f", training to {getattr(agent.config, agent.budget_field)}" if agent.budget_field in applied else ""))
+    return agent
+
+
+def _preset_changes(algorithm: str, variant: str | None, recorded: dict) -> dict:
+    """The fields a preset given on resume (SSAC's ``--variant``, the APG family's ``--preset``) sets to other
+    values than the run's own preset (its recorded ``variant_name``; without one, its recorded config), as if
+    each were given."""
+    if variant is None:
+        return {}
+    preset = asdict(make_config(algorithm, variant))
+    run_variant = recorded.get("variant_name")
+    base = asdict(make_config(algorithm, run_variant)) if run_variant else recorded
+    return {k: v for k, v in preset.items() if base.get(k, v) != v}
 
 
 MAX_NUMBERED_RUNS = 9999
@@ -414,42 +454,8 @@ def _run_folder_of(out: str | Path | None, algorithm: str, system: str, seed: in
     return numbered_run_dir(algorithm, system, seed, resume=resume, overwrite=overwrite)
 
 
-def _sac_agent(algo, algorithm: str, system: str, system_name: str, plant, spec: dict, config, settings: dict,
-               variant: str | None, out: Path, resume: bool, force: bool, report: Callable[[str], None]):
-    """The SAC / SSAC learner a run starts with: resumed from ``out``'s newest checkpoint, or new."""
-    found = newest_run_checkpoint(out, strict=not force) if resume else None
-    if found is None:
-        if resume:
-            report(f"--resume: no checkpoint under {out}; starting a new run")
-        report(f"{algo.algorithm_name} on {system}: {config.total_steps} env steps, seed {config.seed}"
-               + (" (warm-starting the gate first)" if algorithm == "ssac" else ""))
-        return algo(plant, config=config)
-    recorded = read_json(found / "config.json")
-    trained_on = (recorded.get("system") or {}).get("name")
-    if trained_on != system_name and not force:
-        raise CheckpointError(f"cannot resume: checkpoint {found} was trained on system {trained_on!r}, not "
-                              f"{system_name!r} (--force resumes it on its own system {trained_on!r})")
-    _check_spec_on_resume(found, recorded, plant, spec, force, report)
-    given = dict(settings)
-    if variant is not None and algorithm == "ssac":
-        run_variant = recorded.get("config", {}).get("variant_name", "hybridctl")
-        if variant != run_variant:  # the preset's fields, as if each were given
-            preset = asdict(SSACConfig.variant(variant))
-            base = asdict(SSACConfig.variant(run_variant)) if run_variant in SSAC_VARIANTS else {}
-            given = {**{k: v for k, v in preset.items() if base.get(k) != v}, **given}
-    applied = resume_settings(found, recorded.get("config", {}), given, force, report)
-    agent = algo.load(found, force=force, **applied)
-    agent.checkpointer.check_resumable(found, force)
-    report(f"resuming {found} at {agent.num_timesteps} env steps"
-           + (f", training to {agent.config.total_steps}" if "total_steps" in applied else ""))
-    return agent
-
-
-def _check_spec_on_resume(found: Path, recorded: dict, plant, spec: dict, force: bool,
-                          report: Callable[[str], None]) -> None:
+def _check_spec_on_resume(found: Path, recorded: dict, plant, force: bool, report: Callable[[str], None]) -> None:
     """On resume, spec overrides given again must resolve to the checkpoint's plant values."""
-    if not spec:
-        return
     saved = (recorded.get("system") or {}).get("spec_values")
     now = system_record(plant)["spec_values"]
     differing = sorted(k for k in set(saved or {}) | set(now) if (saved or {}).get(k) != now.get(k))
@@ -462,80 +468,3 @@ def _check_spec_on_resume(found: Path, recorded: dict, plant, spec: dict, force:
     report(f"--force: {text}; keeping the checkpoint's")
 
 
-def _train_ars(env: str, out, settings: dict, variant: str, resume: bool, init, eval_episodes, progress: bool,
-               command: str | None, report: Callable[[str], None], force: bool = False,
-               overwrite: bool = False) -> TrainingRun:
-    """:func:`train_and_evaluate` for ARS V2-t with optional dimension post-processing (thesis Ch. 4)."""
-    make_config("ars", variant, **settings)  # bad settings fail before any checkpoint is read
-    out = _run_folder_of(out, "ars", env, settings.get("seed", 0), resume, overwrite)
-    with open_run_folder(out, resume, overwrite, inputs={"--init": init, "ENV spec": _input_file(env)}) as folder:
-        found = newest_run_checkpoint(out, strict=not force) if resume else None
-        if found is not None:
-            applied = resume_settings(found, read_json(found / "config.json").get("config", {}), settings, force,
-                                      report)
-            agent = ARS.load(found, env=env, force=force, **applied)
-            report(f"resuming {found} at epoch {agent.epoch}")
-        elif init is not None:
-            agent = ARS.load(init, env=env, force=force, **settings)
-            report(f"starting from {init} (epoch {agent.epoch}); training to epoch {agent.config.epochs}")
-        else:
-            agent = ARS(env, ARSConfig(**settings))
-            report(f"ARS on {env}: {agent.config.epochs} epochs, seed {agent.config.seed}, "
-                   f"post-processor {agent.config.postprocess}, backend {agent.config.backend}")
-        folder.clear()   # --overwrite: only now that --init is read
-        if _learn_accepts(agent, "resume"):
-            agent.learn(log_dir=out, progress=progress, resume=resume, force=force)
-        else:
-            agent.learn(log_dir=out, progress=progress)
-        record = _as_record(agent.evaluate(episodes=eval_episodes or agent.config.eval_episodes, measure=True))
-        if command is not None:
-            record["command"] = command
-        record.update({"epochs": agent.epoch, "env_steps": agent.env_steps, "train_wall_time_s": agent.wall_time})
-        io.write_json(out / "eval.json", record)
-    return TrainingRun(agent, out, record)
-
-
-def _train_apg(method: str, system: str, out, settings: dict, preset: str | None, resume: bool, eval_episodes,
-               progress: bool, command: str | None, report: Callable[[str], None], force: bool = False,
-               overwrite: bool = False) -> TrainingRun:
-    """:func:`train_and_evaluate` for the analytic-policy-gradient learners (thesis Ch. 7): the same
-    run-folder refusal, resume checks and resume policy as the other learners."""
-    if preset not in (None, "hybridctl", *APG_PRESETS):
-        raise ValueError(f"unknown preset {preset!r} for {method}; known: {', '.join(APG_PRESETS)}")
-    system_name = load(system).name  # a clear error for an unknown system name, before any work
-    config = make_config(method, preset or "thesis", **settings)
-    out = _run_folder_of(out, method, system, config.seed, resume, overwrite)
-    with open_run_folder(out, resume, overwrite, inputs={"SYSTEM spec": _input_file(system)}) as folder:
-        agent = _apg_agent(method, system, system_name, config, settings, preset, out, resume, force, report)
-        folder.clear()   # --overwrite: only now that the new run's inputs are read
-        agent.learn(log_dir=out, progress=progress)
-        record = _as_record(agent.evaluate(episodes=eval_episodes or agent.config.eval_episodes))
-        if command is not None:
-            record["command"] = command
-        record.update({"method": method, "epochs": agent.epoch, "iterations": agent.iterations,
-                       "env_steps": agent.env_steps, "nan_grads": agent.nan_grads, "large_grads": agent.large_grads,
-                       "train_wall_time_s": agent.wall_time})
-        io.write_json(out / "eval.json", record)
-    return TrainingRun(agent, out, record)
-
-
-def _apg_agent(method: str, system: str, system_name: str, config, settings: dict, preset: str | None, out: Path,
-               resume: bool, force: bool, report: Callable[[str], None]):
-    """The APG-family learner a run starts with: resumed from ``out``'s newest checkpoint, or new."""
-    found = newest_run_checkpoint(out, strict=not force) if resume else None
-    if found is None:
-        report(f"{method} on {system}: {config.epochs} epochs of {config.population if method != 'apg' else 1} x "
-               f"{config.batch} x {config.horizon} steps, seed {config.seed}")
-        return APG(system, config)
-    recorded = read_json(found / "config.json")
-    if recorded.get("system") != system_name and not force:
-        raise CheckpointError(f"cannot resume: checkpoint {found} was trained on system "
-                              f"{recorded.get('system')!r}, not {system_name!r}")
-    given = dict(settings)
-    if preset is not None:  # the preset's fields, as if each were given
-        given = {**{k: v for k, v in asdict(APGConfig.preset(preset, method=method)).items()
-                    if recorded.get("config", {}).get(k, v) != v}, **given}
-    applied = resume_settings(found, recorded.get("config", {}), given, force, report)
-    agent = APG.load(found, force=force, **applied)
-    report(f"resuming {found} at epoch {agent.epoch}")
-    return agent

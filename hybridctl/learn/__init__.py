@@ -6,8 +6,8 @@ Every learner stands on the training skeleton of :mod:`.run` (run log, checkpoin
 callbacks, NaN guard, evaluation results).
 
 >>> from hybridctl.learn import SAC, SSAC
->>> agent = SAC("acrobot", seed=0).learn(total_steps=200_000, log_dir="runs/sac")
->>> agent = SSAC("acrobot", seed=0).learn(log_dir="runs/ssac")
+>>> agent = SAC("acrobot", seed=0).learn(total=200_000, out="runs/sac")
+>>> agent = SSAC("acrobot", seed=0).learn(out="runs/ssac")
 """
 
 from .apg import APG, APGConfig
@@ -19,7 +19,11 @@ from .gate import GateConfig, GateNet, fit_gate, gate_metrics, warm_start_gate
 from .policies import Policy, PolicyPopulation
 from .networks import Actor, DeterministicPolicy, ObsTransform, QNetwork
 from .replay import EpisodeStaging, ReplayBuffer, sample_mixed
-from .run import Callback, CallbackList, Checkpointer, EvalResult, Learner, RunLog, Saved, check_finite
+from .base import Learner
+from .callbacks import Callback, CallbackList
+from .checkpoint import Checkpointer, Saved
+from .run import EvalResult, check_finite
+from .runlog import RunLog
 from .sac import SAC, SACConfig
 from .robustness import failure_rates
 from .sb3 import Normalizer, SB3Agent, SB3Policy, load_sb3

@@ -55,10 +55,10 @@ Speed: ``APGConfig.compile`` runs the per-step work (observe, act, sub-steps, re
 Status (what a later session should know): with ``takeover="lqr"`` PAPG trains a cart-pole swing-up
 that balances in Drake (models/policies/papg-cartpole: 93.4 % of the 11 x 11 map; seeds 0-3 71-93 %,
 ~200 s each). Without the takeover no method stabilises within 5 s at ~1/500 of the thesis' budget
-(notebooks/data/ch7/table71.json); the acrobot and double cart-pole have no balancing swing-up yet.
+(results/ch7/table71.json); the acrobot and double cart-pole have no balancing swing-up yet.
 
 >>> agent = APG("cartpole", APGConfig.preset("reduced", method="ce-apg"))
->>> agent.learn(log_dir="runs/ce-apg-cartpole")                   # progress, CSV, checkpoints
+>>> agent.learn(out="runs/ce-apg-cartpole")                   # progress, CSV, checkpoints
 >>> agent.evaluate(episodes=16)                                   # held-out starts, stabilisation rate
 >>> APG.load("runs/ce-apg-cartpole/final").policy()               # a policies.Policy
 """
@@ -84,7 +84,10 @@ from . import checkpoint as ckpt
 from .config_check import check_types
 from .policies import KINDS as POLICY_KINDS
 from .policies import Policy, PolicyPopulation
-from .run import EVAL_SEED, PROGRESS_FILE, EvalResult, Learner, Saved, check_fields, check_finite, seeded, set_torch_threads
+from .base import Learner
+from .checkpoint import PROGRESS_FILE, Saved
+from .config_check import check_fields
+from .run import EVAL_SEED, EvalResult, check_finite, seeded, set_torch_threads
 
 __all__ = ["APG", "APGConfig", "BatchedAdam", "apg_chunk", "ClosedLoopPolicy", "policy_step", "compiled_policy_step", "METHODS", "PRESETS", "observe", "population_returns",
            "member_gradients", "lr_schedule", "cem_update",
@@ -163,6 +166,11 @@ class APGConfig:
     #                                    or the Ray cluster's CPUs)
     ray_address: str | None = None     # hybridctl: the Ray cluster ("ray://host:10001", "auto"); None starts a
     #                                    local Ray instance (backend "ray" only)
+
+    def describe_budget(self) -> str:
+        """The run's budget in a run's account: epochs of members x batch x horizon steps."""
+        return (f"{self.epochs} epochs of {self.population if self.method != 'apg' else 1} x {self.batch} x "
+                f"{self.horizon} steps, seed {self.seed}")
 
     def validate(self) -> None:
         """Raise ValueError naming the first invalid field."""
@@ -559,7 +567,19 @@ class APG(Learner):
 
     algorithm_name = "APG"
     config_class = APGConfig
+    budget_field, unit, uses_backend = "epochs", "epoch", True
     log_key = "epoch"
+
+    @classmethod
+    def run_label(cls, config) -> str:
+        """The method's name ("papg", "ce-apg") in a run's account."""
+        return config.method
+
+    def training_record(self) -> dict:
+        """eval.json's training counters: method, epochs, APG iterations, env steps, gradient guards, wall time."""
+        return {"method": self.config.method, "epochs": self.epoch, "iterations": self.iterations,
+                "env_steps": self.env_steps, "nan_grads": self.nan_grads, "large_grads": self.large_grads,
+                "train_wall_time_s": self.wall_time}
     log_columns = ("epoch", "iterations", "env_steps", "physics_steps", "lr", "mean_return", "best_return",
                    "elite_score", "grad_norm", "nan_grads", "large_grads", "diverged", "sigma", "wall_time",
                    "steps_per_s")
@@ -819,35 +839,33 @@ class APG(Learner):
         std = torch.where(var < 1e-8, torch.ones_like(var), var.sqrt())
         self.pop.set_normalization(mean, std)
 
-    def learn(self, epochs: int | None = None, log_dir: str | Path | None = None, progress: bool = True,
-              resume: bool = False, callback=None) -> "APG":
-        """Train until ``epochs`` epochs in total (default ``config.epochs``); checkpoints every
-        ``checkpoint_every`` epochs in ``log_dir/checkpoint`` and finally ``log_dir/final``.
-        ``resume``: restore the newest checkpoint in ``log_dir`` first."""
-        target = self.config.epochs if epochs is None else int(epochs)
-        if target < 1:
-            raise ValueError(f"epochs must be >= 1, got {target}")
-        with self.run(log_dir, resume, progress, callback, total=target, unit="epoch",
-                      desc=f"{self.config.method} {self.system.name}") as run:
-            try:
-                while self.epoch < target and not run.stopped:
-                    start = time.perf_counter()
-                    steps_before = self.env_steps
-                    row = self.train_epoch()
-                    elapsed = time.perf_counter() - start
-                    self.wall_time += elapsed
-                    row.update(wall_time=self.wall_time,
-                               steps_per_s=(self.env_steps - steps_before) / max(elapsed, 1e-9))
-                    self.history.append(row)
-                    run.log(row)
-                    run.advance(1, ret=f"{row['best_return']:.1f}", gnorm=f"{row['grad_norm']:.2g}",
-                                nan=self.nan_grads, sps=f"{row['steps_per_s']:.0f}")
-                    run.after_update()
-                    if self.epoch % self.config.checkpoint_every == 0:
-                        run.checkpoint()
-            finally:
+    def run_description(self) -> str:
+        """The progress bar's label."""
+        return f"{self.config.method} {self.system.name}"
+
+    def train(self, run, target: int, backend) -> None:
+        """The APG family's loop inside ``learn``'s run: one epoch at a time (the population split
+        over ``backend``, default the config's, opened when first needed), a checkpoint every
+        ``checkpoint_every`` epochs and at least every ``checkpoint_minutes``."""
+        if backend is not None:
+            self._backend = backend
+        try:
+            run.updates(target, self._timed_epoch, 1, self.config.checkpoint_every,
+                        lambda row: {"ret": f"{row['best_return']:.1f}", "gnorm": f"{row['grad_norm']:.2g}",
+                                     "nan": self.nan_grads, "sps": f"{row['steps_per_s']:.0f}"})
+        finally:
+            if backend is None:
                 self.close_backend()
-        return self
+            else:
+                self._backend = None
+
+    def _timed_epoch(self) -> dict:
+        """One epoch's row, with ``episode_steps`` the epoch's env steps (so that :meth:`Run.updates`'s
+        steps per second count every member's and batch's steps)."""
+        before = self.env_steps
+        row = self.train_epoch()
+        row["episode_steps"] = self.env_steps - before
+        return row
 
     # ------------------------------------------------------------------ use
     def policy(self, which: str | None = None) -> Policy:
@@ -863,15 +881,15 @@ class APG(Learner):
         """:meth:`policy` with the observation, on raw states (for Drake's RecurrentTorchPolicy)."""
         return ClosedLoopPolicy(self.system, self.policy(which), self.config.observation)
 
-    def evaluate(self, episodes: int | None = None, seed: int = EVAL_SEED, which: str | None = None,
-                 horizon: int | None = None, keep_states: bool = False) -> EvalResult:
-        """Returns of the trained policy on held-out starts, and the stabilisation rate: the share of
+    def run_evaluation(self, episodes: int, seed: int, which: str | None = None,
+                       horizon: int | None = None, keep_states: bool = False) -> EvalResult:
+        """``evaluate(episodes, seed=, ...)``: returns of the trained policy on held-out starts, and the stabilisation rate: the share of
         episodes whose last second (of policy-step states) stays within the spec's success eps of
         the goal (thesis eq. 3.2 with lookback = one second; the L2 norm over every coordinate, a
         cart's position and the velocities included). ``upright_rate``: the share whose angle
         errors alone all stay below eps over the last second (the pole held up, the cart anywhere).
         ``best_training_return``: the best member's training score (the author's metric)."""
-        n = episodes or self.config.eval_episodes
+        n = episodes
         policy = self.policy(which)
         x0 = self.starts(n, [seed, 2])
         with torch.no_grad():
@@ -892,36 +910,27 @@ class APG(Learner):
         return out
 
     # ------------------------------------------------------------------ checkpoints
-    def checkpoint_meta(self) -> dict:
-        """config.json: the system (name and spec overrides; its plant record: the resolved spec values and
-        their hash), the policy's architecture and the config."""
-        return {"algorithm": self.algorithm_name, "method": self.config.method, "system": self.system.name,
-                "system_overrides": {k: v for k, v in self.system.spec.overrides.items() if not k.startswith("reward__")},
-                "plant": ckpt.system_record(self.system),
-                "policy": self.pop.describe(), "substeps": self.substeps, "period": self.period,
-                "config": dataclasses.asdict(self.config)}
+    def checkpoint_extra(self) -> dict:
+        """config.json beside algorithm, system (its record, the config's reward settings among its
+        overrides) and config: the method, the policy's architecture, substeps and control period."""
+        return {"method": self.config.method, "policy": self.pop.describe(), "substeps": self.substeps,
+                "period": self.period}
 
     def normalization(self) -> dict:
         """normalization.json: the frozen observation mean and std."""
         return {"type": "frozen_mean_std", "mean": self.pop.obs_mean.tolist(), "std": self.pop.obs_std.tolist()}
 
     @classmethod
-    def load(cls, path: str | Path, force: bool = False, **overrides) -> "APG":
-        """Restore a checkpoint directory (``overrides`` replace config fields, e.g. epochs).
-
-        The system is rebuilt from the checkpoint's record; when today's spec of that system
-        differs from the recorded plant, loading is refused naming the values (``force``: a
-        warning), as for another algorithm's checkpoint.
-        """
-        folder = ckpt.resolve_checkpoint_dir(path)
-        meta = ckpt.read_json(folder / ckpt.CONFIG_FILE)  # its shape is checked there (ckpt.SCHEMAS)
-        ckpt.check_algorithm(folder, meta.get("algorithm") or "(no algorithm)", (cls.algorithm_name,),
-                             cls.algorithm_name, force)
-        ckpt.require_keys(folder, meta, cls.algorithm_name)
-        config = ckpt.config_from_meta(APGConfig, meta, overrides, folder)
-        system = ckpt.recorded_system(folder, meta["system"], meta.get("system_overrides", {}))
+    def from_checkpoint(cls, found: Path, meta: dict, config: APGConfig, system, force: bool) -> "APG":
+        """:meth:`~hybridctl.learn.base.Learner.load`'s learner: on ``system`` (None: the recorded one,
+        rebuilt from its name and spec overrides; the config's reward settings are applied again).
+        When today's spec of that system differs from the recorded plant, loading is refused naming
+        the values (``force``: a warning), as for another algorithm's checkpoint."""
+        record = meta["system"]
+        if system is None:
+            overrides = {k: v for k, v in (record.get("overrides") or {}).items() if not k.startswith("reward__")}
+            system = ckpt.recorded_system(found, record["name"], overrides)
         agent = cls(system, config)  # applies the config's reward settings to the system
-        if "plant" in meta:
-            ckpt.check_plant(folder, meta["plant"], agent.system, force)
-        agent.checkpointer.restore(folder, force=force)
+        if "spec_hash" in record:
+            ckpt.check_plant(found, record, agent.system, force)
         return agent

@@ -17,8 +17,8 @@ any torch module (``"mlp:64,64"`` builds a tanh MLP; or pass an ``nn.Module``), 
 parameters are flattened into theta.
 
 >>> agent = ARS("Hopper-v5", ARSConfig(postprocess="mesh-lower", seed=0))
->>> agent.learn(epochs=100, log_dir="runs/ars-hopper")     # progress bar, CSV, checkpoints
->>> agent.learn(epochs=200, log_dir="runs/ars-hopper", resume=True)   # on from the newest checkpoint
+>>> agent.learn(total=100, out="runs/ars-hopper")     # progress bar, CSV, checkpoints
+>>> agent.learn(total=200, out="runs/ars-hopper", resume=True)   # on from the newest checkpoint
 >>> agent.predict(obs)                                       # deterministic action
 >>> agent.save("runs/ars-hopper/final"); ARS.load("runs/ars-hopper/final")
 
@@ -57,7 +57,10 @@ from ..systems import known_systems
 from ..systems import load as load_system
 from . import checkpoint as ckpt
 from .config_check import check_types
-from .run import EVAL_SEED, PROGRESS_FILE, EvalResult, Learner, Saved, check_fields, check_finite, seeded, set_torch_threads
+from .base import Learner
+from .checkpoint import PROGRESS_FILE, Saved
+from .config_check import check_fields
+from .run import EvalResult, check_finite, seeded, set_torch_threads
 
 
 @dataclass
@@ -94,6 +97,10 @@ class ARSConfig:
     #                                  policies; bit-identical results) on `workers` threads when the backend is
     #                                  local (serial or processes), else on `backend`;
     #                                  "backend": always one rollout per task on `backend`
+
+    def describe_budget(self) -> str:
+        """The run's budget in a run's account."""
+        return f"{self.epochs} epochs, seed {self.seed}, post-processor {self.postprocess}, backend {self.backend}"
 
     def validate(self) -> None:
         """Raise ValueError naming the first invalid field."""
@@ -508,6 +515,10 @@ class ARS(Learner):
 
     algorithm_name = "ARS"
     config_class = ARSConfig
+    budget_field, unit, uses_backend = "epochs", "epoch", True
+    takes_gym_envs, warm_starts = True, True
+    record_evaluation = {"measure": True}   # eval.json: the raw dimensions of every episode too
+    load_keywords = ("policy",)
     log_key = "epoch"
     log_columns = ("epoch", "env_steps", "mean_return", "max_return", "mean_raw_return", "mean_dimension", "sigma_r",
                    "episode_steps", "wall_time", "steps_per_s")
@@ -550,6 +561,10 @@ class ARS(Learner):
         self.epoch, self.env_steps, self.wall_time = 0, 0, 0.0
         self.history: list[dict] = []
         self.log_rows: list[dict] = []
+
+    def training_record(self) -> dict:
+        """eval.json's training counters: epochs, env steps, wall time."""
+        return {"epochs": self.epoch, "env_steps": self.env_steps, "train_wall_time_s": self.wall_time}
 
     @property
     def progress_count(self) -> int:
@@ -607,35 +622,24 @@ class ARS(Learner):
                 "mean_dimension": float(np.mean([x["dimension"] for x in results])), "sigma_r": float(sigma_r),
                 "episode_steps": steps / len(results)}
 
-    def learn(self, epochs: int | None = None, log_dir: str | Path | None = None, progress: bool = True,
-              backend=None, resume: bool = False, callback=None, force: bool = False) -> "ARS":
-        """Train until ``epochs`` epochs in total (default ``config.epochs``); checkpoint every
-        ``checkpoint_every`` epochs into ``log_dir/checkpoint`` and finally ``log_dir/final``.
+    def run_description(self) -> str:
+        """The progress bar's label."""
+        return f"ARS {self.env_name}"
 
-        ``resume``: first restore the newest checkpoint in ``log_dir`` (a warning when there
-        is none). Without it training continues from the agent's state (e.g. after
-        :meth:`load`); either way progress.csv keeps the rows up to the agent's epoch.
-        ``callback``: :class:`~hybridctl.learn.run.Callback` objects or ``f(agent)``, called
-        after every epoch; False stops training. ``force``: resume from a checkpoint of another
-        env or algorithm (with a warning). A checkpoint is also written at least every
-        ``checkpoint_minutes`` of wall time.
-        """
-        target = self.config.epochs if epochs is None else int(epochs)
-        if target < 1:
-            raise ValueError(f"epochs must be >= 1, got {target}")
-        with self.run(log_dir, resume, progress, callback, total=target, unit="epoch",
-                      desc=f"ARS {self.env_name}", force=force) as run:
-            own_backend = backend is None
-            pool = backend or make_backend(self.config.backend, self.config.workers, self.config.address)
-            try:
-                self.run_updates(run, target, lambda: self.train_epoch(pool), 2 * self.config.n_directions,
-                                 self.config.checkpoint_every,
-                                 lambda row: {"ret": f"{row['mean_raw_return']:.1f}", "dim": f"{row['mean_dimension']:.2f}",
-                                              "sps": f"{row['steps_per_s']:.0f}"})
-            finally:
-                if own_backend:
-                    pool.close()
-        return self
+    def train(self, run, target: int, backend) -> None:
+        """ARS's loop inside ``learn``'s run: one epoch (2 x ``n_directions`` rollouts on ``backend``,
+        default the config's, opened for the run) per update, a checkpoint every ``checkpoint_every``
+        epochs and at least every ``checkpoint_minutes``."""
+        own_backend = backend is None
+        pool = backend or make_backend(self.config.backend, self.config.workers, self.config.address)
+        try:
+            run.updates(target, lambda: self.train_epoch(pool), 2 * self.config.n_directions,
+                        self.config.checkpoint_every,
+                        lambda row: {"ret": f"{row['mean_raw_return']:.1f}", "dim": f"{row['mean_dimension']:.2f}",
+                                     "sps": f"{row['steps_per_s']:.0f}"})
+        finally:
+            if own_backend:
+                pool.close()
 
     # -- use ---------------------------------------------------------------------------------
     def frozen_policy(self) -> "FrozenPolicy":
@@ -653,10 +657,11 @@ class ARS(Learner):
             frozen = self._predictor = self.frozen_policy()
         return frozen(obs)
 
-    def evaluate(self, episodes: int | None = None, seed: int = EVAL_SEED, episode_steps: int | None = None,
-                 postprocess: str = "identity", backend=None, keep_states: bool = False, measure: bool = False,
-                 **noise) -> EvalResult:
-        """Deterministic rollouts of the current policy: raw returns, episode lengths, dimensions.
+    def run_evaluation(self, episodes: int, seed: int, episode_steps: int | None = None,
+                       postprocess: str = "identity", backend=None, keep_states: bool = False, measure: bool = False,
+                       **noise) -> EvalResult:
+        """``evaluate(episodes, seed=, ...)``: deterministic rollouts of the current policy: raw
+        returns, episode lengths, dimensions.
 
         ``measure``: also the raw lower/upper mesh dimension, madogram and variogram of every
         episode (after the transient) and their means (``mean_dimensions``).
@@ -664,7 +669,7 @@ class ARS(Learner):
         ``noise``: ``action_noise``, ``obs_noise`` (std of Gaussian noise) or ``push``
         (probability per step, magnitude); see :func:`hybridctl.learn.robustness`.
         """
-        n = episodes or self.config.eval_episodes
+        n = episodes
         seeds = [int(s) for s in np.random.default_rng(seed).integers(0, 2 ** 31 - 1, size=n)]
         pp = PostProcessor(postprocess, transient_steps=self.config.transient_steps)
         tasks = self._tasks([self.theta] * n, seeds, max_steps=episode_steps, reward_shift=0.0, postprocessor=pp,
@@ -691,28 +696,31 @@ class ARS(Learner):
         if self.policy.module is not None:
             self.policy.actor(self.theta)
 
-    def checkpoint_meta(self) -> dict:
-        """config.json: the env (id and kwargs), the policy's dimensions and the config."""
-        meta = {"algorithm": self.algorithm_name, "env": self.env_name, "env_kwargs": self.env_kwargs,
-                "obs_dim": self.policy.obs_dim, "act_dim": self.policy.act_dim,
-                "config": dataclasses.asdict(self.config)}
-        if isinstance(self.env, str) and self.env in known_systems():  # a system's env: its spec too
-            meta["system"] = ckpt.system_record(load_system(self.env))
-        return meta
+    def system_record(self) -> dict:
+        """config.json's ``system``: a hybridctl system's record (spec values too) with the env's
+        keyword arguments, or a gymnasium env's id and keyword arguments."""
+        if isinstance(self.env, str) and self.env in known_systems():
+            return {**ckpt.system_record(load_system(self.env)), "kwargs": ckpt.to_jsonable(self.env_kwargs or {})}
+        return ckpt.env_record(self.env_name, self.env_kwargs)
+
+    def checkpoint_extra(self) -> dict:
+        """config.json beside algorithm, system and config: the policy's dimensions."""
+        return {"obs_dim": self.policy.obs_dim, "act_dim": self.policy.act_dim}
 
     def check_checkpoint(self, found: Path, meta: dict, normalization: dict, force: bool = False) -> None:
         """The checkpoint must come from this env (id and kwargs; a system's spec values too) and
         hold a running-mean-std normalisation of this observation size (``force``: a warning)."""
         problems = []
-        if meta.get("env") != self.env_name:
-            problems.append(f"checkpoint {found} was trained on env {meta.get('env')!r}; this env is "
+        recorded = meta.get("system") or {}
+        if recorded.get("name") != self.env_name:
+            problems.append(f"checkpoint {found} was trained on env {recorded.get('name')!r}; this env is "
                             f"{self.env_name!r}")
-        elif (meta.get("env_kwargs") or {}) != ckpt.to_jsonable(self.env_kwargs or {}):
+        elif (recorded.get("kwargs") or {}) != ckpt.to_jsonable(self.env_kwargs or {}):
             problems.append(f"checkpoint {found} was trained on {self.env_name} with env_kwargs "
-                            f"{meta.get('env_kwargs')}; this env has {self.env_kwargs}")
-        if not ckpt.refuse_unless_forced(problems, force) and "system" in meta and isinstance(self.env, str) \
+                            f"{recorded.get('kwargs')}; this env has {self.env_kwargs}")
+        if not ckpt.refuse_unless_forced(problems, force) and "spec_hash" in recorded and isinstance(self.env, str) \
                 and self.env in known_systems():
-            ckpt.check_plant(found, meta["system"], load_system(self.env), force)
+            ckpt.check_plant(found, recorded, load_system(self.env), force)
         if normalization.get("type") != "running_mean_std" or len(normalization.get("mean", [])) != \
                 self.policy.obs_dim:
             raise ckpt.CheckpointError(f"{found / ckpt.NORMALIZATION_FILE} is damaged or not an ARS normalisation of "
@@ -723,31 +731,22 @@ class ARS(Learner):
         return {"type": "running_mean_std", "mean": self.stats.mean, "std": self.stats.std, "count": self.stats.count}
 
     @classmethod
-    def load(cls, path: str | Path, env: str | Callable[[], gym.Env] | None = None,
-             policy: torch.nn.Module | None = None, force: bool = False, **overrides) -> "ARS":
-        """Restore a checkpoint. ``env`` is required when it was trained on a factory rather than an
-        id, ``policy`` when it was trained with a custom torch module.
-
-        Raises :class:`~hybridctl.learn.checkpoint.CheckpointError` for another algorithm's
-        checkpoint, another env (id, kwargs or a system's spec values) or a missing or damaged
-        file; ``force=True`` loads another algorithm's or env's anyway (with a warning).
-        """
-        folder = ckpt.resolve_checkpoint_dir(path)
-        meta = ckpt.read_json(folder / ckpt.CONFIG_FILE)
-        if not isinstance(meta, dict) or not isinstance(meta.get("config"), dict) or "env" not in meta:
-            raise ckpt.CheckpointError(f"{folder / ckpt.CONFIG_FILE} is damaged or not an ARS checkpoint's: it "
-                                       f"lacks 'config' or 'env'")
-        ckpt.check_algorithm(folder, meta.get("algorithm") or "(no algorithm)", (cls.algorithm_name,),
-                             cls.algorithm_name, force)
-        config = ckpt.config_from_meta(ARSConfig, meta, overrides)
-        # the recorded env is data: an id with a 'module:' part would import code (env= is the caller's own)
-        if env is None:
-            env = recorded_env_id(meta["env"], folder / ckpt.CONFIG_FILE)
-        env_kwargs = recorded_env_kwargs(meta.get("env_kwargs"), folder / ckpt.CONFIG_FILE)
+    def from_checkpoint(cls, found: Path, meta: dict, config, system, force: bool,
+                        policy: torch.nn.Module | None = None) -> "ARS":
+        """:meth:`~hybridctl.learn.base.Learner.load`'s learner: on ``system`` (a gymnasium env id, a
+        system name or an env factory; None: the recorded id, required when it was trained on a
+        factory), with ``policy`` when it was trained with a custom torch module. The recorded id is
+        data: one with a ``module:`` part (which would import code) is refused."""
+        record = meta.get("system")
+        if not isinstance(record, dict) or "obs_dim" not in meta:
+            raise ckpt.CheckpointError(f"{found / ckpt.CONFIG_FILE} is damaged or not an ARS checkpoint's: it "
+                                       f"lacks 'system' or 'obs_dim'")
+        env = system if system is not None else recorded_env_id(record.get("name"), found / ckpt.CONFIG_FILE,
+                                                                 "system.name")
+        env_kwargs = recorded_env_kwargs(record.get("kwargs"), found / ckpt.CONFIG_FILE, "system.kwargs")
         agent = cls(env, config, env_kwargs=env_kwargs, policy=policy)
         if (agent.policy.obs_dim, agent.policy.act_dim) != (meta["obs_dim"], meta["act_dim"]):
             raise ckpt.CheckpointError(
-                f"{folder} was trained on {meta['env']} with {meta['obs_dim']} observations and {meta['act_dim']} "
-                f"actions; this env has {agent.policy.obs_dim} and {agent.policy.act_dim}")
-        agent.checkpointer.restore(folder, force=force)
+                f"{found} was trained on {record.get('name')} with {meta['obs_dim']} observations and "
+                f"{meta['act_dim']} actions; this env has {agent.policy.obs_dim} and {agent.policy.act_dim}")
         return agent

@@ -36,6 +36,7 @@ tensors (no pickled objects) and refuses non-finite weights, naming the file and
 from __future__ import annotations
 
 import dataclasses
+from dataclasses import dataclass
 
 import hashlib
 import json
@@ -62,7 +63,11 @@ NORMALIZATION_FILE = "normalization.json"
 PROGRESS_FILE = "progress.json"
 REPLAY_FILE = "replay.pt"
 REQUIRED_FILES = (MODEL_FILE, CONFIG_FILE, NORMALIZATION_FILE, PROGRESS_FILE)
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+"""config.json's layout: 2 -- every learner records what it trained on as ``system`` (a record, see
+:func:`system_record` and :func:`env_record`); 1 -- APG recorded a bare name with ``plant`` and
+``system_overrides`` beside it, ARS and fine-tuning ``env`` and ``env_kwargs`` (:func:`upgrade_meta`
+reads both)."""
 
 
 class CheckpointError(RuntimeError):
@@ -244,6 +249,8 @@ SYSTEM = _check(lambda v: isinstance(v, str) and SYSTEM_NAME.fullmatch(v) is not
                 "a system name such as 'acrobot' ([a-z0-9_-], not a path)")
 _SYSTEM_RECORD = {"name": SYSTEM, "overrides": OBJECT, "spec_hash": STRING, "spec_values": OBJECT,
                   "recorded": STRING}
+SYSTEM_OR_RECORD = _check(lambda v: isinstance(v, dict) or SYSTEM[0](v),
+                          "a system record {...} (a bare system name in checkpoints before format 2)")
 _VECTOR_AGENT = {  # SAC and SSAC (learn/vector_agent.py)
     "system": OBJECT, **{f"system.{k}": v for k, v in _SYSTEM_RECORD.items()},
     "obs_dim": POSITIVE_COUNT, "action_dim": POSITIVE_COUNT, "action_scale": NUMBERS,
@@ -267,8 +274,8 @@ SCHEMAS: dict[str, dict[str | None, tuple[dict, tuple]]] = {
         "SSAC": ({**_VECTOR_AGENT, "gate": OBJECT, "gate.hidden": WIDTHS, "gate.cost_feature": BOOL,
                   "gate.gate_on": NUMBER, "gate.gate_off": NUMBER, "gate.K": NUMBERS, "gate.info": OBJECT},
                  (*_VECTOR_AGENT_REQUIRED, "gate")),
-        "APG": ({"method": STRING, "system": SYSTEM, "system_overrides": OBJECT, "plant": OBJECT,
-                 **{f"plant.{k}": v for k, v in _SYSTEM_RECORD.items()},
+        "APG": ({"method": STRING, "system": SYSTEM_OR_RECORD, **{f"system.{k}": v for k, v in _SYSTEM_RECORD.items()},
+                 "system_overrides": OBJECT, "plant": OBJECT, **{f"plant.{k}": v for k, v in _SYSTEM_RECORD.items()},
                  "policy": OBJECT, "policy.kind": STRING, "policy.obs_dim": POSITIVE_COUNT,
                  "policy.act_dim": POSITIVE_COUNT, "policy.hidden": _check(
                      lambda v: isinstance(v, list) and len(v) <= MAX_HIDDEN_LAYERS and all(WIDTH[0](w) for w in v),
@@ -543,3 +550,289 @@ def read_model(path: Path, required: Iterable[str] = (), device: str | torch.dev
     if missing:
         raise CheckpointError(f"{path} is damaged or not this learner's: it lacks {', '.join(map(repr, missing))}")
     return model
+
+
+# ============================================================================ config.json: one schema
+
+
+def env_record(env_id: str, kwargs: dict | None = None) -> dict:
+    """config.json's ``system`` for a gymnasium env: its id and keyword arguments (``kind`` "gymnasium")."""
+    return {"name": env_id, "kind": "gymnasium", "kwargs": to_jsonable(dict(kwargs or {}))}
+
+
+def upgrade_meta(meta: dict) -> dict:
+    """config.json ``meta`` in today's layout (:data:`FORMAT_VERSION`): ``system`` a record.
+
+    Format 1 checkpoints load unchanged on disk: APG's bare ``system`` name becomes its
+    ``plant`` record with ``system_overrides`` as its overrides (the reward settings are the
+    config's, re-applied on load); ARS's and fine-tuning's ``env`` / ``env_kwargs`` become an
+    :func:`env_record` (an ARS run on a hybridctl system keeps its system record and gains
+    ``kwargs``).
+    """
+    meta = dict(meta)
+    system = meta.get("system")
+    if isinstance(system, str):
+        record = dict(meta.pop("plant", None) or {"name": system})
+        record["name"] = system
+        record["overrides"] = meta.pop("system_overrides", record.get("overrides") or {})
+        meta["system"] = record
+    if "env" in meta:
+        env, kwargs = meta.pop("env"), meta.pop("env_kwargs", None)   # kwargs: checked where they are read
+        if isinstance(meta.get("system"), dict):
+            meta["system"] = {**meta["system"], "kwargs": {} if kwargs is None else kwargs}
+        else:
+            meta["system"] = {"name": env, "kind": "gymnasium", "kwargs": {} if kwargs is None else kwargs}
+    return meta
+
+
+def read_meta(found: Path) -> dict:
+    """config.json of the checkpoint directory ``found``, shape-checked (:data:`SCHEMAS`) and in
+    today's layout (:func:`upgrade_meta`); :class:`CheckpointError` naming the file otherwise."""
+    meta = read_json(found / CONFIG_FILE)
+    if not isinstance(meta, dict) or not isinstance(meta.get("config", {}), dict):
+        raise CheckpointError(f"{found / CONFIG_FILE} is damaged: expected an object with 'algorithm' and 'config'")
+    return upgrade_meta(meta)
+
+
+# ============================================================================ declared checkpoint state
+
+
+@dataclass(frozen=True)
+class Saved:
+    """One entry of a learner's checkpoint: where it lives in which file, and how it is restored.
+
+    ``key``: dotted path inside the file (``"extra.gate"`` is ``model["extra"]["gate"]``);
+    ``""`` means the entry is the whole file. ``attr``: dotted attribute path on the
+    learner (``"stats.sum"``). ``kind``:
+
+    * ``"state"``: an object with ``state_dict`` / ``load_state_dict`` (modules, optimizers, buffers);
+    * ``"rng"``: a ``torch.Generator`` (``get_state`` / ``set_state``);
+    * ``"param"``: a tensor restored in place (``log_alpha``: the optimizer holds it);
+    * ``"tensor"``: a tensor attribute replaced on load;
+    * ``"array"``: a numpy array stored as a tensor, restored as a float64 copy;
+    * ``"value"``: a number / list / dict (JSON in progress.json), with optional converters.
+
+    ``bulky`` entries (replay, gate data) are written only with ``include_bulky`` and
+    read only on resume. ``restore=False``: written for readers, never read back.
+    ``optional``: missing on disk (older checkpoints) or None on the learner is fine.
+    """
+
+    key: str
+    attr: str
+    kind: str = "value"
+    file: str = MODEL_FILE
+    bulky: bool = False
+    optional: bool = False
+    restore: bool = True
+    save: Callable | None = None
+    load: Callable | None = None
+
+
+def _get_attr(obj, path: str):
+    for part in path.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
+def _set_attr(obj, path: str, value) -> None:
+    *parents, last = path.split(".")
+    for part in parents:
+        obj = getattr(obj, part)
+    setattr(obj, last, value)
+
+
+def _put(tree: dict, key: str, value) -> None:
+    if key == "":
+        tree.update(value)
+        return
+    *parents, last = key.split(".")
+    for part in parents:
+        tree = tree.setdefault(part, {})
+    tree[last] = value
+
+
+_MISSING = object()
+
+
+def _take(tree: dict, key: str):
+    if key == "":
+        return tree
+    for part in key.split("."):
+        if not isinstance(tree, dict) or part not in tree:
+            return _MISSING
+        tree = tree[part]
+    return tree
+
+
+class Checkpointer:
+    """Writes and restores a learner's checkpoint directory from its declared ``saved`` entries."""
+
+    def __init__(self, learner: "Learner"):
+        self.learner = learner
+
+    def save(self, path: str | Path, include_bulky: bool = False) -> Path:
+        """Write the checkpoint directory ``path`` atomically (the old one stays until the new is complete)."""
+        learner = self.learner
+        learner.before_checkpoint()
+
+        def write(d: Path) -> None:
+            files: dict[str, dict] = {MODEL_FILE: {"format": FORMAT_VERSION}, PROGRESS_FILE: {}}
+            for item in learner.saved:
+                if item.bulky and not include_bulky:
+                    continue
+                value = _get_attr(learner, item.attr)
+                if value is None:
+                    if item.optional:
+                        continue
+                    raise CheckpointError(f"{learner.algorithm_name}: {item.attr} is None, cannot save {item.key!r}")
+                _put(files.setdefault(item.file, {}), item.key, self._dump(item, value))
+            for name, content in files.items():
+                if name.endswith(".json"):
+                    write_json(d / name, content)
+                else:
+                    torch.save(content, d / name)
+            write_json(d / CONFIG_FILE, {**learner.checkpoint_meta(), "format": FORMAT_VERSION,
+                                              "files": sorted({*files, CONFIG_FILE, NORMALIZATION_FILE}),
+                                              "versions": versions()})
+            write_json(d / NORMALIZATION_FILE, learner.normalization())
+
+        return write_checkpoint_dir(path, write)
+
+    @staticmethod
+    def _dump(item: Saved, value):
+        if item.save is not None:
+            value = item.save(value)
+        if item.kind == "state":
+            return value.state_dict()
+        if item.kind == "rng":
+            return value.get_state()
+        if item.kind in ("param", "tensor"):
+            return value.detach().clone()
+        if item.kind == "array":
+            return torch.as_tensor(np.asarray(value))
+        return value
+
+    def restore(self, path: str | Path, bulky: bool = False, force: bool = False) -> Path:
+        """Load the entries of the checkpoint at ``path`` (bulky ones too if ``bulky``) into the learner.
+
+        Every file an entry lives in is read and checked: a missing, damaged or incomplete
+        one raises :class:`CheckpointError` naming it (and the entry it lacks), as does a
+        checkpoint written by another algorithm or on another plant
+        (:meth:`Learner.check_checkpoint`). ``force``: another algorithm or plant is loaded
+        with a warning (what the classes share), and a resume continues without a missing
+        or damaged bulky file (replay, gate data), saying so.
+        """
+        learner = self.learner
+        found = resolve_checkpoint_dir(path)
+        meta = read_meta(found)
+        check_algorithm(found, meta.get("algorithm"), learner.compatible_algorithms, learner.algorithm_name, force)
+        normalization = read_json(found / NORMALIZATION_FILE)
+        if not isinstance(normalization, dict) or "type" not in normalization:
+            raise CheckpointError(f"{found / NORMALIZATION_FILE} is damaged: expected an object with 'type'")
+        learner.check_checkpoint(found, meta, normalization, force=force)
+        cache: dict[str, Any] = {}
+        for item in learner.saved:
+            if not item.restore or (item.bulky and not bulky):
+                continue
+            if item.file not in cache:
+                cache[item.file] = self._read(found, item.file, force, meta)
+            content = cache[item.file]
+            if content is None:  # a bulky file that was not saved
+                continue
+            value = _take(content, item.key)
+            if value is _MISSING:
+                if item.optional:
+                    continue
+                raise CheckpointError(f"{found / item.file} lacks {item.key!r}")
+            try:
+                self._load(item, value)
+            except CheckpointError:
+                raise
+            except (RuntimeError, KeyError, ValueError, TypeError, AttributeError) as exc:
+                raise CheckpointError(f"{found / item.file}: {item.key or 'its content'!r} does not fit this "
+                                      f"{learner.algorithm_name} ({type(exc).__name__}: {exc})") from exc
+        learner.after_restore(found, meta, bulky)
+        return found
+
+    def missing_bulky(self, found: Path, meta: dict) -> list[tuple[str, bool]]:
+        """The bulky files (replay, gate data) the checkpoint at ``found`` lacks, each with whether it
+        should be there: config.json's ``files`` lists what was written (older checkpoints: the
+        bulky files are expected unless their config had ``save_replay`` False)."""
+        written = meta.get("files")
+        out = []
+        for name in dict.fromkeys(i.file for i in self.learner.saved if i.bulky):
+            if not (found / name).is_file():
+                expected = name in written if isinstance(written, list) else \
+                    bool((meta.get("config") or {}).get("save_replay", True))
+                out.append((name, expected))
+        return out
+
+    def check_resumable(self, path: str | Path, force: bool = False) -> Path:
+        """Raise :class:`CheckpointError` when a resume from ``path`` would lack a replay / gate data
+        file the checkpoint should hold (``force``: no error; the resume then says so)."""
+        found = resolve_checkpoint_dir(path)
+        meta = read_json(found / CONFIG_FILE)
+        for name, expected in self.missing_bulky(found, meta if isinstance(meta, dict) else {}):
+            if expected and not force:
+                raise CheckpointError(self._missing_message(found, name))
+        return found
+
+    def _missing_message(self, found: Path, name: str) -> str:
+        return (f"cannot resume from {found}: missing file {name!r} ({', '.join(self._entries(name))}); a resumed run "
+                f"without it would not be the same run. --force (force=True) resumes without it")
+
+    def _entries(self, name: str) -> list[str]:
+        return [i.attr.lstrip("_") for i in self.learner.saved if i.file == name]
+
+    def _read(self, found: Path, name: str, force: bool = False, meta: dict | None = None):
+        path = found / name
+        bulky = name not in REQUIRED_FILES
+        keys = self._entries(name)
+        if not path.is_file():
+            if not bulky:
+                raise CheckpointError(f"checkpoint {found} is incomplete: missing file {name!r}")
+            expected = dict(self.missing_bulky(found, meta or {})).get(name, True)
+            if not expected:  # saved without it on purpose (save_replay=False, save(include_replay=False))
+                warnings.warn(f"{found} was saved without {name} (save_replay=False or save(include_replay=False)): "
+                              f"the resumed run starts without {', '.join(keys)}", stacklevel=4)
+                return None
+            if not force:
+                raise CheckpointError(self._missing_message(found, name))
+            warnings.warn(f"force: {found} has no {name}: the resumed run starts without {', '.join(keys)}",
+                          stacklevel=4)
+            return None
+        try:
+            content = read_json(path) if name.endswith(".json") else load_tensors(
+                path, getattr(self.learner, "device", "cpu"))
+            if not isinstance(content, dict):
+                raise CheckpointError(f"{path} is damaged: expected a dict, got {type(content).__name__}")
+        except CheckpointError as exc:
+            if not (bulky and force):
+                raise
+            warnings.warn(f"force: {exc}; the resumed run starts without {', '.join(keys)}", stacklevel=4)
+            return None
+        return content
+
+    def _load(self, item: Saved, value) -> None:
+        learner = self.learner
+        if item.kind == "state":
+            target = _get_attr(learner, item.attr)
+            if item.optional and (target is None or not value):  # e.g. no alpha optimizer (fixed alpha)
+                return
+            target.load_state_dict(value)
+            return
+        if item.kind == "rng":
+            _get_attr(learner, item.attr).set_state(value.cpu())
+            return
+        if item.kind == "param":
+            with torch.no_grad():
+                _get_attr(learner, item.attr).copy_(value)
+            return
+        if item.kind == "tensor":
+            current = _get_attr(learner, item.attr)
+            value = value.to(dtype=current.dtype, device=current.device)
+        elif item.kind == "array":
+            value = value.double().numpy().copy()
+        if item.load is not None:
+            value = item.load(value)
+        _set_attr(learner, item.attr, value)

@@ -12,6 +12,7 @@ flag ``hybridctl train`` makes of it (``SACConfig.torch_threads (--torch-threads
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Iterable
 import math
 import types
 import typing
@@ -20,7 +21,7 @@ import numpy as np
 
 from ..limits import MAX_HIDDEN_UNITS, MAX_NUM_ENVS, check_at_most, check_fits_memory, cpu_count
 
-__all__ = ["check_types", "check_limits", "describe_type", "MAX_SEED"]
+__all__ = ["check_types", "check_limits", "check_fields", "checkpoint_minutes", "describe_type", "MAX_SEED"]
 
 MAX_SEED = 2**63 - 1
 """The largest seed: torch.manual_seed and numpy's generators take a 64-bit integer."""
@@ -115,3 +116,39 @@ def check_limits(config) -> None:
         backend = values.get("backend")
         if values.get(name) is not None and isinstance(backend, str) and backend != "ray":
             raise ValueError(f"{field_name(config, name)} applies to backend 'ray' only, not {backend!r}")
+
+
+def check_fields(config, integers_from_1: Iterable[str] = (), integers_from_0: Iterable[str] = (),
+                 positive: Iterable[str] = (), unit_interval: Iterable[str] = (),
+                 non_negative: Iterable[str] = ()) -> None:
+    """Raise ValueError naming the first field of ``config`` that is not an integer >= 1 / >= 0,
+    a finite number > 0, a number in [0, 1], or a finite number >= 0 (the checks every learner's
+    ``validate`` repeats)."""
+    cls = type(config).__name__
+    for minimum, names in ((1, integers_from_1), (0, integers_from_0)):
+        for name in names:
+            value = getattr(config, name)
+            if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < minimum:
+                raise ValueError(f"{cls}.{name} must be an integer >= {minimum}, got {value!r}")
+    for name in positive:
+        value = getattr(config, name)
+        if not (isinstance(value, (int, float, np.number)) and math.isfinite(value) and value > 0):
+            raise ValueError(f"{cls}.{name} must be a finite number > 0, got {value!r}")
+    for name in unit_interval:
+        value = getattr(config, name)
+        if not (isinstance(value, (int, float, np.number)) and 0.0 <= value <= 1.0):
+            raise ValueError(f"{cls}.{name} must be in [0, 1], got {value!r}")
+    for name in non_negative:
+        value = getattr(config, name)
+        if not (isinstance(value, (int, float, np.number)) and math.isfinite(value) and value >= 0):
+            raise ValueError(f"{cls}.{name} must be a finite number >= 0, got {value!r}")
+
+
+def checkpoint_minutes(config) -> float:
+    """``config.checkpoint_minutes`` (0 when the config has none), ValueError unless a finite number >= 0."""
+    minutes = getattr(config, "checkpoint_minutes", 0.0)
+    if (not isinstance(minutes, (int, float, np.number)) or isinstance(minutes, bool) or not math.isfinite(minutes)
+            or minutes < 0):
+        raise ValueError(f"{type(config).__name__}.checkpoint_minutes must be a finite number >= 0 "
+                         f"(0: no checkpoints by time), got {minutes!r}")
+    return float(minutes)

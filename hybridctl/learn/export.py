@@ -42,9 +42,7 @@ def load_controller(path: str | Path, system, force: bool = False,
     if path.is_dir() and not (path / ckpt.CONFIG_FILE).exists() and (path / "final").is_dir():
         path = path / "final"
     found = ckpt.resolve_checkpoint_dir(path)
-    meta = ckpt.read_json(found / ckpt.CONFIG_FILE)
-    if not isinstance(meta, dict) or not isinstance(meta.get("config", {}), dict):
-        raise ckpt.CheckpointError(f"{found / ckpt.CONFIG_FILE} is damaged: expected an object with 'config'")
+    meta = ckpt.read_meta(found)
     if meta.get("algorithm") not in ("SAC", "SSAC"):
         raise ckpt.CheckpointError(f"checkpoint {found} was written by {meta.get('algorithm')}, not SAC or SSAC: "
                                    f"it holds no swing-up policy and gate")

@@ -15,8 +15,8 @@ observations (:class:`~hybridctl.analysis.PostProcessor`).
 
 >>> tuner = FineTune("Pendulum-v1", "sb3:models/policies/ppo-pendulum/model.zip")
 >>> before = tuner.evaluate(100)                         # deterministic returns, failure rate
->>> tuner.learn(log_dir="runs/ft-pendulum-sac")          # 200 updates; progress, CSV, checkpoints
->>> tuner.learn(log_dir="runs/ft-pendulum-sac", resume=True)
+>>> tuner.learn(out="runs/ft-pendulum-sac")          # 200 updates; progress, CSV, checkpoints
+>>> tuner.learn(out="runs/ft-pendulum-sac", resume=True)
 >>> tuner.save_sb3("runs/ft-pendulum-sac/model.zip")     # SB3's own PPO/SAC/... .load reads it
 >>> FineTune.load("runs/ft-pendulum-sac/final")          # a hybridctl checkpoint
 
@@ -54,7 +54,10 @@ from .ars import make_env as _make_env
 from .ars import recorded_env_id, recorded_env_kwargs
 from .config_check import check_types
 from .robustness import wilson_interval
-from .run import EVAL_SEED, PROGRESS_FILE, EvalResult, Learner, Saved, check_fields, check_finite, set_torch_threads
+from .base import Learner
+from .checkpoint import PROGRESS_FILE, Saved
+from .config_check import check_fields
+from .run import EvalResult, check_finite, set_torch_threads
 
 SELECTIONS = ("action", "all", "last")
 DIMENSION_SETTINGS = ("author", "ch4")
@@ -493,6 +496,8 @@ class FineTune(Learner):
 
     algorithm_name = "FineTune"
     config_class = FineTuneConfig
+    budget_field, unit, uses_backend = "updates", "update", True
+    load_keywords = ("policy", "trust")
     log_key = "update"
     log_columns = ("update", "env_steps", "mean_return", "max_return", "mean_raw_return", "mean_dimension", "sigma_r",
                    "step_size", "noise", "episode_steps", "wall_time", "steps_per_s")
@@ -620,30 +625,25 @@ class FineTune(Learner):
                 "mean_dimension": float(np.mean([x["dimension"] for x in results])), "sigma_r": sigma_r,
                 "step_size": alpha, "noise": sigma, "episode_steps": steps / len(results)}
 
-    def learn(self, updates: int | None = None, log_dir: str | Path | None = None, progress: bool = True,
-              backend=None, resume: bool = False, callback=None, force: bool = False) -> "FineTune":
-        """Run until ``updates`` updates in total (default ``config.updates``); checkpoints every
-        ``checkpoint_every`` updates (and every ``checkpoint_minutes``) into ``log_dir/checkpoint``,
-        finally ``log_dir/final``. ``resume``: first restore the newest checkpoint in ``log_dir``.
-        ``callback``: Callback objects or ``f(tuner)``; False stops. The schedules run over
-        ``config.updates``, so a run stopped early and resumed continues them exactly.
-        """
-        target = self.config.updates if updates is None else int(updates)
-        if target < 1:
-            raise ValueError(f"updates must be >= 1, got {target}")
-        with self.run(log_dir, resume, progress, callback, total=target, unit="update",
-                      desc=f"fine-tune {self.env_name}", force=force) as run:
-            own = backend is None
-            pool = backend or make_backend(self.config.backend, self.config.workers, self.config.address)
-            try:
-                self.run_updates(run, target, lambda: self.train_update(pool), 2 * self.config.n_directions,
-                                 self.config.checkpoint_every,
-                                 lambda row: {"ret": f"{row['mean_raw_return']:.1f}", "dim": f"{row['mean_dimension']:.2f}",
-                                              "sps": f"{row['steps_per_s']:.0f}"})
-            finally:
-                if own:
-                    pool.close()
-        return self
+    def run_description(self) -> str:
+        """The progress bar's label."""
+        return f"fine-tune {self.env_name}"
+
+    def train(self, run, target: int, backend) -> None:
+        """Fine-tuning's loop inside ``learn``'s run: one update (2 x ``n_directions`` rollouts on
+        ``backend``, default the config's, opened for the run) at a time, a checkpoint every
+        ``checkpoint_every`` updates and at least every ``checkpoint_minutes``. The schedules run
+        over ``config.updates``, so a run stopped early and resumed continues them exactly."""
+        own = backend is None
+        pool = backend or make_backend(self.config.backend, self.config.workers, self.config.address)
+        try:
+            run.updates(target, lambda: self.train_update(pool), 2 * self.config.n_directions,
+                        self.config.checkpoint_every,
+                        lambda row: {"ret": f"{row['mean_raw_return']:.1f}", "dim": f"{row['mean_dimension']:.2f}",
+                                     "sps": f"{row['steps_per_s']:.0f}"})
+        finally:
+            if own:
+                pool.close()
 
     # -- use ---------------------------------------------------------------------------------
     def predict(self, obs: np.ndarray, deterministic: bool = True) -> np.ndarray:
@@ -666,12 +666,12 @@ class FineTune(Learner):
             p.requires_grad_(False)
         return module
 
-    def evaluate(self, episodes: int | None = None, seed: int = EVAL_SEED, theta: np.ndarray | None = None,
-                 backend=None, episode_steps: int | None = None, keep_states: bool = False) -> EvalResult:
-        """Deterministic episodes of theta (default the current; ``theta0`` is the pretrained agent):
+    def run_evaluation(self, episodes: int, seed: int, theta: np.ndarray | None = None,
+                       backend=None, episode_steps: int | None = None, keep_states: bool = False) -> EvalResult:
+        """``evaluate(episodes, seed=, ...)``: deterministic episodes of theta (default the current; ``theta0`` is the pretrained agent):
         raw returns, episode lengths, early terminations with a 95 % Wilson interval, the mesh-mean
         dimension of each episode (author's settings) and, for systems, the thesis success rate."""
-        n = int(episodes or self.config.eval_episodes)
+        n = episodes
         seeds = [int(s) for s in np.random.default_rng(seed).integers(0, 2 ** 31 - 1, size=n)]
         th = self.theta if theta is None else np.asarray(theta, dtype=np.float64)
         pp = dataclasses.replace(self.config, reward="mesh-mean").postprocessor(
@@ -720,11 +720,14 @@ class FineTune(Learner):
         """The module holds the last perturbed weights only in workers; put theta in before saving."""
         self._write_theta()
 
-    def checkpoint_meta(self) -> dict:
-        """config.json: env, source, selected parameter names and sizes, the config."""
-        return {"algorithm": self.algorithm_name, "env": self.env_name, "env_kwargs": self.env_kwargs,
-                "source": self.tunable.source, "source_meta": self.tunable.meta, "names": self.names,
-                "n_params": self.n_params, "obs_dim": self.obs_dim, "config": dataclasses.asdict(self.config)}
+    def system_record(self) -> dict:
+        """config.json's ``system``: the env's id and keyword arguments (a gymnasium env or a system's)."""
+        return ckpt.env_record(self.env_name, self.env_kwargs)
+
+    def checkpoint_extra(self) -> dict:
+        """config.json beside algorithm, system and config: the source, the perturbed parameters."""
+        return {"source": self.tunable.source, "source_meta": self.tunable.meta, "names": self.names,
+                "n_params": self.n_params, "obs_dim": self.obs_dim}
 
     def normalization(self) -> dict:
         """normalization.json: the frozen observation normaliser of the pretrained agent."""
@@ -736,8 +739,9 @@ class FineTune(Learner):
     def check_checkpoint(self, found: Path, meta: dict, normalization: dict, force: bool = False) -> None:
         """The checkpoint must come from this env and source, with the same perturbed parameters."""
         problems = []
-        if meta.get("env") != self.env_name:
-            problems.append(f"checkpoint {found} fine-tunes env {meta.get('env')!r}; this env is {self.env_name!r}")
+        trained_on = (meta.get("system") or {}).get("name")
+        if trained_on != self.env_name:
+            problems.append(f"checkpoint {found} fine-tunes env {trained_on!r}; this env is {self.env_name!r}")
         if meta.get("source") != self.tunable.source:
             problems.append(f"checkpoint {found} fine-tunes {meta.get('source')!r}; this policy is "
                             f"{self.tunable.source!r}")
@@ -748,27 +752,20 @@ class FineTune(Learner):
                                        f"{self.config.select!r} has {self.n_params}")
 
     @classmethod
-    def load(cls, path: str | Path, env: str | Callable[[], gym.Env] | None = None,
-             policy: TunablePolicy | torch.nn.Module | None = None, trust: bool = False, force: bool = False,
-             **overrides) -> "FineTune":
-        """Restore a checkpoint: the source policy is read again (``policy`` replaces it, e.g. for a
-        module passed in Python), then theta. Raises CheckpointError naming a missing or damaged file."""
-        folder = ckpt.resolve_checkpoint_dir(path)
-        meta = ckpt.read_json(folder / ckpt.CONFIG_FILE)
-        if not isinstance(meta, dict) or not isinstance(meta.get("config"), dict) or "source" not in meta:
-            raise ckpt.CheckpointError(f"{folder / ckpt.CONFIG_FILE} is damaged or not a FineTune checkpoint's: it "
-                                       f"lacks 'config' or 'source'")
-        ckpt.check_algorithm(folder, meta.get("algorithm") or "(no algorithm)", (cls.algorithm_name,),
-                             cls.algorithm_name, force)
-        config = ckpt.config_from_meta(FineTuneConfig, meta, overrides)
-        file = folder / ckpt.CONFIG_FILE
+    def from_checkpoint(cls, found: Path, meta: dict, config, system, force: bool,
+                        policy: TunablePolicy | torch.nn.Module | None = None, trust: bool = False) -> "FineTune":
+        """:meth:`~hybridctl.learn.base.Learner.load`'s learner: the source policy is read again
+        (``policy`` replaces it, e.g. a module passed in Python; ``trust``: allow unpickling its
+        VecNormalize ``.pkl``), on ``system`` (a gymnasium env id or factory; None: the recorded
+        id, which is data: one with a ``module:`` part is refused); the checkpoint's theta follows."""
+        file = found / ckpt.CONFIG_FILE
+        if "source" not in meta:
+            raise ckpt.CheckpointError(f"{file} is damaged or not a FineTune checkpoint's: it lacks 'source'")
         source = policy if policy is not None else meta["source"]
         if not isinstance(source, (str, TunablePolicy, torch.nn.Module)):
             raise ckpt.CheckpointError(f"{file}: 'source' must be a string KIND:PATH with KIND one of {SOURCE_KINDS}, "
                                        f"got {type(source).__name__}")
-        # the recorded env is data: an id with a 'module:' part would import code (env= is the caller's own)
-        if env is None:
-            env = recorded_env_id(meta.get("env"), file)
-        tuner = cls(env, source, config, env_kwargs=recorded_env_kwargs(meta.get("env_kwargs"), file), trust=trust)
-        tuner.checkpointer.restore(folder, force=force)
-        return tuner
+        record = meta.get("system") if isinstance(meta.get("system"), dict) else {}
+        env = system if system is not None else recorded_env_id(record.get("name"), file, "system.name")
+        return cls(env, source, config, env_kwargs=recorded_env_kwargs(record.get("kwargs"), file,
+                                                                       "system.kwargs"), trust=trust)

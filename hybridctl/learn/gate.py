@@ -31,7 +31,8 @@ from ..systems.compiled import LazyCompiled
 from ..systems.control import cost_to_go, lqr_rollouts_balanced, wrap_angles
 from .config_check import check_types
 from .optim import FusedAdamStep, adam, set_grads
-from .run import check_fields, check_finite, seeded
+from .config_check import check_fields
+from .run import check_finite, seeded
 
 
 @dataclass

@@ -8,7 +8,7 @@ callbacks in :mod:`.run`. The API is Stable-Baselines3 style (``SAC(env).learn(.
 
 >>> from hybridctl.learn import SAC
 >>> agent = SAC("acrobot", total_steps=200_000, seed=1)
->>> agent.learn(log_dir="runs/sac-acrobot")            # progress.csv, checkpoints, curves
+>>> agent.learn(out="runs/sac-acrobot")            # progress.csv, checkpoints, curves
 >>> policy = agent.deterministic_policy()              # torch.nn.Module (B, n) -> (B, m)
 >>> agent = SAC.load("runs/sac-acrobot/final")
 
@@ -81,7 +81,9 @@ from .networks import (OBS_TRANSFORMS, Actor, DeterministicPolicy, ObsTransform,
 from .replay import REPLAY_FIELDS, EpisodeStaging, ReplayBuffer, sample_mixed
 from .config_check import check_types
 from .optim import FusedAdamStep, adam as _adam, set_grads as _set_grads
-from .run import Saved, check_fields, check_finite, seeded
+from .checkpoint import Saved
+from .config_check import check_fields
+from .run import check_finite, seeded
 from .vector_agent import VectorEnvAgent, progress_entry
 
 # ============================================================================ config
@@ -145,6 +147,10 @@ class SACConfig:
             value = getattr(self, f.name)
             if f.type in ("int", int) and isinstance(value, float) and value.is_integer():
                 setattr(self, f.name, int(value))
+
+    def describe_budget(self) -> str:
+        """The run's budget in a run's account."""
+        return f"{self.total_steps} env steps, seed {self.seed}"
 
     def validate(self) -> None:
         """Raise ValueError naming the first invalid field."""
@@ -255,6 +261,7 @@ class SAC(VectorEnvAgent):
 
     config_class = SACConfig
     algorithm_name = "SAC"
+    takes_spec = True
     compatible_algorithms = ("SAC",)  # an SSAC checkpoint holds a whole SAC agent: SAC.load(..., force=True)
     log_columns = ("env_steps", "episodes", "mean_return", "success_rate", "q_loss", "pi_loss", "alpha",
                    "steps_per_s", "wall_time", "gradient_steps", "needle_size")
@@ -496,76 +503,54 @@ class SAC(VectorEnvAgent):
         exploration the round has no updates). Default: nothing."""
 
     # ======================================================================== learn
-    def learn(self, total_steps: int | None = None, progress: bool = True, callback=None,
-              log_dir: str | Path | None = None, resume: bool = False, force: bool = False) -> "SAC":
-        """Train until ``num_timesteps`` reaches ``total_steps`` (default ``config.total_steps``).
-
-        ``total_steps`` is the run's total (not an increment): a resumed run or a second
-        call continues until the agent has taken that many env steps in all (rounded up
-        to a multiple of ``num_envs``).
-
-        Args:
-            progress: show a tqdm bar (mean return of the last 100 episodes, success
-                rate, gradient steps).
-            callback: a :class:`~hybridctl.learn.run.Callback`, a list of them, or a
-                plain ``f(agent)`` called after every update round; False stops training.
-            log_dir: where ``progress.csv``, ``training_curves.png``, the checkpoints
-                ``checkpoint/`` (every ``checkpoint_every`` env steps and at least every
-                ``checkpoint_minutes`` of wall time) and ``final/``
-                (at the end) go; TensorBoard scalars in ``tb/`` if available. None: no files.
-            resume: continue from the newest checkpoint in ``log_dir`` (networks,
-                optimizers, counters, RNG states and, if it was saved, the replay). The
-                episodes that were running are lost: the env restarts. Without a
-                checkpoint there, training starts fresh (with a warning).
-            force: resume from a checkpoint of another algorithm or plant, or without
-                its replay / gate data file (each with a warning).
-
-        Raises FloatingPointError if a loss becomes NaN/Inf (checkpoints stay as they were).
+    def train(self, run, total: int, backend) -> None:
+        """SAC's loop inside ``learn``'s run (:meth:`~hybridctl.learn.base.Learner.learn`): collect
+        ``num_envs`` steps, update every ``steps_per_update`` env steps, log every ``log_every`` and
+        checkpoint every ``checkpoint_every`` env steps, until ``num_timesteps`` reaches ``total``
+        (rounded up to a multiple of ``num_envs``). The episodes running at a resume are lost: the
+        env restarts. Raises FloatingPointError if a loss becomes NaN/Inf (before the step is applied).
         """
         cfg = self.config
-        total = int(cfg.total_steps if total_steps is None else total_steps)
-        with self.run(log_dir, resume, progress, callback, total, force=force) as run:
-            note = cfg.exploration_note(total) if self.num_timesteps < total else None
-            if note is not None:  # not an error (a smoke test may want it), but never silent
-                warnings.warn(note, stacklevel=2)
-            self.use_compile(total - self.num_timesteps)
-            if self._obs is None:
-                obs, _ = self.env.reset(seed=self._env_seed)
-                self._env_seed = None
-                self._obs = obs.to(device=self.device, dtype=torch.float32)
-                self.staging.clear()
-                self._episode_return.zero_()
-            round_anchor = self.num_rounds * cfg.steps_per_update  # env steps at which the next round is due
-            next_log, next_ckpt = (_next_multiple(self.num_timesteps, e) for e in (cfg.log_every, cfg.checkpoint_every))
-            start_time, wall_base = time.perf_counter(), self.wall_time
-            last_log_time, last_log_steps = start_time, self.num_timesteps
-            while self.num_timesteps < total and not run.stopped:
-                self.collect()
-                run.advance(cfg.num_envs)
-                # update rounds: every steps_per_update env steps, updates_per_round updates
-                while self.num_timesteps - round_anchor >= cfg.steps_per_update and not run.stopped:
-                    round_anchor += cfg.steps_per_update
-                    self.num_rounds += 1
-                    self.before_update_round()
-                    if self.num_timesteps >= cfg.exploration_steps:
-                        for _ in range(cfg.updates_per_round):
-                            self.update()
-                    self.on_update_round()
-                    run.after_update(ret=f"{self.mean_return:.2f}", succ=f"{self.success_rate:.2f}",
-                                     grad=str(self.num_gradient_steps))
-                # log and checkpoint
-                now = time.perf_counter()
-                self.wall_time = wall_base + (now - start_time)
-                if self.num_timesteps >= next_log or self.num_timesteps >= total or run.stopped:
-                    run.log(self._log_row((self.num_timesteps - last_log_steps) / max(now - last_log_time, 1e-9)))
-                    last_log_time, last_log_steps = now, self.num_timesteps
-                    next_log = _next_multiple(self.num_timesteps, cfg.log_every)
-                by_steps = self.num_timesteps >= next_ckpt
-                if by_steps:
-                    next_ckpt = _next_multiple(self.num_timesteps, cfg.checkpoint_every)
-                if by_steps or self.num_timesteps < total:  # by time: not at the end (final/ follows)
-                    run.checkpoint_if_due(by_steps)
-        return self
+        note = cfg.exploration_note(total) if self.num_timesteps < total else None
+        if note is not None:  # not an error (a smoke test may want it), but never silent
+            warnings.warn(note, stacklevel=3)
+        self.use_compile(total - self.num_timesteps)
+        if self._obs is None:
+            obs, _ = self.env.reset(seed=self._env_seed)
+            self._env_seed = None
+            self._obs = obs.to(device=self.device, dtype=torch.float32)
+            self.staging.clear()
+            self._episode_return.zero_()
+        round_anchor = self.num_rounds * cfg.steps_per_update  # env steps at which the next round is due
+        next_log, next_ckpt = (_next_multiple(self.num_timesteps, e) for e in (cfg.log_every, cfg.checkpoint_every))
+        start_time, wall_base = time.perf_counter(), self.wall_time
+        last_log_time, last_log_steps = start_time, self.num_timesteps
+        while self.num_timesteps < total and not run.stopped:
+            self.collect()
+            run.advance(cfg.num_envs)
+            # update rounds: every steps_per_update env steps, updates_per_round updates
+            while self.num_timesteps - round_anchor >= cfg.steps_per_update and not run.stopped:
+                round_anchor += cfg.steps_per_update
+                self.num_rounds += 1
+                self.before_update_round()
+                if self.num_timesteps >= cfg.exploration_steps:
+                    for _ in range(cfg.updates_per_round):
+                        self.update()
+                self.on_update_round()
+                run.after_update(ret=f"{self.mean_return:.2f}", succ=f"{self.success_rate:.2f}",
+                                 grad=str(self.num_gradient_steps))
+            # log and checkpoint
+            now = time.perf_counter()
+            self.wall_time = wall_base + (now - start_time)
+            if self.num_timesteps >= next_log or self.num_timesteps >= total or run.stopped:
+                run.log(self._log_row((self.num_timesteps - last_log_steps) / max(now - last_log_time, 1e-9)))
+                last_log_time, last_log_steps = now, self.num_timesteps
+                next_log = _next_multiple(self.num_timesteps, cfg.log_every)
+            by_steps = self.num_timesteps >= next_ckpt
+            if by_steps:
+                next_ckpt = _next_multiple(self.num_timesteps, cfg.checkpoint_every)
+            if by_steps or self.num_timesteps < total:  # by time: not at the end (final/ follows)
+                run.checkpoint_if_due(by_steps)
 
     def collect(self) -> None:
         """One vector env step: act, step all envs, store the transitions, close ended episodes."""

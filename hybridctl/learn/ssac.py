@@ -20,7 +20,7 @@ SSAC is SAC (:mod:`hybridctl.learn.sac`) on the switched env, plus:
 
 >>> from hybridctl.learn import SSAC
 >>> agent = SSAC("acrobot", seed=0)                 # warm-starts the gate (~1 min)
->>> agent.learn(log_dir="runs/ssac-acrobot")
+>>> agent.learn(out="runs/ssac-acrobot")
 >>> agent.predict(state)                           # swing-up action only
 >>> agent.act(state)                               # what the switched controller does
 
@@ -51,7 +51,8 @@ from ..systems.control import cost_to_go, hysteresis, saturate
 from ..systems.spec import REWARD_KINDS
 from .gate import GateConfig, GateNet, fit_gate, label_states, warm_start_gate
 from .optim import adam
-from .run import Saved, check_fields
+from .checkpoint import Saved
+from .config_check import check_fields
 from .sac import SAC, SACConfig, set_lr
 
 GATE_DATA_FILE = "gate_data.pt"
@@ -111,6 +112,10 @@ class SSACConfig(SACConfig):
     #                                      steps run (neither reads what the other writes, so the numbers are those
     #                                      of refitting after them, tested); False: after them, on one thread
     variant_name: str = "hybridctl"      # which preset the config started from (informational)
+
+    def describe_budget(self) -> str:
+        """The run's budget in a run's account (the gate's warm start comes first)."""
+        return super().describe_budget() + " (warm-starting the gate first)"
 
     def validate(self) -> None:
         """Raise ValueError naming the first invalid field."""
@@ -354,10 +359,10 @@ class SSAC(SAC):
         if info:
             self.env.set_gate(self.gate)
 
-    def learn(self, *args, **kwargs) -> "SSAC":
-        """:meth:`SAC.learn`; a refit still running when training stops on an error is waited for."""
+    def train(self, run, total: int, backend) -> None:
+        """:meth:`SAC.train`; a refit still running when training stops on an error is waited for."""
         try:
-            return super().learn(*args, **kwargs)
+            super().train(run, total, backend)
         finally:
             pending, self._pending_refit = self._pending_refit, None
             if isinstance(pending, _Background):

@@ -19,7 +19,9 @@ from . import checkpoint as ckpt
 from ..envs import TorchVectorEnv
 from ..systems import System
 from ..systems import load as load_system
-from .run import EVAL_SEED, PROGRESS_FILE, EvalResult, Learner, Saved, set_torch_threads
+from .base import Learner
+from .checkpoint import PROGRESS_FILE, Saved
+from .run import EVAL_SEED, EvalResult, set_torch_threads
 
 
 def progress_entry(key: str, attr: str, **options) -> Saved:
@@ -95,6 +97,11 @@ class VectorEnvAgent(Learner):
             raise ValueError(f"the learner needs a vector env with same-step autoreset (final_obs in infos), got {mode}")
         return env
 
+    def training_record(self) -> dict:
+        """eval.json's training counters: env steps, wall time, the last 100 training episodes' return and success."""
+        return {"env_steps": self.num_timesteps, "train_wall_time_s": self.wall_time,
+                "train_mean_return_last100": self.mean_return, "train_success_rate_last100": self.success_rate}
+
     # ------------------------------------------------------------------ episode statistics
     @property
     def progress_count(self) -> int:
@@ -159,11 +166,10 @@ class VectorEnvAgent(Learner):
         return TorchVectorEnv(self.system, num_envs, decision_period=getattr(self.env, "decision_period", None),
                               device=self.device, seed=seed)
 
-    def evaluate(self, episodes: int = 100, seed: int = EVAL_SEED, deterministic: bool = True) -> EvalResult:
-        """Run ``episodes`` fresh episodes (initial states from the spec, numpy seed ``seed``)
-        with the deterministic policy; returns mean/std/min return, success rate and the returns."""
-        if not isinstance(episodes, (int, np.integer)) or episodes < 1:
-            raise ValueError(f"episodes must be an integer >= 1, got {episodes!r}")
+    def run_evaluation(self, episodes: int, seed: int, deterministic: bool = True) -> EvalResult:
+        """``evaluate(episodes, seed=, deterministic=True)``: ``episodes`` fresh episodes (initial states
+        from the spec, numpy seed ``seed``) with the deterministic policy (``deterministic=False``:
+        sampled actions); mean/std/min return, success rate and the returns."""
         env = self.make_eval_env(int(episodes), seed)
         obs, _ = env.reset(seed=seed)
         total = torch.zeros(episodes, dtype=torch.float64)
@@ -199,12 +205,9 @@ class VectorEnvAgent(Learner):
         except (AttributeError, TypeError, ValueError):
             warnings.warn("could not restore the env's RNG state; episodes will differ", stacklevel=2)
 
-    def checkpoint_meta(self) -> dict:
-        """config.json: algorithm, config, system (name, spec overrides, resolved spec values and their
-        hash: :func:`~hybridctl.learn.checkpoint.system_record`), dimensions, decision period."""
-        return {"algorithm": self.algorithm_name, "config": dataclasses.asdict(self.config),
-                "system": ckpt.system_record(self.system),
-                "obs_dim": self.obs_dim, "action_dim": self.action_dim, "action_scale": self.action_scale.tolist(),
+    def checkpoint_extra(self) -> dict:
+        """config.json beside algorithm, system and config: dimensions, action scale, decision period."""
+        return {"obs_dim": self.obs_dim, "action_dim": self.action_dim, "action_scale": self.action_scale.tolist(),
                 "decision_period": getattr(self.env, "decision_period", None)}
 
     def check_checkpoint(self, found: Path, meta: dict, normalization: dict, force: bool = False) -> None:
@@ -221,37 +224,22 @@ class VectorEnvAgent(Learner):
         self._obs, self._env_seed = None, None
 
     @classmethod
-    def load(cls, path: str | Path, env=None, force: bool = False, **overrides):
-        """Load a checkpoint directory written by ``save`` (or by ``learn``).
-
-        ``env``: None (a TorchVectorEnv of the checkpoint's system, with its spec
-        overrides), a system name, a System or a vector env; it must be the plant the
-        checkpoint was trained on (system name and resolved spec values). ``overrides``
-        replace config fields (e.g. ``num_envs``). The replay buffer is not loaded
-        (``learn(resume=True)`` does that).
-
-        Raises :class:`~hybridctl.learn.checkpoint.CheckpointError` naming what differs for
-        a checkpoint of another algorithm (``SAC.load`` of an SSAC checkpoint) or plant, and
-        naming the file for a missing or damaged one. ``force=True``: load another
-        algorithm's or plant's checkpoint anyway (with a warning).
-        """
-        found = ckpt.resolve_checkpoint_dir(path)
-        meta = ckpt.read_json(found / ckpt.CONFIG_FILE)  # its shape is checked there (ckpt.SCHEMAS)
-        ckpt.check_algorithm(found, meta.get("algorithm"), cls.compatible_algorithms, cls.algorithm_name, force)
-        ckpt.require_keys(found, meta, meta.get("algorithm") or cls.algorithm_name)
+    def from_checkpoint(cls, found: Path, meta: dict, config, system, force: bool):
+        """:meth:`~hybridctl.learn.base.Learner.load`'s learner: on ``system`` (None: a TorchVectorEnv of
+        the recorded system with its spec overrides; a system name, a System or a vector env), which
+        must be the system the checkpoint was trained on (name here; spec values when restored)."""
         saved_system = meta["system"]["name"]
+        env = system
         if env is None:
             env = ckpt.recorded_system(found, saved_system, meta["system"].get("overrides", {}))
         env_system = env if isinstance(env, str) else env.name if isinstance(env, System) else env.system.name
         if env_system != saved_system and not force:
             raise ckpt.CheckpointError(f"checkpoint {found} was trained on system {saved_system!r}, "
                                        f"but the env is system {env_system!r} ({ckpt.FORCE_HINT})")
-        config = ckpt.config_from_meta(cls.config_class, meta, overrides, found)
         agent = cls._construct_for_load(env, config, found)
         if (agent.obs_dim, agent.action_dim) != (meta.get("obs_dim"), meta.get("action_dim")):
             raise ckpt.CheckpointError(f"checkpoint {found} has obs/action dims {meta.get('obs_dim')}/"
                                        f"{meta.get('action_dim')}, the env {agent.obs_dim}/{agent.action_dim}")
-        agent.checkpointer.restore(found, bulky=False, force=force)
         return agent
 
     @classmethod
