@@ -13,13 +13,12 @@ on the root body; MuJoCo envs only).
 from __future__ import annotations
 
 import math
-from typing import Callable
 
 import numpy as np
 
-from .ars import ARS, PolicySpec, RolloutTask, make_env, rollouts
-from ..parallel import make_backend
 from ..analysis.postprocess import PostProcessor
+from ..parallel import make_backend
+from .rollouts import FrozenPolicy, PolicySpec, RolloutTask, evaluation_seeds, make_env, rollouts
 
 
 def wilson_interval(failures: int, n: int, z: float = 1.96) -> tuple[float, float]:
@@ -35,13 +34,16 @@ def wilson_interval(failures: int, n: int, z: float = 1.96) -> tuple[float, floa
     return (lo, hi)
 
 
-def failure_rates(policy: ARS | Callable[[np.ndarray], np.ndarray], env=None, conditions: dict | None = None,
+def failure_rates(policy, env=None, conditions: dict | None = None,
                   episodes: int = 50, episode_steps: int = 10_000, seed: int = 0, backend: str = "processes",
                   workers: int | None = None, engine: str | None = None) -> dict:
     """Fraction of episodes that terminate early under each disturbance condition.
 
-    ``policy``: an :class:`ARS` agent (its env, normalisation and parameters are used), or a
-    picklable callable ``obs -> action`` together with ``env`` (an id or a factory).
+    ``policy``: an :class:`~hybridctl.learn.ars.ARS` agent (anything with ``frozen_policy()``,
+    ``env``, ``env_kwargs`` and ``config.engine``: its env, normalisation and parameters are
+    used), or a picklable callable ``obs -> action`` together with ``env`` (an id or a factory).
+    The episodes are :class:`~hybridctl.learn.rollouts.RolloutTask` s of
+    :mod:`hybridctl.learn.rollouts`, as ARS's own.
     ``conditions``: name -> dict with any of ``action_noise``, ``obs_noise`` (std) and
     ``push`` ((rate, magnitude)). The same ``episodes`` env seeds are used for every
     condition. Returns, per condition, failures, fraction, 95 % Wilson interval, mean return.
@@ -58,9 +60,9 @@ def failure_rates(policy: ARS | Callable[[np.ndarray], np.ndarray], env=None, co
         unknown = set(cond) - {"action_noise", "obs_noise", "push"}
         if unknown:
             raise ValueError(f"condition {name!r}: unknown keys {sorted(unknown)}; use action_noise, obs_noise, push")
-    if isinstance(policy, ARS):
-        env, spec, theta = policy.env, policy.policy, policy.theta
-        mean, std, env_kwargs = policy.stats.mean, policy.stats.std, policy.env_kwargs
+    agent = hasattr(policy, "frozen_policy")
+    if agent:
+        frozen, env, env_kwargs = policy.frozen_policy(), policy.env, policy.env_kwargs
     else:
         if env is None:
             raise ValueError("failure_rates needs env= when the policy is a plain callable")
@@ -68,17 +70,18 @@ def failure_rates(policy: ARS | Callable[[np.ndarray], np.ndarray], env=None, co
         obs_dim, act_dim = int(np.prod(probe.observation_space.shape)), int(np.prod(probe.action_space.shape))
         spec = PolicySpec(obs_dim, act_dim, probe.action_space.low, probe.action_space.high, function=policy)
         probe.close()
-        theta, mean, std, env_kwargs = np.zeros(0), np.zeros(obs_dim), np.ones(obs_dim), None
+        frozen, env_kwargs = FrozenPolicy(spec, np.zeros(0), np.zeros(obs_dim), np.ones(obs_dim)), None
     if engine is None:
-        engine = policy.config.engine if isinstance(policy, ARS) else "auto"
+        engine = policy.config.engine if agent else "auto"
     if engine not in ("auto", "backend"):
         raise ValueError(f"engine must be 'auto' or 'backend', got {engine!r}")
-    seeds = [int(s) for s in np.random.default_rng(seed).integers(0, 2 ** 31 - 1, size=episodes)]
+    seeds = evaluation_seeds(seed, episodes)
     identity = PostProcessor("identity")
     report = {}
     with make_backend(backend, workers) as pool:
         for name, cond in conditions.items():
-            tasks = [RolloutTask(env, env_kwargs, spec, theta, mean, std, s, episode_steps, 0.0, identity,
+            tasks = [RolloutTask(env, env_kwargs, frozen.spec, frozen.theta, frozen.obs_mean, frozen.obs_std, s,
+                                 episode_steps, 0.0, identity,
                                  action_noise=cond.get("action_noise", 0.0), obs_noise=cond.get("obs_noise", 0.0),
                                  push=cond.get("push")) for s in seeds]
             results = rollouts(tasks, pool, engine, workers)

@@ -1,0 +1,600 @@
+"""One rollout module: the episodes of antithetic random search (ARS, fine-tuning) and of the
+robustness measures, with one result format.
+
+What to roll out is a list of tasks (plain, picklable objects) for a :mod:`hybridctl.parallel`
+backend; :func:`rollouts` runs them and returns one result dict per episode, in task order.
+Two execution strategies, kept apart because each reproduces its learner's numbers bit for bit:
+
+* :class:`RolloutTask` -- ONE episode of a flat-parameter policy (:class:`PolicySpec`: ARS's
+  linear map, a torch module loaded by ``vector_to_parameters``, or a fixed function) behind a
+  frozen affine normalisation, with optional action / observation noise and pushes
+  (thesis Sec. 4.3). One task per backend job (:func:`run_episode`, a gymnasium env), or a
+  whole batch stepped together on the MuJoCo batch stepper
+  (:class:`~hybridctl.envs.mujoco_batch.MujocoBatchEnv`, :func:`run_episodes_batched`,
+  ``engine="auto"``). ARS and :func:`~hybridctl.learn.robustness.failure_rates` use it.
+* :class:`ChunkTask` -- a fixed chunk of B episodes of a torch module whose named parameters
+  come from the rows of ``thetas``: one ``torch.func.vmap`` forward of ``functional_call`` per
+  env step, over gymnasium envs, the MuJoCo batch stepper (one thread), or a hybridctl
+  system's batched torch env (SSAC: gate + LQR inside). Fine-tuning uses it.
+
+Every result: ``finite`` (False: only ``steps`` follows), ``return`` (post-processed by the
+task's :class:`~hybridctl.analysis.PostProcessor`, e.g. the dimension reward), ``raw_return``,
+``steps``, ``terminated``, ``success`` (the thesis success test on a hybridctl system, else
+None), ``dimension``, ``reason``, ``sum`` / ``sumsq`` / ``count`` (of the episode's states but
+the last: ARS's running normalisation), and on request ``states`` (what the post-processor saw:
+observations, normalised by the frozen normaliser in a chunk) and ``dimensions``
+(:func:`measure_dimensions`).
+
+The env side (:func:`make_env`, and :func:`recorded_env_id` / :func:`recorded_env_kwargs` for
+ids read from files) lives here too.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import gymnasium as gym
+import numpy as np
+import torch
+from torch.func import functional_call, vmap
+
+from ..analysis.mesh import mesh_dimension
+from ..analysis.postprocess import MIN_POINTS, TRANSIENT_STEPS, PostProcessor
+from ..analysis.variation import madogram, variogram
+from ..envs import env_id
+from ..envs.mujoco_batch import MujocoBatchEnv
+from ..envs.mujoco_batch import supports as batch_supports
+from ..parallel import cached_env
+from ..systems import known_systems
+from ..systems import load as load_system
+from . import checkpoint as ckpt
+
+# ----------------------------------------------------------------------------- envs
+
+
+# An env id read from a FILE (a checkpoint's config.json) is data, never an import:
+# gymnasium.make("module:Env-v0") imports `module` before it looks the id up. An id the user passes
+# directly (ARS("mymod:Env-v0"), an env on the command line) is the user's own choice and is not checked.
+ACCEPTED_IDS = ("a hybridctl system name or an id already registered in gymnasium.registry, "
+                "without a 'module:' part")
+"""What :func:`recorded_env_id` accepts, as the error messages say it."""
+
+
+def _shown_value(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+def recorded_env_id(value: Any, file: str | Path, key: str = "env") -> str:
+    """``value`` (``file``'s ``key``) if it is a safe env id to hand to ``gymnasium.make``.
+
+    Accepted: a hybridctl system name or an id already in ``gymnasium.registry`` (a dict lookup:
+    nothing is imported, neither ``gym.make`` nor ``gym.spec`` is called), without a ``module:``
+    part. Raises :class:`~hybridctl.learn.checkpoint.CheckpointError` naming the file, the key and
+    what is accepted otherwise (a non-string too).
+    """
+    if not isinstance(value, str):
+        raise ckpt.CheckpointError(f"{file}: {key!r} must be a string ({ACCEPTED_IDS}), got "
+                                   f"{type(value).__name__} {_shown_value(value)}")
+    if ":" in value:
+        raise ckpt.CheckpointError(f"{file}: {key!r} is {_shown_value(value)}, whose 'module:' part would import "
+                                   f"code named by a file; accepted: {ACCEPTED_IDS} (pass such an id yourself, "
+                                   f"e.g. env=..., if you trust its module)")
+    if value in known_systems(strict=False) or value in gym.registry:
+        return value
+    raise ckpt.CheckpointError(f"{file}: {key!r} is {_shown_value(value)}, not {ACCEPTED_IDS} (pass env=... to "
+                               f"use another env)")
+
+
+def recorded_env_kwargs(value: Any, file: str | Path, key: str = "env_kwargs") -> dict | None:
+    """``value`` (``file``'s ``key``) if it is None or an object with string keys (the env's keyword arguments).
+
+    Raises :class:`~hybridctl.learn.checkpoint.CheckpointError` naming the file and the key otherwise.
+    """
+    if value is None:
+        return None
+    if not isinstance(value, dict) or not all(isinstance(k, str) for k in value):
+        raise ckpt.CheckpointError(f"{file}: {key!r} must be null or an object of keyword arguments, got "
+                                   f"{type(value).__name__} {_shown_value(value)}")
+    return value
+
+
+def make_env(env: str | Callable[[], gym.Env], env_kwargs: dict | None = None,
+             max_steps: int | None = None) -> gym.Env:
+    """A gymnasium env from an id (hybridctl system names map to their swing-up env) or a factory.
+
+    ``max_steps`` replaces an id's time limit (e.g. 10,000-step robustness episodes); a factory's
+    env keeps its own, and rollouts stop at ``max_steps`` anyway.
+    """
+    if callable(env):
+        return env()
+    name = env_id(env) if env in known_systems() else env
+    kwargs = dict(env_kwargs or {})
+    if max_steps is not None:
+        kwargs["max_episode_steps"] = max_steps
+    return gym.make(name, **kwargs)
+
+
+
+# ----------------------------------------------------------------------------- policies
+
+class PolicySpec:
+    """What a worker needs to rebuild a policy from a flat parameter vector (pickles)."""
+
+    def __init__(self, obs_dim: int, act_dim: int, low: np.ndarray, high: np.ndarray,
+                 module: torch.nn.Module | None = None, function: Callable | None = None):
+        self.obs_dim, self.act_dim = obs_dim, act_dim
+        self.low, self.high = np.asarray(low, dtype=np.float64), np.asarray(high, dtype=np.float64)
+        self.module = module      # None: linear
+        self.function = function  # a fixed policy obs -> action (no parameters), e.g. for robustness tests
+
+    @property
+    def n_params(self) -> int:
+        """Length of theta."""
+        if self.function is not None:
+            return 0
+        if self.module is None:
+            return self.obs_dim * self.act_dim
+        return sum(p.numel() for p in self.module.parameters())
+
+    def initial_theta(self) -> np.ndarray:
+        """Zero for the linear policy (Mania et al.); the module's own initialisation otherwise."""
+        if self.module is None:
+            return np.zeros(self.n_params)
+        return torch.nn.utils.parameters_to_vector(self.module.parameters()).detach().double().numpy().copy()
+
+    def actor(self, theta: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+        """action(normalised obs) for these parameters, clipped to the action bounds."""
+        if self.function is not None:
+            return lambda z: np.clip(np.asarray(self.function(z), dtype=np.float64), self.low, self.high)
+        if self.module is None:
+            matrix = theta.reshape(self.act_dim, self.obs_dim)
+            return lambda z: np.clip(matrix @ z, self.low, self.high)
+        torch.nn.utils.vector_to_parameters(torch.as_tensor(theta, dtype=torch.float64), self.module.parameters())
+        mid, half = (self.high + self.low) / 2, (self.high - self.low) / 2
+
+        def act(z):
+            with torch.no_grad():
+                y = self.module(torch.as_tensor(z, dtype=torch.float64)).numpy()
+            return mid + half * y
+        return act
+
+
+class FrozenPolicy:
+    """A fixed ARS policy with frozen observation normalisation: ``policy(obs) -> action`` (pickles)."""
+
+    def __init__(self, spec: PolicySpec, theta: np.ndarray, obs_mean: np.ndarray, obs_std: np.ndarray):
+        # a torch policy gets its own module: the trainer's module is overwritten by every rollout
+        self.spec = copy.deepcopy(spec) if spec.module is not None else spec
+        self.theta = np.asarray(theta, dtype=np.float64)
+        self.obs_mean, self.obs_std = np.asarray(obs_mean, dtype=np.float64), np.asarray(obs_std, dtype=np.float64)
+        self._actor = None
+
+    def __getstate__(self):
+        return {**self.__dict__, "_actor": None}   # closures do not pickle: rebuilt on first call
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        """The action for one observation (clipped to the action bounds)."""
+        if self._actor is None:
+            self._actor = self.spec.actor(self.theta)
+        return self._actor((np.asarray(obs, dtype=np.float64) - self.obs_mean) / self.obs_std)
+
+    def many(self, obs: np.ndarray) -> np.ndarray:
+        """Actions (n, act_dim) for observations (n, obs_dim), equal bit for bit to calling the
+        policy on each row (the normalisation and the clip are elementwise and run batched; the
+        linear map runs row by row, the same matrix-vector product as one call)."""
+        z = (np.asarray(obs, dtype=np.float64) - self.obs_mean) / self.obs_std
+        if z.ndim != 2 or z.shape[1] != self.spec.obs_dim:
+            raise ValueError(f"obs must have shape (n, {self.spec.obs_dim}), got {np.shape(obs)}")
+        if self.spec.module is not None or self.spec.function is not None:
+            return np.array([self(o) for o in obs], dtype=np.float64).reshape(len(z), self.spec.act_dim)
+        matrix = self.theta.reshape(self.spec.act_dim, self.spec.obs_dim)
+        z = np.ascontiguousarray(z)
+        out = np.empty((z.shape[0], self.spec.act_dim))
+        for i in range(z.shape[0]):
+            out[i] = matrix @ z[i]
+        return np.clip(out, self.spec.low, self.spec.high)
+
+
+class Shipped:
+    """A torch module sent to workers as plain pickled bytes, decoded once per worker.
+
+    A module inside a task would otherwise travel by torch's shared-memory file descriptors,
+    whose hand-over hangs after a process pool was rebuilt (a worker killed); bytes always
+    arrive. The bytes are made by this process from its own module, never read from a file.
+    """
+
+    _decoded: dict[str, torch.nn.Module] = {}
+
+    def __init__(self, module: torch.nn.Module | None):
+        import hashlib
+        import pickle
+
+        self.blob = pickle.dumps(module) if module is not None else None
+        self.key = hashlib.sha1(self.blob).hexdigest() if self.blob is not None else ""
+
+    def get(self) -> torch.nn.Module | None:
+        """The module (built from the bytes once per process)."""
+        import pickle
+
+        if self.blob is None:
+            return None
+        if self.key not in Shipped._decoded:
+            Shipped._decoded.clear()   # one module at a time per worker
+            Shipped._decoded[self.key] = pickle.loads(self.blob)
+        return Shipped._decoded[self.key]
+
+
+@dataclass
+class ChunkTask:
+    """Episodes of ``len(seeds)`` policies (rows of ``thetas``), one per env seed (plain, picklable)."""
+
+    env: Any
+    env_kwargs: dict | None
+    shipped: Shipped
+    names: list[str]
+    thetas: np.ndarray            # (B, P) float64
+    seeds: list[int]
+    normalizer: Any
+    max_steps: int | None
+    postprocessor: PostProcessor
+    system: str | None = None     # a hybridctl system's name: its batched torch env (sac/ssac policies)
+    gate: Shipped | None = None   # SSAC's gate (the switched env: gate + LQR inside the rollout)
+    keep_states: bool = False
+    engine: str = "auto"          # "auto": the MuJoCo batch stepper where it applies; "backend": gymnasium envs
+
+    @property
+    def module(self) -> torch.nn.Module:
+        """The policy module (non-perturbed parameters at their values; perturbed ones come from thetas)."""
+        return self.shipped.get()
+
+
+def unflatten(module: torch.nn.Module, names: list[str], thetas: torch.Tensor) -> dict[str, torch.Tensor]:
+    """{name: (B, *shape)} from flat rows (B, P), in each parameter's dtype."""
+    params = dict(module.named_parameters())
+    out, start = {}, 0
+    for name in names:
+        p = params[name]
+        out[name] = thetas[:, start:start + p.numel()].reshape(thetas.shape[0], *p.shape).to(p.dtype)
+        start += p.numel()
+    return out
+
+
+def batched_actions(module: torch.nn.Module, params: dict[str, torch.Tensor], obs: torch.Tensor) -> torch.Tensor:
+    """Actions (B, act) of B policies (module with ``params`` row b) for observations (B, obs): one vmapped forward."""
+    with torch.no_grad():
+        return vmap(lambda p, o: functional_call(module, p, (o,)))(params, obs)
+
+
+# ----------------------------------------------------------------------------- one result format
+
+def episode_result(states: np.ndarray, raw_return: float, shifted_return: float, steps: int, terminated: bool,
+                   postprocessor: PostProcessor, *, finite: bool = True, success: bool | None = None,
+                   keep_states: bool = False, measure: bool = False) -> dict:
+    """The result of one episode of ``states`` (steps + 1 rows), in the one format of this module.
+
+    ``shifted_return`` is what the post-processor gets (ARS: the raw return less ``reward_shift``
+    per step; fine-tuning: the raw return); ``finite`` False (or a NaN/inf state or return)
+    gives ``{"finite": False, "steps": steps}``.
+    """
+    if not finite or not math.isfinite(raw_return) or not np.all(np.isfinite(states)):
+        return {"finite": False, "steps": steps}
+    processed, info = postprocessor(states, float(shifted_return))
+    out = {"finite": True, "return": float(processed), "raw_return": float(raw_return), "steps": int(steps),
+           "terminated": bool(terminated), "success": success, "dimension": info["dimension"],
+           "reason": info["reason"], "sum": states[:-1].sum(axis=0), "sumsq": (states[:-1] ** 2).sum(axis=0),
+           "count": states.shape[0] - 1}
+    if keep_states:
+        out["states"] = states
+    if measure:
+        out["dimensions"] = measure_dimensions(states, postprocessor.transient_steps)
+    return out
+
+
+# ----------------------------------------------------------------------------- episode tasks
+
+@dataclass
+class RolloutTask:
+    """One episode: parameters, frozen normalisation, env seed and settings (plain, picklable)."""
+
+    env: Any
+    env_kwargs: dict | None
+    policy: PolicySpec
+    theta: np.ndarray
+    obs_mean: np.ndarray
+    obs_std: np.ndarray
+    seed: int
+    max_steps: int | None
+    reward_shift: float
+    postprocessor: PostProcessor
+    keep_states: bool = False
+    action_noise: float = 0.0
+    obs_noise: float = 0.0
+    measure: bool = False       # also measure the episode's dimensions (evaluation)
+    push: tuple | None = None   # (rate, magnitude): per step, with probability rate, a force of that
+    #                             magnitude at a random angle in the x-z plane on the root body (thesis Sec. 4.3)
+
+
+def run_episode(task: RolloutTask) -> dict:
+    """Roll out one episode; returns the post-processed and raw return, steps and state statistics."""
+    env = cached_env((repr(task.env), repr(task.env_kwargs), task.max_steps),
+                     lambda: make_env(task.env, task.env_kwargs, task.max_steps))
+    actor = task.policy.actor(task.theta)
+    rng = np.random.default_rng(task.seed)
+    obs, _ = env.reset(seed=int(task.seed))
+    states, raw_return, shifted, steps, terminated = [np.asarray(obs, dtype=np.float64)], 0.0, 0.0, 0, False
+    limit = task.max_steps or np.inf
+    while steps < limit:
+        seen = states[-1] + (task.obs_noise * rng.normal(size=states[-1].shape) if task.obs_noise else 0.0)
+        action = actor((seen - task.obs_mean) / task.obs_std)
+        if task.action_noise:
+            action = np.clip(action + task.action_noise * rng.normal(size=action.shape), task.policy.low,
+                             task.policy.high)
+        pushed = task.push is not None and rng.random() < task.push[0]
+        if pushed:
+            _set_push(env, task.push[1] * _unit_xz(rng))
+        obs, reward, terminated, truncated, _ = env.step(action)
+        if pushed:
+            _set_push(env, np.zeros(3))
+        steps += 1
+        raw_return += float(reward)
+        shifted += float(reward) - task.reward_shift
+        states.append(np.asarray(obs, dtype=np.float64))
+        if terminated or truncated:
+            break
+    return episode_result(np.stack(states), raw_return, shifted, steps, bool(terminated), task.postprocessor,
+                          keep_states=task.keep_states, measure=task.measure)
+
+
+def batchable(tasks: list[RolloutTask]) -> bool:
+    """Whether :func:`run_episodes_batched` can run ``tasks``: one MuJoCo locomotion env id (and kwargs
+    and step limit) that :class:`~hybridctl.envs.mujoco_batch.MujocoBatchEnv` reproduces, and a linear
+    or fixed (function) policy (a torch policy's module holds one parameter vector at a time)."""
+    if not tasks:
+        return False
+    first = tasks[0]
+    return (batch_supports(first.env, first.env_kwargs)
+            and all(t.env == first.env and t.env_kwargs == first.env_kwargs and t.max_steps == first.max_steps
+                    and t.policy.module is None for t in tasks))
+
+
+def run_episodes_batched(tasks: list[RolloutTask], nthread: int = 1) -> list[dict]:
+    """:func:`run_episode` of every task, all episodes stepped together on MuJoCo threads.
+
+    The results equal :func:`run_episode`'s bit for bit (tested): the same reset states (drawn
+    by the gymnasium env from each task's seed), the same per-episode noise draws in the same
+    order, the policy's matrix-vector product row by row, and the env's semantics from
+    :class:`~hybridctl.envs.mujoco_batch.MujocoBatchEnv`. Needs :func:`batchable` tasks.
+    """
+    if not batchable(tasks):
+        raise ValueError("run_episodes_batched needs tasks on one Hopper/Walker2d/HalfCheetah v5 env (same kwargs and "
+                         "step limit) with linear or fixed policies; use run_episode on a backend otherwise")
+    first, n = tasks[0], len(tasks)
+    env = cached_env(("mujoco-batch", first.env, repr(first.env_kwargs), n, nthread),
+                     lambda: MujocoBatchEnv(first.env, num_envs=n, nthread=nthread, env_kwargs=first.env_kwargs))
+    limit = first.max_steps or env.max_episode_steps
+    if limit is None:
+        raise ValueError(f"{first.env} has no time limit: give max_steps")
+    obs = env.reset([t.seed for t in tasks])
+    act_dim, obs_dim = env.nu, obs.shape[1]
+    states = np.empty((n, limit + 1, obs_dim))
+    states[:, 0] = obs
+    rngs = [np.random.default_rng(t.seed) for t in tasks]
+    actors = [t.policy.actor(t.theta) if t.policy.function is not None else None for t in tasks]
+    matrices = [t.theta.reshape(act_dim, obs_dim) if t.policy.function is None else None for t in tasks]
+    mean = np.stack([t.obs_mean for t in tasks])
+    std = np.stack([t.obs_std for t in tasks])
+    low, high = first.policy.low, first.policy.high
+    obs_noise = np.array([t.obs_noise for t in tasks])
+    action_noise = np.array([t.action_noise for t in tasks])
+    shift = np.array([t.reward_shift for t in tasks], dtype=np.float64)
+    raw, shifted = np.zeros(n), np.zeros(n)
+    steps, terminated = np.zeros(n, dtype=np.int64), np.zeros(n, dtype=bool)
+    alive = np.ones(n, dtype=bool)
+    ids = np.arange(n)
+    for k in range(limit):
+        idx = ids[alive]
+        if idx.size == 0:
+            break
+        seen = states[idx, k].copy()
+        for j, i in enumerate(idx):      # the noise draws of run_episode, in its order, per episode
+            if obs_noise[i]:
+                seen[j] = seen[j] + obs_noise[i] * rngs[i].normal(size=obs_dim)
+        z = (seen - mean[idx]) / std[idx]
+        actions = np.empty((idx.size, act_dim))
+        for j, i in enumerate(idx):
+            actions[j] = actors[i](z[j]) if actors[i] is not None else matrices[i] @ z[j]
+        actions = np.clip(actions, low, high)
+        push = None
+        for j, i in enumerate(idx):
+            if action_noise[i]:
+                actions[j] = np.clip(actions[j] + action_noise[i] * rngs[i].normal(size=act_dim), low, high)
+            if tasks[i].push is not None and rngs[i].random() < tasks[i].push[0]:
+                push = np.zeros((idx.size, 3)) if push is None else push
+                push[j] = tasks[i].push[1] * _unit_xz(rngs[i])
+        obs, reward, term, _ = env.step(actions, ids=idx, push=push)
+        steps[idx] += 1
+        raw[idx] += reward
+        shifted[idx] += reward - shift[idx]
+        states[idx, k + 1] = obs
+        terminated[idx] = term
+        alive[idx[term]] = False
+    return [episode_result(states[i, :steps[i] + 1], float(raw[i]), float(shifted[i]), int(steps[i]),
+                           bool(terminated[i]), t.postprocessor, keep_states=t.keep_states, measure=t.measure)
+            for i, t in enumerate(tasks)]
+
+
+def rollouts(tasks: list[RolloutTask] | list[ChunkTask], backend, engine: str = "auto",
+             nthread: int | None = None) -> list[dict]:
+    """Every episode of ``tasks`` on ``backend``: one result dict per episode, in task order.
+
+    Chunk tasks: one backend job per chunk (:func:`run_chunk`). Episode tasks: batched on this
+    machine's MuJoCo threads (``engine="auto"``, :func:`batchable` tasks and a local backend;
+    ``nthread`` threads, default every core), else one :func:`run_episode` per job (always on a
+    Ray backend, which may reach a cluster's CPUs).
+    """
+    if tasks and isinstance(tasks[0], ChunkTask):
+        return [r for chunk in backend.map(run_chunk, tasks) for r in chunk]
+    if engine == "auto" and getattr(backend, "name", "serial") != "ray" and batchable(tasks):
+        threads = nthread or (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count())
+        return run_episodes_batched(tasks, max(1, int(threads or 1)))
+    return backend.map(run_episode, tasks)
+
+
+def evaluation_seeds(seed: int, episodes: int) -> list[int]:
+    """The env seeds of ``episodes`` held-out episodes (evaluations, failure rates) from ``seed``."""
+    return [int(s) for s in np.random.default_rng(seed).integers(0, 2 ** 31 - 1, size=episodes)]
+
+
+def measure_dimensions(states: np.ndarray, transient_steps: int = TRANSIENT_STEPS) -> dict:
+    """Raw (unclipped) lower/upper mesh dimension, madogram and variogram of the states after the
+    transient (thesis Table 4.1 metrics); None where the episode is too short to measure."""
+    tail = states[transient_steps:]
+    if tail.shape[0] < MIN_POINTS:
+        return {"mesh_lower": None, "mesh_upper": None, "madogram": None, "variogram": None}
+    md = mesh_dimension(tail)
+    return {"mesh_lower": md.lower, "mesh_upper": md.upper, "madogram": madogram(tail), "variogram": variogram(tail)}
+
+
+def _unit_xz(rng: np.random.Generator) -> np.ndarray:
+    angle = rng.uniform(0.0, 2 * np.pi)
+    return np.array([np.cos(angle), 0.0, np.sin(angle)])
+
+
+def _set_push(env: gym.Env, force: np.ndarray) -> None:
+    """Apply ``force`` (world x, y, z) to the first body after the world in a MuJoCo env."""
+    data = getattr(env.unwrapped, "data", None)
+    if data is None or not hasattr(data, "xfrc_applied"):
+        raise ValueError(f"push disturbances need a MuJoCo env (with data.xfrc_applied); "
+                         f"{type(env.unwrapped).__name__} has none")
+    data.xfrc_applied[1, :3] = force
+
+
+
+# ----------------------------------------------------------------------------- chunk tasks
+
+def run_chunk(task: ChunkTask) -> list[dict]:
+    """Roll out one episode per row of ``task.thetas``; one result dict per row, in row order."""
+    torch.set_num_threads(1)
+    if task.system is not None:
+        return _run_system_chunk(task)
+    if task.engine == "auto" and batch_supports(task.env, task.env_kwargs):
+        return _run_mujoco_chunk(task)
+    n = len(task.seeds)
+    envs = cached_env(("finetune", repr(task.env), repr(task.env_kwargs), task.max_steps, n),
+                      lambda: [make_env(task.env, task.env_kwargs, task.max_steps) for _ in range(n)])
+    dtype = next(task.module.parameters()).dtype
+    params = unflatten(task.module, task.names, torch.as_tensor(task.thetas, dtype=torch.float64))
+    space = envs[0].action_space
+    obs = np.stack([np.asarray(e.reset(seed=int(s))[0], dtype=np.float64).reshape(-1) for e, s in zip(envs, task.seeds)])
+    z = _normalise(task.normalizer, obs)
+    history = [z.copy()]          # normalised observations of every member at each step (one copy per step)
+    returns, rewards, steps = np.zeros(n), np.zeros(n), np.zeros(n, dtype=int)
+    active, terminated, finite, success = np.ones(n, bool), np.zeros(n, bool), np.ones(n, bool), [None] * n
+    limit = task.max_steps or math.inf
+    while active.any():
+        actions = batched_actions(task.module, params, torch.as_tensor(z, dtype=dtype)).numpy()
+        actions = actions.astype(space.dtype, copy=False).reshape((n, *space.shape))
+        stepped = np.flatnonzero(active)
+        for i in stepped:
+            o, r, term, trunc, info = envs[i].step(actions[i])
+            obs[i], rewards[i] = o, r
+            if term or trunc:
+                active[i], terminated[i] = False, bool(term)
+                if "success" in info:
+                    success[i] = bool(info["success"])
+        returns[stepped] += rewards[stepped]
+        z = _after_step(task, obs, returns, steps, stepped, finite, active, limit, history)
+    return _chunk_results(task, history, returns, steps, terminated, finite, success)
+
+
+def _after_step(task: ChunkTask, obs, returns, steps, stepped, finite, active, limit, history) -> np.ndarray:
+    """Book-keeping after the ``stepped`` episodes took a step (their rewards already in ``returns``):
+    count the step, stop non-finite and over-long episodes, record and return the normalised observations."""
+    steps[stepped] += 1
+    bad = stepped[~(np.isfinite(obs[stepped]).all(axis=1) & np.isfinite(returns[stepped]))]
+    finite[bad], active[bad] = False, False
+    active &= steps < limit
+    z = _normalise(task.normalizer, obs)
+    history.append(z.copy())
+    return z
+
+
+def _chunk_results(task: ChunkTask, history, returns, steps, terminated, finite, success) -> list[dict]:
+    """One result per episode of a chunk; member i's episode is states[: steps[i] + 1, i]."""
+    states = np.stack(history)    # (T + 1, n, obs)
+    return [episode_result(states[: steps[i] + 1, i], returns[i], returns[i], int(steps[i]), bool(terminated[i]),
+                           task.postprocessor, finite=bool(finite[i]), success=None if success is None else success[i],
+                           keep_states=task.keep_states) for i in range(len(steps))]
+
+
+def _run_mujoco_chunk(task: ChunkTask) -> list[dict]:
+    """:func:`run_chunk` on a Hopper/Walker2d/HalfCheetah v5 env: the chunk's episodes stepped together
+    on :class:`~hybridctl.envs.mujoco_batch.MujocoBatchEnv` (one thread; the backend's workers run the
+    chunks side by side). Bit-identical to the gymnasium loop of :func:`run_chunk` (tested)."""
+    n = len(task.seeds)
+    env = cached_env(("finetune-batch", task.env, repr(task.env_kwargs), n),
+                     lambda: MujocoBatchEnv(task.env, num_envs=n, nthread=1, env_kwargs=task.env_kwargs))
+    dtype = next(task.module.parameters()).dtype
+    params = unflatten(task.module, task.names, torch.as_tensor(task.thetas, dtype=torch.float64))
+    space = env.action_space
+    obs = env.reset(task.seeds)
+    z = _normalise(task.normalizer, obs)
+    history = [z.copy()]
+    returns, steps = np.zeros(n), np.zeros(n, dtype=int)
+    active, terminated, finite = np.ones(n, bool), np.zeros(n, bool), np.ones(n, bool)
+    limit = task.max_steps or env.max_episode_steps or math.inf
+    while active.any():
+        actions = batched_actions(task.module, params, torch.as_tensor(z, dtype=dtype)).numpy()
+        actions = actions.astype(space.dtype, copy=False).reshape((n, *space.shape))
+        stepped = np.flatnonzero(active)
+        o, r, term, _ = env.step(actions[stepped], ids=stepped)
+        obs[stepped] = o
+        terminated[stepped] = term
+        active[stepped[term]] = False
+        returns[stepped] += r
+        z = _after_step(task, obs, returns, steps, stepped, finite, active, limit, history)
+    return _chunk_results(task, history, returns, steps, terminated, finite, None)
+
+
+def _run_system_chunk(task: ChunkTask) -> list[dict]:
+    """A hybridctl system's swing-up: the chunk's episodes on its batched torch env (SSAC: gate + LQR inside)."""
+    from ..envs import SwitchedVectorEnv, TorchVectorEnv
+    system = load_system(task.system)
+    n = len(task.seeds)
+    gate = task.gate.get() if task.gate is not None else None
+    if gate is not None:
+        env = SwitchedVectorEnv(system, n, gate=gate, dtype=torch.float64)
+    else:
+        env = TorchVectorEnv(system, n, dtype=torch.float64)
+    x0 = np.concatenate([system.sample_initial_states(1, np.random.default_rng(int(s))) for s in task.seeds])
+    obs, _ = env.reset(seed=int(task.seeds[0]), options={"state": x0})
+    dtype = next(task.module.parameters()).dtype
+    params = unflatten(task.module, task.names, torch.as_tensor(task.thetas, dtype=torch.float64))
+    states = [[row] for row in obs.numpy()]
+    returns, steps = np.zeros(n), np.zeros(n, dtype=int)
+    active, terminated, success = np.ones(n, bool), np.zeros(n, bool), [None] * n
+    limit = task.max_steps or math.inf
+    while active.any():
+        actions = batched_actions(task.module, params, obs.to(dtype)).to(torch.float64)
+        obs, rewards, term, trunc, infos = env.step(actions)
+        x, r = obs.numpy(), rewards.numpy()
+        for i in np.flatnonzero(active):
+            returns[i] += float(r[i])
+            steps[i] += 1
+            states[i].append(x[i])
+            if bool(term[i]) or bool(trunc[i]) or steps[i] >= limit:
+                active[i], terminated[i] = False, bool(term[i])
+                success[i] = bool(infos["success"][i]) if bool(infos["_success"][i]) else False
+    return [episode_result(np.stack(states[i]), returns[i], returns[i], int(steps[i]), bool(terminated[i]),
+                           task.postprocessor, finite=bool(np.isfinite(returns[i])), success=success[i],
+                           keep_states=task.keep_states) for i in range(n)]
+
+
+def _normalise(normalizer, obs: np.ndarray) -> np.ndarray:
+    return obs if normalizer is None else np.asarray(normalizer(obs), dtype=np.float64)
