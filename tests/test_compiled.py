@@ -11,6 +11,7 @@ import torch
 from hybridctl.envs import SwitchedVectorEnv, TorchVectorEnv
 from hybridctl.learn import SAC, SACConfig
 from hybridctl.learn.gate import GateNet
+from hybridctl.learn.sac import CompiledGrads, EagerGrads
 from hybridctl.systems import compiled, load
 
 
@@ -76,7 +77,7 @@ def test_short_learn_runs_stay_eager(one_torch_thread):
     agent = SAC("acrobot", seed=0, num_envs=4, exploration_steps=64, steps_per_update=64, replay_batch_size=8,
                 minibatch_size=8)
     agent.learn(total=128, progress=False)
-    assert agent._grads is None and agent.env.compile == "off"
+    assert type(agent._grads) is EagerGrads and agent.env.compile == "off"
 
 
 def test_compiled_switched_env_equals_eager(one_torch_thread):
@@ -111,7 +112,7 @@ def test_compiled_sac_gradients_equal_eager(one_torch_thread):
     element of ~1e-9 whose rounding differs flips a weight by 2 lr.)"""
     agent = SAC("acrobot", seed=0, num_envs=8, exploration_steps=0, replay_batch_size=64, minibatch_size=16,
                 obs_transform="angle_sincos", compile="on")
-    assert agent.use_compile(10**6) and agent._grads is not None
+    assert agent.use_compile(10**6) and isinstance(agent._grads, CompiledGrads)
     obs, _ = agent.env.reset(seed=0)
     agent._obs = obs.float()
     for _ in range(10):
@@ -124,19 +125,24 @@ def test_compiled_sac_gradients_equal_eager(one_torch_thread):
         scale = max(float(eager.abs().max()), 1e-12)
         torch.testing.assert_close(fast, eager, rtol=1e-4, atol=1e-5 * scale)
 
-    loss = agent.critic_loss(None, *batch, eps, alpha)
-    eager = torch.autograd.grad(loss, agent._q_params)
-    grads, fast_loss = agent._grads["critic"](agent._q_param_dicts(), *batch, eps, alpha)
+    # both gradient providers through the interface gradient_step uses: the loss, and the gradients left in .grad
+    eager_grads, fast_grads = EagerGrads(agent), agent._grads
+    loss = eager_grads.critic(*batch, eps, alpha)
+    eager = [p.grad.clone() for p in agent._q_params]
+    for p in agent._q_params:
+        p.grad = None          # what the compiled provider leaves is its own
+    fast_loss = fast_grads.critic(*batch, eps, alpha)
     close(fast_loss, loss.detach())
-    for fast, slow in zip([g for d in grads for g in d.values()], eager, strict=True):
+    for fast, slow in zip([p.grad for p in agent._q_params], eager, strict=True):
         close(fast, slow)
 
-    loss, _ = agent.actor_loss(None, None, batch[0], eps, alpha)
-    eager = torch.autograd.grad(loss, list(agent.actor.parameters()))
-    actor_params = {k: v.detach() for k, v in agent.actor.named_parameters()}
-    grads, (fast_loss, _) = agent._grads["actor"](actor_params, agent._q_param_dicts(), batch[0], eps, alpha)
+    loss, _ = eager_grads.actor(batch[0], eps, alpha)
+    eager = [p.grad.clone() for p in agent.actor.parameters()]
+    for p in agent.actor.parameters():
+        p.grad = None
+    fast_loss, _ = fast_grads.actor(batch[0], eps, alpha)
     close(fast_loss, loss.detach())
-    for fast, slow in zip(grads.values(), eager, strict=True):
+    for fast, slow in zip([p.grad for p in agent.actor.parameters()], eager, strict=True):
         close(fast, slow)
 
     # one real compiled step on this minibatch and noise: the optimizer sees the eager gradients

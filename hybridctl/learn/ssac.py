@@ -53,7 +53,7 @@ from .gate import GateConfig, GateNet, fit_gate, label_states, warm_start_gate
 from .optim import adam
 from .checkpoint import Saved
 from .config_check import check_fields
-from .sac import SAC, SACConfig, set_lr
+from .sac import SAC, CompiledGrads, SACConfig, set_lr
 
 GATE_DATA_FILE = "gate_data.pt"
 REWARDS = REWARD_KINDS  # one list of reward kinds, in the spec module
@@ -385,7 +385,7 @@ class SSAC(SAC):
         losses = fit_gate(self.gate, self.gate_data.states, self.gate_data.labels,
                           cfg.gate_refit_steps if steps is None else steps, cfg.gate_lr,
                           cfg.gate_positive_weight, cfg.gate_batch_size, self.gate_generator, self.gate_opt,
-                          class_weight=self._class_weight(), compiled=self._grads is not None)
+                          class_weight=self._class_weight(), compiled=isinstance(self._grads, CompiledGrads))
         self.num_gate_refits += 1
         episode = slice(self.gate_data.n_warm, None)
         info = {"loss": losses[-1], "data": len(self.gate_data), **relabelled, "episode_rows": len(self.gate_data) - self.gate_data.n_warm,
