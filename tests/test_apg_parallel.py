@@ -7,7 +7,8 @@ import time
 import pytest
 import torch
 
-from hybridctl.learn import apg as apg_mod
+from hybridctl.learn.apg import family as family_mod
+from hybridctl.learn.apg import split as split_mod
 from hybridctl.learn.apg import APG, APGConfig
 from hybridctl.parallel import SerialBackend
 
@@ -90,7 +91,7 @@ def recording(monkeypatch):
         made.append(RecordingBackend(workers or 3))
         return made[-1]
 
-    monkeypatch.setattr(apg_mod, "make_backend", make)
+    monkeypatch.setattr(family_mod, "make_backend", make)
     return made
 
 
@@ -115,7 +116,7 @@ def test_the_pool_closes_when_training_fails(recording, monkeypatch):
     def broken(task):
         raise FloatingPointError("NaN in a worker")
 
-    monkeypatch.setattr(apg_mod, "apg_chunk", broken)
+    monkeypatch.setattr(split_mod, "apg_chunk", broken)
     agent = APG("cartpole", tiny("ce-apg", backend="processes", workers=2))
     with pytest.raises(FloatingPointError, match="NaN in a worker"):
         agent.learn(progress=False)

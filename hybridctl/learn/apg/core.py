@@ -1,0 +1,470 @@
+"""The core of the APG family (thesis Ch. 7), shared by every method: the differentiable rollout of a
+population of policies, the member gradients, the batched Adam, gradient clipping, the LQR
+takeover of the switched controller, the CEM update, the observation, and one APG iteration /
+episode / phase as functions over tensors (:class:`APGProblem` holds what they need).
+
+The population is one computation: parameters stacked [K, ...] (:mod:`..policies`), the
+K x N states one (K N, n) batch through ``System.step_unchecked``, the loss the sum of the
+members' losses, one backward; member k's gradient is the slice k (members share nothing).
+Every member has its own Adam moments and step count (:class:`BatchedAdam`), so a member
+whose gradient is skipped is not moved.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import dataclass
+from typing import Callable, NamedTuple
+
+import numpy as np
+import torch
+
+from ...limits import MAX_SIMULATION_STEPS, check_at_most
+from ...systems import System
+from ...systems import control
+from ..policies import Policy, PolicyPopulation
+from ..run import check_finite, seeded
+from .config import APGConfig, parse_policy
+
+__all__ = ["APGProblem", "Phase", "BatchedAdam", "LQRTakeover", "ClosedLoopPolicy", "observe", "observation_size",
+           "policy_step", "compiled_policy_step", "population_returns", "member_gradients", "clip_gradients",
+           "cem_update", "start_states", "apg_iteration", "apg_episode", "apg_phase", "evaluate_members",
+           "add_observation_sums", "median_norm", "gradient_norms_by_horizon", "returns_along_direction"]
+
+
+# ============================================================================ the rollout and its gradients
+
+
+def observe(system: System, x: torch.Tensor, kind: str = "trig") -> torch.Tensor:
+    """The policy's observation of states x (..., n): see ``APGConfig.observation`` (torch or numpy)."""
+    err = system.state_error(x)
+    if kind == "state":
+        return err
+    n_q = system.n_states // 2
+    angles = system.angle_indices
+    linear = [i for i in range(n_q) if i not in angles]
+    phi = err[..., angles]
+    if isinstance(err, torch.Tensor):
+        return torch.cat([err[..., linear], torch.sin(phi), torch.cos(phi), err[..., n_q:]], dim=-1)
+    return np.concatenate([err[..., linear], np.sin(phi), np.cos(phi), err[..., n_q:]], axis=-1)
+
+
+def observation_size(system: System, kind: str = "trig") -> int:
+    """Length of :func:`observe`'s output."""
+    return system.n_states + (len(system.angle_indices) if kind == "trig" else 0)
+
+
+def policy_step(system: System, pop: PolicyPopulation, x: torch.Tensor, h: torch.Tensor, substeps: int,
+                observation: str = "trig", takeover: "LQRTakeover | None" = None, mode: torch.Tensor | None = None):
+    """One policy step of K x N states x [K, N, n]: observe, act, hold the action over ``substeps``
+    integrator steps of ``System.step_unchecked``; returns (next x, next h, reward [K, N], obs, mode).
+
+    ``takeover``: the switched controller's LQR half (:class:`LQRTakeover`): at every integrator
+    step the gate's ``mode`` [K, N] (bool, True = LQR) is updated with hysteresis and the LQR's
+    command replaces the held policy action where the mode is on (as the Drake diagram does).
+    """
+    K, N, n = x.shape
+    obs = observe(system, x, observation)
+    action, h = pop(obs, h)
+    u = action.reshape(K * N, system.n_actions)
+    xs = x.reshape(K * N, n)
+    ms = None if mode is None else mode.reshape(K * N)
+    for _ in range(substeps):
+        if takeover is not None:
+            command, ms = takeover(xs, ms, u)
+            xs = system.step_unchecked(xs, command)
+        else:
+            xs = system.step_unchecked(xs, u)
+    x = xs.reshape(K, N, n)
+    return x, h, system.reward(x), obs, (None if ms is None else ms.reshape(K, N))
+
+
+class LQRTakeover:
+    """The balance half of the switched controller inside a torch rollout (thesis Ch. 3 around Ch. 7).
+
+    ``takeover(x [B, n], mode [B] bool, u_policy [B, m]) -> (command [B, m], next mode)``: the
+    spec's cost-to-go gate p = exp(-V(x) / gate.cost_scale) (:class:`~hybridctl.systems.control.
+    CostToGoGate`) with the spec's hysteresis (gate.on / gate.off) chooses, per state, the
+    saturated LQR command -K (x - goal) (Drake's LQR, :meth:`System.lqr`) or the policy's.
+    Every law comes from :mod:`hybridctl.systems.control`, as the Drake blocks'.
+
+    Training a swing-up with it (``APGConfig.takeover = "lqr"``) optimises the switched
+    controller that runs in Drake: the swing-up need only deliver the state into the gate's
+    region, and the LQR phase, being stable, passes bounded gradients back to the state where
+    the gate switched on. The switch itself is a hard choice: no gradient flows through the
+    switching time.
+    """
+
+    def __init__(self, system: System, dtype: torch.dtype = torch.float64):
+        K, S = system.lqr()
+        gate = control.CostToGoGate(system)
+        self.system = system
+        self.K = torch.as_tensor(K, dtype=dtype)
+        self.S = torch.as_tensor(S, dtype=dtype)
+        self.scale, self.on, self.off = float(gate.scale), float(system.gate.on), float(system.gate.off)
+        self.limit = float(system.action_limit)
+
+    def __call__(self, x: torch.Tensor, mode: torch.Tensor | None, u_policy: torch.Tensor):
+        err = self.system.state_error(x)
+        probability = torch.exp(-control.cost_to_go(err, self.S) / self.scale)
+        mode = torch.zeros_like(probability, dtype=torch.bool) if mode is None else mode
+        mode = control.hysteresis(probability, mode, self.on, self.off)
+        balance = control.saturate(control.lqr_command(err, self.K), self.limit)
+        return torch.where(mode[:, None], balance, u_policy), mode
+
+
+_COMPILED_STEP = None
+
+
+def compiled_policy_step():
+    """:func:`policy_step` through ``torch.compile`` (compiled on first use per shape; one shared cache)."""
+    global _COMPILED_STEP
+    if _COMPILED_STEP is None:
+        _COMPILED_STEP = torch.compile(policy_step, dynamic=False)
+    return _COMPILED_STEP
+
+
+def population_returns(system: System, pop: PolicyPopulation, x0: torch.Tensor, horizon: int, substeps: int,
+                       observation: str = "trig", truncation: int | None = None, state=None,
+                       keep_states: bool = False, step=None, takeover: LQRTakeover | None = None):
+    """Roll K members x N starts out as one batch; the differentiable returns [K, N].
+
+    ``x0``: [N, n] (the same starts for every member) or [K, N, n]. ``state``: the policies'
+    recurrent state [K, N, h] (None: zero). Each policy step holds the action over
+    ``substeps`` integrator steps of ``System.step_unchecked`` and then collects
+    ``System.reward`` of the new state. ``truncation``: detach the states every that many
+    steps (truncated BPTT). Returns (returns [K, N], final x [K, N, n], final state, obs
+    sums (sum, sum of squares, count) for the normalisation, and the states [K, N, T+1, n]
+    when ``keep_states``, else None). ``step``: the per-step function (default
+    :func:`policy_step`; :func:`compiled_policy_step` for the fused one). ``takeover``: the
+    switched controller's LQR half (:class:`LQRTakeover`); then ``state`` and the returned state
+    are the pair (recurrent state, gate mode [K, N]), the mode starting off (the swing-up acts).
+    """
+    step = step or policy_step
+    K = pop.members
+    if x0.dim() == 2:
+        x0 = x0.unsqueeze(0).expand(K, -1, -1)
+    N = x0.shape[1]
+    x = x0.to(pop.dtype)
+    if takeover is None:
+        h, mode = (pop.initial_state(N) if state is None else state), None
+    else:
+        h, mode = (pop.initial_state(N), torch.zeros((K, N), dtype=torch.bool)) if state is None else state
+    total = torch.zeros((K, N), dtype=pop.dtype)
+    o_sum = torch.zeros(pop.obs_dim, dtype=torch.float64)
+    o_sq = torch.zeros(pop.obs_dim, dtype=torch.float64)
+    kept = [x.detach()] if keep_states else None
+    for t in range(horizon):
+        if truncation is not None and t > 0 and t % truncation == 0:
+            x, h = x.detach(), h.detach()
+        x, h, reward, obs, mode = step(system, pop, x, h, substeps, observation, takeover, mode)
+        with torch.no_grad():
+            od = obs.detach().reshape(-1, pop.obs_dim).double()
+            finite = torch.isfinite(od).all(-1)
+            od = od[finite]
+            o_sum += od.sum(0)
+            o_sq += (od * od).sum(0)
+        total = total + reward
+        if keep_states:
+            kept.append(x.detach())
+    count = K * N * horizon
+    states = torch.stack(kept, dim=2) if keep_states else None
+    return total, x, (h if takeover is None else (h, mode)), (o_sum, o_sq, count), states
+
+
+def member_gradients(pop: PolicyPopulation, loss_per_member: torch.Tensor) -> torch.Tensor:
+    """One backward of sum_k loss_k; the gradients as a [K, P] matrix (member k's in row k).
+
+    A member whose loss is not finite contributes nothing to the backward (its row comes
+    back NaN, for the caller to skip) and cannot spoil the others.
+    """
+    finite = torch.isfinite(loss_per_member.detach())
+    params = pop.stacked()
+    total = torch.where(finite, loss_per_member, torch.zeros_like(loss_per_member)).sum()
+    grads = torch.autograd.grad(total, params, allow_unused=True)
+    flat = torch.cat([(torch.zeros_like(p) if g is None else g).reshape(pop.members, -1)
+                      for p, g in zip(params, grads)], dim=1)
+    flat[~finite] = float("nan")
+    return flat
+
+
+class BatchedAdam:
+    """Adam on K stacked parameter vectors [K, P], each member with its own moments and step
+    count; a masked-out member is not touched (moments, counts and parameters unchanged)."""
+
+    def __init__(self, members: int, n_params: int, betas=(0.9, 0.999), eps: float = 1e-8,
+                 dtype: torch.dtype = torch.float64):
+        self.betas, self.eps = (float(betas[0]), float(betas[1])), float(eps)
+        self.m = torch.zeros((members, n_params), dtype=dtype)
+        self.v = torch.zeros((members, n_params), dtype=dtype)
+        self.t = torch.zeros(members, dtype=torch.int64)
+
+    def step(self, theta: torch.Tensor, grad: torch.Tensor, mask: torch.Tensor, lr: float) -> torch.Tensor:
+        """The new parameters [K, P] after a gradient DESCENT step on ``grad`` for members in ``mask``."""
+        b1, b2 = self.betas
+        g = torch.where(mask[:, None], grad, torch.zeros_like(grad))
+        m = torch.where(mask[:, None], b1 * self.m + (1 - b1) * g, self.m)
+        v = torch.where(mask[:, None], b2 * self.v + (1 - b2) * g * g, self.v)
+        t = self.t + mask.long()
+        tt = t.clamp_min(1).to(theta.dtype)[:, None]
+        update = lr * (m / (1 - b1 ** tt)) / ((v / (1 - b2 ** tt)).sqrt() + self.eps)
+        self.m, self.v, self.t = m, v, t
+        return torch.where(mask[:, None], theta - update, theta)
+
+
+def clip_gradients(grad: torch.Tensor, clip: float | None, mode: str) -> torch.Tensor:
+    """Per member: scale to global norm <= ``clip`` ("norm") or clamp each entry to [-clip, clip]."""
+    if clip is None:
+        return grad
+    if mode == "value":
+        return grad.clamp(-clip, clip)
+    norm = grad.norm(dim=1, keepdim=True)
+    return grad * torch.clamp(clip / (norm + 1e-12), max=1.0)
+
+
+def cem_update(mean: torch.Tensor, candidates: torch.Tensor, scores: torch.Tensor, elites: int):
+    """Eqs. 7.11 and 7.13: the mean of the ``elites`` best candidates [K, P] (by ``scores`` [K],
+    highest first) and the per-parameter std sqrt(mean_e (old mean - theta_e)^2) about the old mean.
+
+    Returns (new mean [P], new std [P], elite indices)."""
+    order = torch.argsort(torch.nan_to_num(scores, nan=-math.inf), descending=True, stable=True)[:elites]
+    chosen = candidates[order]
+    new_mean = chosen.mean(0)
+    new_std = ((mean[None] - chosen) ** 2).mean(0).sqrt()
+    return new_mean, new_std, order
+
+
+class ClosedLoopPolicy(torch.nn.Module):
+    """A trained policy on raw states: ``forward(x [B, n], h [B, hidden]) -> (action [B, m], h)``,
+    the observation (:func:`observe`) included; ``initial_state(batch)`` the zero state. What the
+    Drake block ``hybridctl.drake.RecurrentTorchPolicy`` runs."""
+
+    def __init__(self, system: System, policy: Policy, observation: str = "trig"):
+        super().__init__()
+        self.system, self.policy, self.observation = system, policy, observation
+
+    def initial_state(self, batch: int = 1) -> torch.Tensor:
+        """Zero recurrent state [batch, hidden]."""
+        return self.policy.initial_state(batch)
+
+    def forward(self, x: torch.Tensor, state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Action and next recurrent state for raw states x."""
+        return self.policy(observe(self.system, x.to(self.policy.population.dtype), self.observation), state)
+
+    def numpy_forward(self, x: np.ndarray, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`forward` in numpy (:meth:`Policy.numpy_forward`), for the Drake block on one state."""
+        dtype = np.float64 if self.policy.population.dtype == torch.float64 else np.float32
+        obs = observe(self.system, np.asarray(x, dtype=dtype), self.observation)
+        return self.policy.numpy_forward(obs, state)
+
+
+# ============================================================================ one APG iteration, episode, phase
+
+
+@dataclass
+class APGProblem:
+    """What an APG iteration needs, built once per (system, config, member count): the system (with
+    the config's Ch. 7 reward), the population whose parameters are the iteration's scratch
+    buffer (``from_flat``) and whose frozen normalisation the rollouts use, the integrator
+    sub-steps per policy step, the per-step function (eager or compiled) and the LQR takeover.
+    A learner holds one; a worker of the split APG phase builds its own."""
+
+    system: System
+    config: APGConfig
+    pop: PolicyPopulation
+    dtype: torch.dtype
+    period: float
+    substeps: int
+    step: Callable
+    takeover: "LQRTakeover | None"
+
+    @classmethod
+    def build(cls, system: System, config: APGConfig, members: int) -> "APGProblem":
+        """The problem of ``members`` policies (initialised from ``config.seed``) on ``system``."""
+        dtype = torch.float64 if config.dtype == "float64" else torch.float32
+        period = config.control_period if config.control_period is not None else system.swingup_period
+        ratio = period / system.dt
+        check_at_most("APGConfig.horizon x control_period / integrator.dt", config.horizon * ratio,
+                      MAX_SIMULATION_STEPS, why="integrator steps of one episode", force_flag=None)
+        if abs(ratio - round(ratio)) > 1e-9 or round(ratio) < 1:
+            raise ValueError(f"APGConfig.control_period ({period}) must be a whole multiple of {system.name}'s "
+                             f"integrator.dt ({system.dt})")
+        kind, widths = parse_policy(config.policy)
+        with seeded(config.seed):
+            pop = PolicyPopulation.build(kind, observation_size(system, config.observation), system.n_actions,
+                                         system.action_limit, members=members, hidden=widths,
+                                         init_std=config.init_std, dtype=dtype)
+        return cls(system, config, pop, dtype, float(period), int(round(ratio)),
+                   compiled_policy_step() if config.compile else policy_step,
+                   LQRTakeover(system, dtype) if config.takeover == "lqr" else None)
+
+    def starts(self, n: int, seed_words) -> torch.Tensor:
+        """:func:`start_states` of this problem."""
+        return start_states(self.system, self.config, n, seed_words, self.dtype)
+
+
+def start_states(system: System, config: APGConfig, n: int, seed_words, dtype: torch.dtype) -> torch.Tensor:
+    """n start states [n, n_states] from the numpy seed ``seed_words``: hanging down
+    +- U(-start_noise, start_noise), or the spec's spread when ``config.start_noise`` is None."""
+    rng = np.random.default_rng(np.random.SeedSequence(list(seed_words)))
+    if config.start_noise is None:
+        x0 = system.sample_initial_states(n, rng)
+    else:
+        x0 = system.initial_state.nominal + rng.uniform(-config.start_noise, config.start_noise,
+                                                        size=(n, system.n_states))
+    return torch.as_tensor(x0, dtype=dtype)
+
+
+def add_observation_sums(total, sums):
+    """The running observation sums (sum, sum of squares, count) with one rollout's ``sums`` added
+    (``total`` None: the first); added in call order, so a run's normalisation is reproducible."""
+    return [a + b for a, b in zip(total, sums)] if total else list(sums)
+
+
+def median_norm(norms: torch.Tensor) -> float:
+    """The median of the finite gradient norms (NaN when none is finite)."""
+    finite = torch.isfinite(norms)
+    return float(norms[finite].median()) if finite.any() else float("nan")
+
+
+class Iteration(NamedTuple):
+    """One APG iteration's result (:func:`apg_iteration`)."""
+
+    theta: torch.Tensor        # the new parameters [K, P]
+    scores: torch.Tensor       # per-member mean returns [K] (float64; -inf where diverged)
+    norms: torch.Tensor        # gradient norms [K]
+    ok: torch.Tensor           # the applied mask [K]
+    x: torch.Tensor            # final states [K, N, n]
+    state: object              # final recurrent state (with the gate mode under the takeover)
+    obs_sums: list             # the rollout's observation sums
+    nan_grads: int             # members whose gradient or return was not finite
+    large_grads: int           # members whose gradient norm exceeded grad_bound
+
+
+def apg_iteration(problem: APGProblem, theta: torch.Tensor, x0: torch.Tensor, lr: float, adam: "BatchedAdam",
+                  state=None, horizon: int | None = None, where: str = "") -> Iteration:
+    """One batched APG update of the members ``theta`` [K, P] from starts x0 ([N, n] or [K, N, n]),
+    ``horizon`` policy steps (None: the config's) from the recurrent ``state`` (None: zero).
+
+    A member's gradient that is NaN/inf or whose norm exceeds ``grad_bound`` is counted, skipped
+    and never applied (its Adam moments and count stay); NaN parameters raise FloatingPointError
+    (``where`` says when) before anything is returned. ``adam`` is stepped in place.
+    """
+    cfg = problem.config
+    pop = problem.pop
+    pop.from_flat(theta.to(problem.dtype))
+    returns, x, h, sums, _ = population_returns(problem.system, pop, x0, horizon or cfg.horizon, problem.substeps,
+                                                cfg.observation, cfg.truncation, state, step=problem.step,
+                                                takeover=problem.takeover)
+    member_return = returns.mean(1)
+    grad = member_gradients(pop, -member_return).double()
+    norms = grad.norm(dim=1)
+    finite = torch.isfinite(norms) & torch.isfinite(member_return.detach())
+    large = finite & (norms > cfg.grad_bound)
+    ok = finite & ~large
+    grad = torch.where(ok[:, None], clip_gradients(torch.nan_to_num(grad), cfg.clip, cfg.clip_mode),
+                       torch.zeros_like(grad))
+    new = adam.step(theta, grad, ok, lr)
+    check_finite("APG parameters", new, where)
+    scores = torch.where(torch.isfinite(member_return.detach()), member_return.detach().double(),
+                         torch.full_like(member_return.detach().double(), -math.inf))
+    h = (h[0].detach(), h[1]) if isinstance(h, tuple) else h.detach()
+    return Iteration(new, scores, norms, ok, x.detach(), h, list(sums), int((~finite).sum()), int(large.sum()))
+
+
+def apg_episode(problem: APGProblem, theta: torch.Tensor, x0: torch.Tensor, lr: float, adam: "BatchedAdam",
+                unroll: int, obs_sums=None, where: str = ""):
+    """One episode of ``horizon`` policy steps as APG updates of ``unroll`` steps each, the state
+    carried over (``unroll`` = the horizon: one update through the whole episode, APG; shorter:
+    short-horizon APG). Returns (theta, episode returns [K], mean gradient norms [K], the
+    observation sums with this episode's added to ``obs_sums``, NaN gradients, large gradients)."""
+    horizon = problem.config.horizon
+    done, state, x, nan, large = 0, None, x0, 0, 0
+    total, norms = torch.zeros(theta.shape[0], dtype=torch.float64), []
+    while done < horizon:
+        steps = min(unroll, horizon - done)
+        it = apg_iteration(problem, theta, x, lr, adam, state=state, horizon=steps, where=where)
+        theta, x, state = it.theta, it.x, it.state
+        total = total + it.scores
+        norms.append(it.norms)
+        obs_sums = add_observation_sums(obs_sums, it.obs_sums)
+        nan, large = nan + it.nan_grads, large + it.large_grads
+        done += steps
+    return theta, total, torch.stack(norms).nanmean(0), obs_sums, nan, large
+
+
+class Phase(NamedTuple):
+    """An APG phase's result (:func:`apg_phase`, or joined from chunks of members)."""
+
+    theta: torch.Tensor        # the members' parameters after the phase [K, P]
+    returns: torch.Tensor      # training returns [iterations, K]
+    norms: torch.Tensor        # gradient norms [iterations, K]
+    adam: "BatchedAdam"        # the members' Adam state after the phase
+    obs_sums: list             # the phase's observation sums
+    iterations: int            # APG iterations done
+    env_steps: int             # policy steps taken (K x N x T per iteration)
+    nan_grads: int
+    large_grads: int
+
+
+def apg_phase(problem: APGProblem, theta: torch.Tensor, adam: "BatchedAdam", lr: float, epoch: int,
+              iterations: int, unroll: int) -> Phase:
+    """``apg_iterations`` APG episodes (:func:`apg_episode`) of the members ``theta`` [K, P] at epoch
+    ``epoch``; iteration i starts from ``config.batch`` states seeded (seed, epoch, i, 1), so a
+    chunk of members run apart gives the rows of the whole population. ``adam`` is not changed
+    (the phase steps a copy, returned in the :class:`Phase`); ``iterations``: the count before
+    the phase (for the message of a NaN)."""
+    cfg = problem.config
+    adam = copy.copy(adam)
+    returns, norms, obs_sums, nan, large = [], [], None, 0, 0
+    for it in range(cfg.apg_iterations):
+        x0 = problem.starts(cfg.batch, [cfg.seed, epoch, it, 1])
+        theta, ret, nrm, obs_sums, n, l = apg_episode(problem, theta, x0, lr, adam, unroll, obs_sums,
+                                                      f"at epoch {epoch}, iteration {iterations + it}")
+        returns.append(ret)
+        norms.append(nrm)
+        nan, large = nan + n, large + l
+    steps = cfg.apg_iterations * theta.shape[0] * cfg.batch * cfg.horizon
+    return Phase(theta, torch.stack(returns), torch.stack(norms), adam, obs_sums, cfg.apg_iterations, steps, nan,
+                 large)
+
+
+def evaluate_members(problem: APGProblem, theta: torch.Tensor, x0: torch.Tensor):
+    """The members ``theta`` [K, P] rolled out once (no gradient) from x0: (scores [K] float64, the
+    mean return over the starts, -inf where diverged; the observation sums)."""
+    cfg = problem.config
+    problem.pop.from_flat(theta.to(problem.dtype))
+    with torch.no_grad():
+        returns, _, _, sums, _ = population_returns(problem.system, problem.pop, x0, cfg.horizon, problem.substeps,
+                                                    cfg.observation, step=problem.step, takeover=problem.takeover)
+    r = returns.mean(1).double()
+    return torch.where(torch.isfinite(r), r, torch.full_like(r, -math.inf)), list(sums)
+
+
+# ============================================================================ diagnostics (thesis Fig. 7.1)
+
+
+def gradient_norms_by_horizon(system: System, pop: PolicyPopulation, x0: torch.Tensor, horizons, substeps: int,
+                              observation: str = "trig") -> list[dict]:
+    """The APG gradient's norm (per member, [K]) and the mean return for each horizon in ``horizons``:
+    why full BPTT through chaotic dynamics explodes (Metz et al. 2021; thesis Sec. 7.1.4)."""
+    out = []
+    for horizon in horizons:
+        returns, *_ = population_returns(system, pop, x0, int(horizon), substeps, observation)
+        grad = member_gradients(pop, -returns.mean(1))
+        out.append({"horizon": int(horizon), "grad_norm": grad.norm(dim=1).tolist(),
+                    "mean_return": returns.detach().mean(1).tolist()})
+    return out
+
+
+def returns_along_direction(system: System, pop: PolicyPopulation, x0: torch.Tensor, horizon: int, substeps: int,
+                            direction: torch.Tensor, scales, observation: str = "trig") -> list[float]:
+    """R(theta + s d) of member 0 for each s in ``scales`` (thesis Fig. 7.1: the return landscape along
+    a random direction d), evaluated as one batch (one member per scale); theta is left unchanged."""
+    scales = [float(v) for v in scales]
+    theta = pop.to_flat()[0]
+    probe = pop.resized(len(scales), torch.stack([theta + v * direction.to(theta.dtype) for v in scales]))
+    with torch.no_grad():
+        returns, *_ = population_returns(system, probe, x0, horizon, substeps, observation)
+    return returns.mean(1).double().tolist()
