@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from .. import io
-from ..learn.apg import APG, APGConfig
+from ..learn.apg import APG, METHOD_CLASSES, APGConfig
 from ..learn.run import EVAL_SEED
 from ..systems import System, load
 from ..systems.success import stabilisation
@@ -108,10 +108,7 @@ def apg_config(method: str, system_name: str, seed: int, settings: StudySettings
                   epochs=settings.epochs, lr_start=settings.lr_start, lr_end=settings.lr_end,
                   compile=settings.compile, seed=seed, eval_episodes=settings.eval_episodes,
                   checkpoint_every=max(1, settings.epochs // 4))
-    if method == "apg":
-        values.update(population=1, elites=1)
-    if method == "shapg":
-        values.update(clip=1.0, clip_mode="norm", beta1=0.7, beta2=0.95)
+    values.update(METHOD_CLASSES[method].preset_settings["thesis"])   # apg: one member; shapg: clip, betas
     if method == "cem":      # as many population evaluations as the others' APG iterations
         values.update(epochs=settings.iterations, apg_iterations=1)
     values.update(settings.extra)
@@ -161,7 +158,7 @@ def _train_apg(method: str, system_name: str, seed: int, settings: StudySettings
                               x0, config.horizon, agent.period)
     facts = {"interactions": agent.env_steps, "iterations": agent.iterations, "epochs": agent.epoch,
              "train_wall_time_s": agent.wall_time, "best_training_return": agent.best_score,
-             "which": "mean" if method in ("cem", "ce-apg") else "best", "nan_grads": agent.nan_grads,
+             "which": agent.default_policy, "nan_grads": agent.nan_grads,
              "large_grads": agent.large_grads, "config": dataclasses.asdict(config)}
     return metrics, facts
 
