@@ -18,7 +18,11 @@ Measured, each the median of ``--repeats``:
 Every rate also has ``ratio_vs_sb3``. Compiling happens once per process and is reported
 (``compile_s``), not counted in the rates.
 
-    .venv/bin/python benchmarks/training.py [--quick] [--no-compile] [--repeats 3] [--out FILE]
+* ``sac_update_variants`` (``--update-variants``): the update differentiated other ways than the
+  compiled per-loss graphs (``torch.compile`` of the losses' forward only; the whole gradient
+  step with compiled autograd), each with ``ratio_vs_compiled`` and its projected 2e6-step time.
+
+    .venv/bin/python benchmarks/training.py [--quick] [--no-compile] [--update-variants] [--repeats 3] [--out FILE]
 """
 
 from __future__ import annotations
@@ -115,11 +119,46 @@ def bench_ours(env_steps: int, grad_steps: int, repeats: int, modes: list[str]) 
     return out
 
 
+def bench_update_variants(grad_steps: int, repeats: int) -> dict:
+    """Gradient steps/s of SAC's update differentiated other ways than :class:`CompiledGrads`, the
+    alternatives to it: ``torch.compile`` of the two losses' forward with autograd's backward
+    (one eager gradient step wrapped), and the whole gradient step compiled with compiled
+    autograd. The update written as one compiled step would replace the per-loss graphs only if
+    it were about as fast (within 10 %)."""
+    import torch._dynamo
+    from hybridctl.learn import SAC
+    from hybridctl.learn.sac import EagerGrads
+    from hybridctl.systems.compiled import LazyCompiled
+
+    out = {}
+    for name in ("compiled_forward", "compiled_autograd_step"):
+        agent = _filled_agent(SAC, "off", obs_transform="angle_sincos")
+        agent._grads = EagerGrads(agent)  # noqa: SLF001
+        if name == "compiled_forward":
+            agent.critic_loss = LazyCompiled(agent.critic_loss, True, True, "critic loss")
+            agent.actor_loss = LazyCompiled(agent.actor_loss, True, True, "actor loss")
+        else:
+            torch._dynamo.config.compiled_autograd = True
+            agent._check_finite = lambda *args: None  # noqa: SLF001 - a graph break per call otherwise
+            agent.gradient_step = torch.compile(agent.gradient_step)
+        updates = max(1, grad_steps // agent.config.gradient_steps_per_update)
+        start = time.perf_counter()
+        agent.update()
+        entry = {"compile_s_gradients": time.perf_counter() - start}
+        entry["gradient_steps_per_s"] = _median_rate(lambda: [agent.update() for _ in range(updates)],
+                                                     updates * agent.config.gradient_steps_per_update, repeats)
+        torch._dynamo.config.compiled_autograd = False
+        out[name] = entry
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="short measurements (structure check)")
     parser.add_argument("--no-compile", action="store_true", help="eager only (compiling takes ~1 min)")
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--update-variants", action="store_true",
+                        help="also time the alternatives to the compiled per-loss gradients (~2 min)")
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()
     torch.set_num_threads(1)
@@ -149,10 +188,15 @@ def main() -> None:
         projected[f"hybridctl_{mode}_s"] = cfg.total_steps / env_rate + total_grad / grad_rate
     if peer_env and peer_grad:
         projected["sb3_s"] = cfg.total_steps / peer_env + total_grad / peer_grad
+    variants = bench_update_variants(grad_steps, repeats) if args.update_variants and "on" in modes else {}
+    for name, entry in variants.items():   # the same env rate (compiled), another gradient rate
+        rate = entry["gradient_steps_per_s"]["per_s"]
+        entry["gradient_steps_per_s"]["ratio_vs_compiled"] = rate / ours["sac"]["on"]["gradient_steps_per_s"]["per_s"]
+        projected[f"{name}_s"] = cfg.total_steps / ours["ssac_env"]["on"]["env_steps_per_s"]["per_s"] + total_grad / rate
     emit({"benchmark": "training", "machine": machine_info(), "settings": {
         "env_steps": env_steps, "gradient_steps": grad_steps, "repeats": repeats, "minibatch": MINIBATCH,
         "hidden": HIDDEN, "compile_modes": modes},
-        "sb3_sac": sb3, **ours, "projected_ssac_2e6": projected}, args.out)
+        "sb3_sac": sb3, **ours, "sac_update_variants": variants, "projected_ssac_2e6": projected}, args.out)
 
 
 if __name__ == "__main__":
