@@ -422,3 +422,64 @@ def test_takeover_rollout_balances_from_the_gate_region_and_counts_in_the_return
         free, *_ = population_returns(system, agent.pop, x0, 40, agent.substeps)
     assert switched.max() > -1.0                        # held near upright: the reward is ~0 every step
     assert free.min() < 10 * switched.min()            # the random policy alone drops the pole
+
+
+# ----------------------------------------------------------------------------- one class per method
+
+def test_one_class_per_method_chosen_once_by_the_registry(tmp_path):
+    import copy
+
+    from hybridctl.learn.apg import CEAPG, CEM, METHOD_CLASSES, METHODS, PAPG, ShortHorizonAPG
+
+    assert tuple(METHOD_CLASSES) == METHODS
+    assert {m: c.__name__ for m, c in METHOD_CLASSES.items()} == {
+        "apg": "APG", "shapg": "ShortHorizonAPG", "papg": "PAPG", "cem": "CEM", "ce-apg": "CEAPG"}
+    for method, cls in METHOD_CLASSES.items():
+        agent = APG("cartpole", small(method, short_horizon=5))
+        assert type(agent) is cls and isinstance(agent, APG) and agent.algorithm_name == "APG"
+        assert agent.K == (1 if method == "apg" else 3)
+        assert agent.policy()  # the method's default member
+        assert agent.evaluate(episodes=1)["which"] == ("mean" if method in ("cem", "ce-apg") else "best")
+        assert type(copy.deepcopy(agent)) is cls                # copies rebuild the method's class
+    assert type(APG("cartpole")) is CEAPG                     # APGConfig's default method, as before
+    assert type(PAPG("cartpole")) is PAPG and PAPG("cartpole").config.method == "papg"
+    assert type(APG("cartpole", small("apg"), method="cem")) is CEM
+    assert type(ShortHorizonAPG("cartpole", small("shapg", short_horizon=5))) is ShortHorizonAPG
+    with pytest.raises(ValueError, match="PAPG runs method 'papg', not 'ce-apg'"):
+        PAPG("cartpole", small("ce-apg"))
+    trained = APG("cartpole", small("papg", epochs=1)).learn(out=tmp_path, progress=False)
+    loaded = APG.load(tmp_path / "final")
+    assert type(loaded) is PAPG and torch.equal(loaded.best, trained.best)
+    assert type(PAPG.load(tmp_path / "final")) is PAPG
+
+
+def test_no_branch_on_a_method_name_in_the_algorithm():
+    """What differs between the methods lives in their classes (methods.py) and the registry."""
+    import re
+    from pathlib import Path
+
+    import hybridctl.learn.apg as package
+
+    for path in Path(package.__file__).parent.glob("*.py"):
+        source = path.read_text()
+        assert not re.search(r"method\s*(==|!=|in\s*\()", source.replace("METHOD_CLASSES[m].method == m", "")), path
+
+
+def test_a_chunk_of_members_is_a_function_of_arrays():
+    """split_apg_phase over chunks gives the whole population's phase; neither touches its inputs."""
+    from hybridctl.learn.apg import apg_phase, split_apg_phase
+    from hybridctl.parallel import SerialBackend
+
+    agent = APG("cartpole", small("papg", population=3, apg_iterations=2))
+    theta, adam = agent.members.clone(), agent.adam
+    whole = apg_phase(agent.problem, theta, adam, 1e-2, 0, 0, agent.config.horizon)
+
+    class TwoChunks(SerialBackend):
+        workers = 2
+    split = split_apg_phase(TwoChunks(), agent.problem, "cartpole", theta, adam, 1e-2, 0, 0, agent.config.horizon)
+    assert torch.equal(split.theta, whole.theta) and torch.equal(split.returns, whole.returns)
+    assert torch.equal(split.adam.m, whole.adam.m) and torch.equal(split.adam.t, whole.adam.t)
+    assert (split.iterations, split.env_steps, split.nan_grads) == (whole.iterations, whole.env_steps, 0)
+    assert torch.allclose(split.obs_sums[0], whole.obs_sums[0], rtol=1e-12) and split.obs_sums[2] == whole.obs_sums[2]
+    assert int(adam.t.sum()) == 0 and torch.equal(theta, agent.members)     # the inputs are untouched
+    assert agent.iterations == agent.env_steps == 0                          # and so is the learner
