@@ -80,7 +80,7 @@ def time_paths(env_id: str, zip_path: Path, workers: int, repeats: int, directio
     out = {"env": env_id, "directions": directions, "rollouts_per_update": 2 * directions}
     tuner = FineTune(env_id, f"sb3:{zip_path}", updates=200, n_directions=directions, backend="serial")
     out["n_params"] = tuner.n_params
-    directions_, seeds = tuner._update_draws(0)
+    directions_, seeds = tuner.draws(0)
     alpha, sigma = tuner.config.schedule(0)
     thetas = np.stack([tuner.theta + s * sigma * d for d in directions_ for s in (1.0, -1.0)])
     pair_seeds = [s for s in seeds for _ in (0, 1)]

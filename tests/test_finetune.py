@@ -48,7 +48,7 @@ def episode_return(module, seed):
 def test_one_update_is_algorithm_8_with_the_authors_step():
     t = tuner(updates=1)
     theta0 = t.theta.copy()
-    directions, seeds = t._update_draws(0)
+    directions, seeds = t.draws(0)
     alpha, sigma = t.config.schedule(0)
     returns, lengths = [], 0
     for d, s in zip(directions, seeds):

@@ -20,18 +20,22 @@ observations (:class:`~hybridctl.analysis.PostProcessor`).
 >>> tuner.save_sb3("runs/ft-pendulum-sac/model.zip")     # SB3's own PPO/SAC/... .load reads it
 >>> FineTune.load("runs/ft-pendulum-sac/final")          # a hybridctl checkpoint
 
-Rollouts run in fixed chunks of ``chunk_size`` perturbed policies: one batched forward of the
-chunk's policies (``torch.func.vmap`` over their weights) per env step, over the chunk's envs
-(gymnasium envs; a hybridctl system's batched torch env for sac/ssac sources). Chunks are
-spread over a :mod:`hybridctl.parallel` backend; because the chunks do not depend on the
-backend or the number of workers, a seed gives the same run on every backend.
+The update is antithetic random search (:mod:`hybridctl.learn.random_search`, shared with ARS:
+all directions kept, the schedules per update); the episodes come from
+:mod:`hybridctl.learn.rollouts` (shared with ARS and the failure rates): fixed chunks of
+``chunk_size`` perturbed policies, one batched forward of the chunk's policies
+(``torch.func.vmap`` over their weights) per env step, over the chunk's envs (gymnasium envs,
+the MuJoCo batch stepper, a hybridctl system's batched torch env for sac/ssac sources). Chunks
+are spread over a :mod:`hybridctl.parallel` backend; because the chunks do not depend on the
+backend or the number of workers, a seed gives the same run on every backend. This file holds
+what is fine-tuning's own: the settings and schedules, the sources (:func:`load_policy`), the
+parameter selection, the frozen normaliser, the SB3 export.
 """
 
 from __future__ import annotations
 
 import copy
 import dataclasses
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -39,25 +43,22 @@ from typing import Any, Callable
 import gymnasium as gym
 import numpy as np
 import torch
-from torch.func import functional_call, vmap
 
 from ..analysis.postprocess import FORMS as POSTPROCESS_FORMS
 from ..analysis.postprocess import KINDS as POSTPROCESS_KINDS
 from ..analysis.postprocess import PostProcessor
-from ..envs.mujoco_batch import MujocoBatchEnv
 from ..envs.mujoco_batch import supports as batch_supports
-from ..parallel import BACKENDS, cached_env, make_backend
+from ..parallel import BACKENDS, make_backend
 from ..systems import known_systems
 from ..systems import load as load_system
 from . import checkpoint as ckpt
-from .ars import make_env as _make_env
-from .ars import recorded_env_id, recorded_env_kwargs
-from .config_check import check_types
-from .robustness import wilson_interval
-from .base import Learner
 from .checkpoint import PROGRESS_FILE, Saved
-from .config_check import check_fields
-from .run import EvalResult, check_finite, set_torch_threads
+from .config_check import check_fields, check_types
+from .random_search import RandomSearchLearner
+from .robustness import wilson_interval  # noqa: F401 (re-exported: hybridctl.learn.finetune.wilson_interval)
+from .rollouts import (ChunkTask, Shipped, batched_actions, evaluation_seeds, make_env, normalise,  # noqa: F401
+                       recorded_env_id, recorded_env_kwargs, rollouts, run_chunk, unflatten)
+from .run import EvalResult, set_torch_threads
 
 SELECTIONS = ("action", "all", "last")
 DIMENSION_SETTINGS = ("author", "ch4")
@@ -229,7 +230,7 @@ def load_policy(source: str, env: str, trust: bool = False, normalizer: str | No
     if kind == "sb3":
         from .sb3 import load_sb3  # reading a zip needs only torch; SB3 itself is optional
         agent = load_sb3(path, normalizer=normalizer, trust=trust)
-        probe = _make_env(env)
+        probe = make_env(env)
         try:
             agent.check_env(probe)
         finally:
@@ -264,7 +265,7 @@ def load_policy(source: str, env: str, trust: bool = False, normalizer: str | No
 
 
 def _check_gym_spaces(tunable: TunablePolicy, env: str, obs_dim: int, act_dim: int, path) -> None:
-    probe = _make_env(env)
+    probe = make_env(env)
     try:
         got = (int(np.prod(probe.observation_space.shape)), int(np.prod(probe.action_space.shape)))
     finally:
@@ -274,213 +275,9 @@ def _check_gym_spaces(tunable: TunablePolicy, env: str, obs_dim: int, act_dim: i
                          f"observations and {got[1]} actions")
 
 
-# ============================================================================ batched rollouts (run in workers)
-
-class Shipped:
-    """A torch module sent to workers as plain pickled bytes, decoded once per worker.
-
-    A module inside a task would otherwise travel by torch's shared-memory file descriptors,
-    whose hand-over hangs after a process pool was rebuilt (a worker killed); bytes always
-    arrive. The bytes are made by this process from its own module, never read from a file.
-    """
-
-    _decoded: dict[str, torch.nn.Module] = {}
-
-    def __init__(self, module: torch.nn.Module | None):
-        import hashlib
-        import pickle
-
-        self.blob = pickle.dumps(module) if module is not None else None
-        self.key = hashlib.sha1(self.blob).hexdigest() if self.blob is not None else ""
-
-    def get(self) -> torch.nn.Module | None:
-        """The module (built from the bytes once per process)."""
-        import pickle
-
-        if self.blob is None:
-            return None
-        if self.key not in Shipped._decoded:
-            Shipped._decoded.clear()   # one module at a time per worker
-            Shipped._decoded[self.key] = pickle.loads(self.blob)
-        return Shipped._decoded[self.key]
-
-
-@dataclass
-class ChunkTask:
-    """Episodes of ``len(seeds)`` policies (rows of ``thetas``), one per env seed (plain, picklable)."""
-
-    env: Any
-    env_kwargs: dict | None
-    shipped: Shipped
-    names: list[str]
-    thetas: np.ndarray            # (B, P) float64
-    seeds: list[int]
-    normalizer: Any
-    max_steps: int | None
-    postprocessor: PostProcessor
-    system: str | None = None
-    gate: Shipped | None = None
-    keep_states: bool = False
-
-    @property
-    def module(self) -> torch.nn.Module:
-        """The policy module (non-perturbed parameters at their values; perturbed ones come from thetas)."""
-        return self.shipped.get()
-
-
-def _unflatten(module: torch.nn.Module, names: list[str], thetas: torch.Tensor) -> dict[str, torch.Tensor]:
-    """{name: (B, *shape)} from flat rows (B, P), in each parameter's dtype."""
-    params = dict(module.named_parameters())
-    out, start = {}, 0
-    for name in names:
-        p = params[name]
-        out[name] = thetas[:, start:start + p.numel()].reshape(thetas.shape[0], *p.shape).to(p.dtype)
-        start += p.numel()
-    return out
-
-
-def batched_actions(module: torch.nn.Module, params: dict[str, torch.Tensor], obs: torch.Tensor) -> torch.Tensor:
-    """Actions (B, act) of B policies (module with ``params`` row b) for observations (B, obs): one vmapped forward."""
-    with torch.no_grad():
-        return vmap(lambda p, o: functional_call(module, p, (o,)))(params, obs)
-
-
-def run_chunk(task: ChunkTask) -> list[dict]:
-    """Roll out one episode per row of ``task.thetas``; one result dict per row, in row order."""
-    torch.set_num_threads(1)
-    if task.system is not None:
-        return _run_system_chunk(task)
-    if batch_supports(task.env, task.env_kwargs):
-        return _run_mujoco_chunk(task)
-    n = len(task.seeds)
-    envs = cached_env(("finetune", repr(task.env), repr(task.env_kwargs), task.max_steps, n),
-                      lambda: [_make_env(task.env, task.env_kwargs, task.max_steps) for _ in range(n)])
-    dtype = next(task.module.parameters()).dtype
-    params = _unflatten(task.module, task.names, torch.as_tensor(task.thetas, dtype=torch.float64))
-    space = envs[0].action_space
-    obs = np.stack([np.asarray(e.reset(seed=int(s))[0], dtype=np.float64).reshape(-1) for e, s in zip(envs, task.seeds)])
-    z = _normalise(task.normalizer, obs)
-    history = [z.copy()]          # normalised observations of every member at each step (one copy per step)
-    returns, rewards, steps = np.zeros(n), np.zeros(n), np.zeros(n, dtype=int)
-    active, terminated, finite, success = np.ones(n, bool), np.zeros(n, bool), np.ones(n, bool), [None] * n
-    limit = task.max_steps or math.inf
-    while active.any():
-        actions = batched_actions(task.module, params, torch.as_tensor(z, dtype=dtype)).numpy()
-        actions = actions.astype(space.dtype, copy=False).reshape((n, *space.shape))
-        stepped = np.flatnonzero(active)
-        for i in stepped:
-            o, r, term, trunc, info = envs[i].step(actions[i])
-            obs[i], rewards[i] = o, r
-            if term or trunc:
-                active[i], terminated[i] = False, bool(term)
-                if "success" in info:
-                    success[i] = bool(info["success"])
-        returns[stepped] += rewards[stepped]
-        z = _after_step(task, obs, returns, steps, stepped, finite, active, limit, history)
-    return _chunk_results(task, history, returns, steps, terminated, finite, success)
-
-
-def _after_step(task: ChunkTask, obs, returns, steps, stepped, finite, active, limit, history) -> np.ndarray:
-    """Book-keeping after the ``stepped`` episodes took a step (their rewards already in ``returns``):
-    count the step, stop non-finite and over-long episodes, record and return the normalised observations."""
-    steps[stepped] += 1
-    bad = stepped[~(np.isfinite(obs[stepped]).all(axis=1) & np.isfinite(returns[stepped]))]
-    finite[bad], active[bad] = False, False
-    active &= steps < limit
-    z = _normalise(task.normalizer, obs)
-    history.append(z.copy())
-    return z
-
-
-def _chunk_results(task: ChunkTask, history, returns, steps, terminated, finite, success) -> list[dict]:
-    """One result per episode of a chunk; member i's episode is states[: steps[i] + 1, i]."""
-    states = np.stack(history)    # (T + 1, n, obs)
-    return [_episode_result(task, states[: steps[i] + 1, i], returns[i], int(steps[i]), bool(terminated[i]),
-                            bool(finite[i]), None if success is None else success[i]) for i in range(len(steps))]
-
-
-def _run_mujoco_chunk(task: ChunkTask) -> list[dict]:
-    """:func:`run_chunk` on a Hopper/Walker2d/HalfCheetah v5 env: the chunk's episodes stepped together
-    on :class:`~hybridctl.envs.mujoco_batch.MujocoBatchEnv` (one thread; the backend's workers run the
-    chunks side by side). Bit-identical to the gymnasium loop of :func:`run_chunk` (tested)."""
-    n = len(task.seeds)
-    env = cached_env(("finetune-batch", task.env, repr(task.env_kwargs), n),
-                     lambda: MujocoBatchEnv(task.env, num_envs=n, nthread=1, env_kwargs=task.env_kwargs))
-    dtype = next(task.module.parameters()).dtype
-    params = _unflatten(task.module, task.names, torch.as_tensor(task.thetas, dtype=torch.float64))
-    space = env.action_space
-    obs = env.reset(task.seeds)
-    z = _normalise(task.normalizer, obs)
-    history = [z.copy()]
-    returns, steps = np.zeros(n), np.zeros(n, dtype=int)
-    active, terminated, finite = np.ones(n, bool), np.zeros(n, bool), np.ones(n, bool)
-    limit = task.max_steps or env.max_episode_steps or math.inf
-    while active.any():
-        actions = batched_actions(task.module, params, torch.as_tensor(z, dtype=dtype)).numpy()
-        actions = actions.astype(space.dtype, copy=False).reshape((n, *space.shape))
-        stepped = np.flatnonzero(active)
-        o, r, term, _ = env.step(actions[stepped], ids=stepped)
-        obs[stepped] = o
-        terminated[stepped] = term
-        active[stepped[term]] = False
-        returns[stepped] += r
-        z = _after_step(task, obs, returns, steps, stepped, finite, active, limit, history)
-    return _chunk_results(task, history, returns, steps, terminated, finite, None)
-
-
-def _run_system_chunk(task: ChunkTask) -> list[dict]:
-    """A hybridctl system's swing-up: the chunk's episodes on its batched torch env (SSAC: gate + LQR inside)."""
-    from ..envs import SwitchedVectorEnv, TorchVectorEnv
-    system = load_system(task.system)
-    n = len(task.seeds)
-    gate = task.gate.get() if task.gate is not None else None
-    if gate is not None:
-        env = SwitchedVectorEnv(system, n, gate=gate, dtype=torch.float64)
-    else:
-        env = TorchVectorEnv(system, n, dtype=torch.float64)
-    x0 = np.concatenate([system.sample_initial_states(1, np.random.default_rng(int(s))) for s in task.seeds])
-    obs, _ = env.reset(seed=int(task.seeds[0]), options={"state": x0})
-    dtype = next(task.module.parameters()).dtype
-    params = _unflatten(task.module, task.names, torch.as_tensor(task.thetas, dtype=torch.float64))
-    states = [[row] for row in obs.numpy()]
-    returns, steps = np.zeros(n), np.zeros(n, dtype=int)
-    active, terminated, success = np.ones(n, bool), np.zeros(n, bool), [None] * n
-    limit = task.max_steps or math.inf
-    while active.any():
-        actions = batched_actions(task.module, params, obs.to(dtype)).to(torch.float64)
-        obs, rewards, term, trunc, infos = env.step(actions)
-        x, r = obs.numpy(), rewards.numpy()
-        for i in np.flatnonzero(active):
-            returns[i] += float(r[i])
-            steps[i] += 1
-            states[i].append(x[i])
-            if bool(term[i]) or bool(trunc[i]) or steps[i] >= limit:
-                active[i], terminated[i] = False, bool(term[i])
-                success[i] = bool(infos["success"][i]) if bool(infos["_success"][i]) else False
-    return [_episode_result(task, np.stack(states[i]), returns[i], int(steps[i]), bool(terminated[i]),
-                            bool(np.isfinite(returns[i])), success[i]) for i in range(n)]
-
-
-def _normalise(normalizer, obs: np.ndarray) -> np.ndarray:
-    return obs if normalizer is None else np.asarray(normalizer(obs), dtype=np.float64)
-
-
-def _episode_result(task: ChunkTask, states: np.ndarray, raw_return: float, steps: int, terminated: bool,
-                    finite: bool, success) -> dict:
-    """The training return (post-processed), raw return, dimension and flags of one episode."""
-    if not finite or not np.all(np.isfinite(states)):
-        return {"finite": False, "steps": steps}
-    processed, info = task.postprocessor(states, float(raw_return))
-    out = {"finite": True, "return": float(processed), "raw_return": float(raw_return), "steps": steps,
-           "terminated": terminated, "success": success, "dimension": info["dimension"], "reason": info["reason"]}
-    if task.keep_states:
-        out["states"] = states
-    return out
-
-
 # ============================================================================ the algorithm
 
-class FineTune(Learner):
+class FineTune(RandomSearchLearner):
     """Direct policy search over a trained policy's weights (Alg. 8): ``learn`` / ``predict`` /
     ``evaluate`` / ``save`` / ``load`` / ``save_sb3``.
 
@@ -496,7 +293,9 @@ class FineTune(Learner):
 
     algorithm_name = "FineTune"
     config_class = FineTuneConfig
-    budget_field, unit, uses_backend = "updates", "update", True
+    budget_field, unit = "updates", "update"
+    display_name, theta_name = "fine-tuning", "fine-tuned theta"   # the NaN guards' messages
+    step_eps = 1e-6   # the author's step: alpha / (n sigma_R + 1e-6)
     load_keywords = ("policy", "trust")
     log_key = "update"
     log_columns = ("update", "env_steps", "mean_return", "max_return", "mean_raw_return", "mean_dimension", "sigma_r",
@@ -543,7 +342,7 @@ class FineTune(Learner):
     def _obs_dim(self) -> int:
         if self.tunable.system is not None:
             return load_system(self.tunable.system).n_states
-        probe = _make_env(self.env, self.env_kwargs)
+        probe = make_env(self.env, self.env_kwargs)
         try:
             return int(np.prod(probe.observation_space.shape))
         finally:
@@ -553,14 +352,9 @@ class FineTune(Learner):
         params = dict(self.tunable.module.named_parameters())
         return np.concatenate([params[n].detach().double().reshape(-1).numpy() for n in self.names]).copy()
 
-    @property
-    def n_params(self) -> int:
-        """Length of theta (the perturbed parameters)."""
-        return int(self.theta.size)
-
     def _write_theta(self) -> None:
         """Put theta into the module's parameters (for saving, predict, export)."""
-        rows = _unflatten(self.tunable.module, self.names, torch.as_tensor(self.theta[None], dtype=torch.float64))
+        rows = unflatten(self.tunable.module, self.names, torch.as_tensor(self.theta[None], dtype=torch.float64))
         params = dict(self.tunable.module.named_parameters())
         with torch.no_grad():
             for name, value in rows.items():
@@ -578,14 +372,17 @@ class FineTune(Learner):
 
     def _rollouts(self, thetas: np.ndarray, seeds: list[int], backend, postprocessor: PostProcessor,
                   max_steps: int | None = None, keep_states: bool = False) -> list[dict]:
-        """One episode per (theta row, seed), in fixed chunks spread over ``backend``."""
+        """One episode per (theta row, seed), in fixed chunks of ``chunk_size`` spread over ``backend``
+        (:class:`~hybridctl.learn.rollouts.ChunkTask`: a system's torch env for sac/ssac sources, the
+        MuJoCo batch stepper where it applies, else gymnasium envs)."""
         size = self.config.chunk_size
         module, gate = self._shipped()
+        engine = "auto" if batch_supports(self.env, self.env_kwargs) else "backend"
         tasks = [ChunkTask(self.env, self.env_kwargs, module, self.names, thetas[i:i + size],
                            seeds[i:i + size], self.tunable.normalizer, max_steps or self.config.episode_steps,
-                           postprocessor, self.tunable.system, gate, keep_states)
+                           postprocessor, self.tunable.system, gate, keep_states, engine)
                  for i in range(0, len(seeds), size)]
-        return [r for chunk in backend.map(run_chunk, tasks) for r in chunk]
+        return rollouts(tasks, backend)
 
     def _shipped(self) -> tuple[Shipped, Shipped]:
         """The policy and gate as bytes for the workers, made once: the parameters they keep are never
@@ -594,56 +391,21 @@ class FineTune(Learner):
             self._shipped_pair = (Shipped(self.tunable.module), Shipped(self.tunable.gate))
         return self._shipped_pair
 
-    def _update_draws(self, update: int) -> tuple[np.ndarray, list[int]]:
-        """Directions (n, P) and one env seed per direction for ``update`` (from the seed alone)."""
-        rng = np.random.default_rng(np.random.SeedSequence([self.config.seed, update]))
-        directions = rng.standard_normal((self.config.n_directions, self.n_params))
-        seeds = [int(s) for s in rng.integers(0, 2 ** 31 - 1, size=self.config.n_directions)]
-        return directions, seeds
+    def perturbed_rollouts(self, thetas: np.ndarray, seeds: list[int], backend) -> list[dict]:
+        """The update's training episodes, returns with the config's reward (dimension term or not)."""
+        return self._rollouts(thetas, seeds, backend, self._postprocessor())
 
-    def train_update(self, backend) -> dict:
-        """One update of Algorithm 8: 2n rollouts, all directions kept, step scaled by the returns' std."""
-        cfg = self.config
-        alpha, sigma = cfg.schedule(self.update)
-        directions, seeds = self._update_draws(self.update)
-        thetas = np.stack([self.theta + sign * sigma * d for d in directions for sign in (1.0, -1.0)])
-        results = self._rollouts(thetas, [s for s in seeds for _ in (0, 1)], backend, self._postprocessor())
-        bad = [i for i, r in enumerate(results) if not r["finite"]]
-        if bad:
-            raise FloatingPointError(f"fine-tuning update {self.update}: {len(bad)} rollouts produced NaN/inf "
-                                     f"(first: direction {bad[0] // 2}); training stopped, the last checkpoint is intact")
-        r = np.array([res["return"] for res in results]).reshape(cfg.n_directions, 2)
-        sigma_r = float(r.std())
-        theta = self.theta + alpha / (cfg.n_directions * sigma_r + 1e-6) * ((r[:, 0] - r[:, 1]) @ directions)
-        check_finite("fine-tuned theta", theta, f"at update {self.update + 1}")
-        self.theta = theta
-        steps = sum(res["steps"] for res in results)
-        self.env_steps += steps
-        self.update += 1
-        return {"update": self.update, "env_steps": self.env_steps, "mean_return": float(r.mean()),
-                "max_return": float(r.max()), "mean_raw_return": float(np.mean([x["raw_return"] for x in results])),
-                "mean_dimension": float(np.mean([x["dimension"] for x in results])), "sigma_r": sigma_r,
-                "step_size": alpha, "noise": sigma, "episode_steps": steps / len(results)}
+    def schedule(self, update: int) -> tuple[float, float]:
+        """(step size, noise) of ``update``: the config's linear schedules (:meth:`FineTuneConfig.schedule`)."""
+        return self.config.schedule(update)
+
+    def update_row(self, step_size: float, noise: float) -> dict:
+        """The scheduled step size and noise in the progress row."""
+        return {"step_size": step_size, "noise": noise}
 
     def run_description(self) -> str:
         """The progress bar's label."""
         return f"fine-tune {self.env_name}"
-
-    def train(self, run, target: int, backend) -> None:
-        """Fine-tuning's loop inside ``learn``'s run: one update (2 x ``n_directions`` rollouts on
-        ``backend``, default the config's, opened for the run) at a time, a checkpoint every
-        ``checkpoint_every`` updates and at least every ``checkpoint_minutes``. The schedules run
-        over ``config.updates``, so a run stopped early and resumed continues them exactly."""
-        own = backend is None
-        pool = backend or make_backend(self.config.backend, self.config.workers, self.config.address)
-        try:
-            run.updates(target, lambda: self.train_update(pool), 2 * self.config.n_directions,
-                        self.config.checkpoint_every,
-                        lambda row: {"ret": f"{row['mean_raw_return']:.1f}", "dim": f"{row['mean_dimension']:.2f}",
-                                     "sps": f"{row['steps_per_s']:.0f}"})
-        finally:
-            if own:
-                pool.close()
 
     # -- use ---------------------------------------------------------------------------------
     def predict(self, obs: np.ndarray, deterministic: bool = True) -> np.ndarray:
@@ -652,7 +414,7 @@ class FineTune(Learner):
             raise ValueError("fine-tuned policies act deterministically (maximum-likelihood actions); "
                              "deterministic=False is not supported")
         self._write_theta()
-        z = _normalise(self.tunable.normalizer, np.asarray(obs, dtype=np.float64))
+        z = normalise(self.tunable.normalizer, np.asarray(obs, dtype=np.float64))
         dtype = next(self.tunable.module.parameters()).dtype
         with torch.no_grad():
             return self.tunable.module(torch.as_tensor(z, dtype=dtype)).double().numpy()
@@ -672,7 +434,7 @@ class FineTune(Learner):
         raw returns, episode lengths, early terminations with a 95 % Wilson interval, the mesh-mean
         dimension of each episode (author's settings) and, for systems, the thesis success rate."""
         n = episodes
-        seeds = [int(s) for s in np.random.default_rng(seed).integers(0, 2 ** 31 - 1, size=n)]
+        seeds = evaluation_seeds(seed, n)
         th = self.theta if theta is None else np.asarray(theta, dtype=np.float64)
         pp = dataclasses.replace(self.config, reward="mesh-mean").postprocessor(
             self.obs_dim, normalised=self.tunable.normalizer is not None)
