@@ -492,7 +492,7 @@ def run_chunk(task: ChunkTask) -> list[dict]:
     params = unflatten(task.module, task.names, torch.as_tensor(task.thetas, dtype=torch.float64))
     space = envs[0].action_space
     obs = np.stack([np.asarray(e.reset(seed=int(s))[0], dtype=np.float64).reshape(-1) for e, s in zip(envs, task.seeds)])
-    z = _normalise(task.normalizer, obs)
+    z = normalise(task.normalizer, obs)
     history = [z.copy()]          # normalised observations of every member at each step (one copy per step)
     returns, rewards, steps = np.zeros(n), np.zeros(n), np.zeros(n, dtype=int)
     active, terminated, finite, success = np.ones(n, bool), np.zeros(n, bool), np.ones(n, bool), [None] * n
@@ -520,7 +520,7 @@ def _after_step(task: ChunkTask, obs, returns, steps, stepped, finite, active, l
     bad = stepped[~(np.isfinite(obs[stepped]).all(axis=1) & np.isfinite(returns[stepped]))]
     finite[bad], active[bad] = False, False
     active &= steps < limit
-    z = _normalise(task.normalizer, obs)
+    z = normalise(task.normalizer, obs)
     history.append(z.copy())
     return z
 
@@ -544,7 +544,7 @@ def _run_mujoco_chunk(task: ChunkTask) -> list[dict]:
     params = unflatten(task.module, task.names, torch.as_tensor(task.thetas, dtype=torch.float64))
     space = env.action_space
     obs = env.reset(task.seeds)
-    z = _normalise(task.normalizer, obs)
+    z = normalise(task.normalizer, obs)
     history = [z.copy()]
     returns, steps = np.zeros(n), np.zeros(n, dtype=int)
     active, terminated, finite = np.ones(n, bool), np.zeros(n, bool), np.ones(n, bool)
@@ -596,5 +596,5 @@ def _run_system_chunk(task: ChunkTask) -> list[dict]:
                            keep_states=task.keep_states) for i in range(n)]
 
 
-def _normalise(normalizer, obs: np.ndarray) -> np.ndarray:
+def normalise(normalizer, obs: np.ndarray) -> np.ndarray:
     return obs if normalizer is None else np.asarray(normalizer(obs), dtype=np.float64)
