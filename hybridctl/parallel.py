@@ -156,6 +156,10 @@ class SerialBackend:
     name = "serial"
     workers = 1
 
+    def put(self, value: Any) -> Any:
+        """A large read-only input shared by every task (Ray: stored once; here: the value itself)."""
+        return value
+
     def map(self, fn: Callable, tasks: Sequence) -> list:
         """``[fn(t) for t in tasks]``."""
         return [fn(t) for t in tasks]
@@ -225,34 +229,65 @@ class ProcessBackend(SerialBackend):
             self._pool = None
 
 
+def ray_address(address: str | None = None) -> str | None:
+    """The Ray cluster to join: ``address`` (``--address``), else the ``RAY_ADDRESS`` environment
+    variable (as ``ray job submit`` and Ray's own tools set it), else None: a new local instance."""
+    return address or os.environ.get("RAY_ADDRESS") or None
+
+
 class RayBackend(SerialBackend):
-    """Ray tasks on a local instance or a cluster (optional ``ray`` extra)."""
+    """Ray tasks on a local instance or a cluster (optional ``ray`` extra).
+
+    Args:
+        workers: tasks in flight at once (chunk counts are chosen from it); a new local instance
+            gets this many CPUs. Default: the cluster's CPUs.
+        address: the cluster to join (``"host:6379"``, ``"ray://host:10001"``, ``"auto"``; default
+            :func:`ray_address`). Joining never passes ``num_cpus`` (the cluster has its own). Without
+            one, a NEW local instance is started on 127.0.0.1 (``address="local"``), even when a Ray
+            head runs on this machine: a local run never joins a cluster it was not pointed at.
+        runtime_env: Ray's runtime environment for the tasks (e.g. ``{"working_dir": "."}`` to ship a
+            user's specs and models to a cluster); a local instance's workers get this process's
+            ``sys.path`` by default.
+        task_resources: what one task asks for (``{"num_cpus": 1, "num_gpus": 0.5, "memory": 2**30}``).
+    """
 
     name = "ray"
 
-    def __init__(self, workers: int | None = None, address: str | None = None, runtime_env: dict | None = None):
+    def __init__(self, workers: int | None = None, address: str | None = None, runtime_env: dict | None = None,
+                 task_resources: dict | None = None):
         try:
             import ray
         except ImportError as exc:
             raise ImportError("backend 'ray' needs Ray: pip install 'hybridctl[ray]' (in a checkout: "
                               "pip install -c constraints.txt -e '.[ray]')") from exc
+        if workers is not None and (not isinstance(workers, int) or isinstance(workers, bool) or workers < 1):
+            raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
         self._ray = ray
         self._started_here = not ray.is_initialized()
+        address = ray_address(address)
         if self._started_here:
             if address is None:
-                # a local instance on loopback only; workers import what this process imports
+                # a new local instance on loopback only; workers import what this process imports
                 env = runtime_env or {"env_vars": {"PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}}
-                ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False,
+                ray.init(address="local", num_cpus=workers, include_dashboard=False, log_to_driver=False,
                          _node_ip_address="127.0.0.1", runtime_env=env)
             else:
                 ray.init(address=address, log_to_driver=False, runtime_env=runtime_env)
-        self.workers = workers or int(ray.cluster_resources().get("CPU", 1))
+        cluster_cpus = max(1, int(ray.cluster_resources().get("CPU", 1)))
+        self.workers = workers or cluster_cpus
+        self.task_resources = dict(task_resources or {})
         self._remote: dict[Callable, Any] = {}
 
+    def put(self, value: Any) -> Any:
+        """``value`` in Ray's object store once (``ray.put``): tasks given the reference receive the value,
+        without a copy per task."""
+        return self._ray.put(value)
+
     def map(self, fn: Callable, tasks: Sequence) -> list:
-        """Results of ``fn`` over ``tasks`` as Ray tasks, in task order."""
+        """Results of ``fn`` over ``tasks`` as Ray tasks (each asking for ``task_resources``), in task
+        order; a task whose worker died is retried by Ray (``max_retries``)."""
         if fn not in self._remote:
-            self._remote[fn] = self._ray.remote(fn)
+            self._remote[fn] = self._ray.remote(max_retries=3, **self.task_resources)(fn)
         return self._ray.get([self._remote[fn].remote(t) for t in tasks])
 
     def close(self) -> None:
@@ -261,17 +296,22 @@ class RayBackend(SerialBackend):
             self._ray.shutdown()
 
 
-def make_backend(name: str = "processes", workers: int | None = None, address: str | None = None):
-    """A rollout backend by name: "serial", "processes" (default) or "ray" (``address`` for a cluster).
+def make_backend(name: str = "processes", workers: int | None = None, address: str | None = None,
+                 task_resources: dict | None = None, runtime_env: dict | None = None):
+    """A rollout backend by name: "serial", "processes" (default) or "ray" (``address`` for a cluster,
+    default ``RAY_ADDRESS``; ``task_resources`` and ``runtime_env``: see :class:`RayBackend`).
 
-    An ``address`` with a local backend is refused (ValueError): it would be silently ignored.
+    An ``address``, task resources or a runtime env with a local backend is refused (ValueError): it
+    would be silently ignored.
     """
-    if address is not None and name in ("serial", "processes"):
-        raise ValueError(f"address {address!r} (--address) applies to backend 'ray' only, not {name!r}")
+    for flag, value in (("address", address), ("task_resources", task_resources), ("runtime_env", runtime_env)):
+        if value is not None and name in ("serial", "processes"):
+            raise ValueError(f"{flag} {value!r} (--{flag.replace('_', '-')}) applies to backend 'ray' only, "
+                             f"not {name!r}")
     if name == "serial":
         return SerialBackend()
     if name == "processes":
         return ProcessBackend(workers)
     if name == "ray":
-        return RayBackend(workers, address)
+        return RayBackend(workers, address, runtime_env, task_resources)
     raise ValueError(f"backend must be one of {BACKENDS}, got {name!r}")

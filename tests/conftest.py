@@ -88,8 +88,8 @@ def local_ray():
     if started:
         # the workers import hybridctl and these test modules as this process does
         env = {"env_vars": {"PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}}
-        ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, _node_ip_address="127.0.0.1",
-                 runtime_env=env)
+        ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False,
+                 _node_ip_address="127.0.0.1", runtime_env=env)   # a new instance, never a head running here
     yield ray
     if started:
         ray.shutdown()

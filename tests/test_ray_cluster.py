@@ -1,0 +1,90 @@
+"""Pointing at a Ray cluster, as a cluster user would (issue: a running head made `--workers` fail with
+"num_cpus ... must not be provided", and a run without an address silently joined that head)."""
+
+import json
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import signal
+import textwrap
+import time
+
+import pytest
+
+pytest.importorskip("ray")
+RAY = shutil.which("ray", path=os.path.dirname(sys.executable))
+
+PROBE = textwrap.dedent("""
+    import json, sys, ray
+    from hybridctl.parallel import make_backend
+    address, workers = sys.argv[1] or None, int(sys.argv[2]) if sys.argv[2] else None
+
+    def square(x):
+        return x * x
+
+    with make_backend("ray", workers=workers, address=address) as backend:
+        out = {"workers": backend.workers, "cpus": ray.cluster_resources().get("CPU"),
+               "gcs": ray.get_runtime_context().gcs_address, "squares": backend.map(square, [1, 2, 3])}
+    print(json.dumps(out))
+""")
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def ray_head():
+    """A Ray head of 1 CPU on 127.0.0.1, started as a user starts one (`ray start --head`, Ray's default
+    temp dir, so that a plain ``ray.init()`` on this machine would find and join it), and stopped
+    with its processes (``--block``: they end with it) without touching any other Ray instance."""
+    port = _free_port()
+    env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0"}
+    env.pop("RAY_ADDRESS", None)
+    head = subprocess.Popen([RAY, "start", "--head", "--block", f"--port={port}", "--num-cpus=1",
+                             "--include-dashboard=false", "--node-ip-address=127.0.0.1", "--disable-usage-stats"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:      # up when its GCS port answers
+        with socket.socket() as s:
+            if s.connect_ex(("127.0.0.1", port)) == 0:
+                break
+        time.sleep(0.5)
+    time.sleep(3)
+    yield f"127.0.0.1:{port}", env
+    head.send_signal(signal.SIGTERM)
+    try:
+        head.wait(timeout=60)
+    except subprocess.TimeoutExpired:
+        head.kill()
+
+
+def _probe(address: str, workers: str, env: dict) -> dict:
+    run = subprocess.run([sys.executable, "-c", PROBE, address, workers], capture_output=True, text=True,
+                         env=env, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    return json.loads(run.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.xdist_group("ray")
+def test_workers_with_a_running_head_join_it_only_when_pointed_at_it(ray_head):
+    address, env = ray_head
+    joined = _probe(address, "2", env)                       # used to fail: num_cpus passed to a running cluster
+    port = address.rsplit(":", 1)[1]
+    assert joined["cpus"] == 1 and joined["gcs"].endswith(f":{port}") and joined["squares"] == [1, 4, 9]
+    assert joined["workers"] == 2
+    from_env = _probe("", "", {**env, "RAY_ADDRESS": address})   # RAY_ADDRESS, as `ray job submit` sets it
+    assert from_env["gcs"].endswith(f":{port}") and from_env["workers"] == 1
+    local = _probe("", "2", {k: v for k, v in env.items() if k != "RAY_ADDRESS"})
+    assert not local["gcs"].endswith(f":{port}") and local["cpus"] == 2    # a new local instance, not the running head
+
+
+def test_ray_only_settings_with_a_local_backend_are_refused():
+    from hybridctl.parallel import make_backend
+    with pytest.raises(ValueError, match=r"task_resources \{'num_gpus': 1\} \(--task-resources\) applies to "
+                                         r"backend 'ray' only, not 'processes'"):
+        make_backend("processes", task_resources={"num_gpus": 1})
