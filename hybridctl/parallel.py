@@ -33,7 +33,7 @@ import signal
 import sys
 import threading
 import time
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 BACKENDS = ("serial", "processes", "ray")
 
@@ -164,6 +164,11 @@ class SerialBackend:
         """``[fn(t) for t in tasks]``."""
         return [fn(t) for t in tasks]
 
+    def imap_unordered(self, fn: Callable, tasks: Sequence) -> Iterator:
+        """``fn`` over ``tasks``, each result as soon as it is done (here: in task order), for progress bars."""
+        for task in tasks:
+            yield fn(task)
+
     def close(self) -> None:
         """Nothing to release."""
 
@@ -221,6 +226,29 @@ class ProcessBackend(SerialBackend):
                     raise RuntimeError(f"rollout workers died {self.retries + 1} times; "
                                        f"{len(pending)} of {len(tasks)} tasks unfinished") from None
         return [results[i] for i in range(len(tasks))]
+
+    def imap_unordered(self, fn: Callable, tasks: Sequence) -> Iterator:
+        """``fn`` over ``tasks``, each result as soon as its task is done (completion order). A worker
+        that dies breaks the pool: it is rebuilt and the tasks not yet yielded run again, up to
+        ``retries`` times, as in :meth:`map`."""
+        pending = list(range(len(tasks)))
+        for attempt in range(self.retries + 1):
+            pool = self._executor()
+            futures = {}
+            try:
+                for i in pending:
+                    futures[pool.submit(fn, tasks[i])] = i
+                for future in cf.as_completed(futures):
+                    result = future.result()
+                    pending.remove(futures[future])
+                    yield result
+                return
+            except cf.process.BrokenProcessPool:
+                self._pool.shutdown(wait=False, cancel_futures=True)
+                self._pool = None
+                if attempt == self.retries:
+                    raise RuntimeError(f"workers died {self.retries + 1} times; {len(pending)} of {len(tasks)} "
+                                       f"tasks unfinished") from None
 
     def close(self) -> None:
         """Shut the pool down."""
@@ -289,6 +317,15 @@ class RayBackend(SerialBackend):
         if fn not in self._remote:
             self._remote[fn] = self._ray.remote(max_retries=3, **self.task_resources)(fn)
         return self._ray.get([self._remote[fn].remote(t) for t in tasks])
+
+    def imap_unordered(self, fn: Callable, tasks: Sequence) -> Iterator:
+        """``fn`` over ``tasks`` as Ray tasks, each result as soon as its task is done (``ray.wait``)."""
+        if fn not in self._remote:
+            self._remote[fn] = self._ray.remote(max_retries=3, **self.task_resources)(fn)
+        waiting = [self._remote[fn].remote(t) for t in tasks]
+        while waiting:
+            done, waiting = self._ray.wait(waiting, num_returns=1)
+            yield self._ray.get(done[0])
 
     def close(self) -> None:
         """Shut Ray down if this backend started it."""

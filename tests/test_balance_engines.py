@@ -229,3 +229,20 @@ def test_a_saved_map_names_its_axes_with_units_and_titles_no_absolute_path(tmp_p
     assert display_name(f"ssac:{checkpoint}") == "ssac:runs/ssac-cartpole-with-a-long-name/final"
     assert display_name("ssac:/elsewhere/policies/ssac-cartpole/final") == "ssac:.../ssac-cartpole/final"
     assert display_name("energy") == "energy" and display_name("ssac:models/x") == "ssac:models/x"
+
+
+@pytest.mark.xdist_group("ray")
+def test_drake_balance_map_is_the_same_on_every_backend(local_ray, tmp_path):
+    """Serial, local processes and Ray (the session's local instance): the same map, cell for cell."""
+    from hybridctl.cli import main
+
+    maps = {backend: balance_map("acrobot", "energy", grid=3, duration=1.0, backend=backend, workers=2,
+                                 progress=False) for backend in ("serial", "processes", "ray")}
+    for backend, bmap in maps.items():
+        assert bmap.meta["backend"] == backend
+        np.testing.assert_array_equal(bmap.balanced, maps["serial"].balanced)
+        np.testing.assert_array_equal(bmap.returns, maps["serial"].returns)
+    assert maps["serial"].meta["workers"] == 1 and maps["ray"].meta["workers"] == 2
+    assert main(["balance-map", "acrobot", "--grid", "2", "--duration", "0.5", "--backend", "ray", "--quiet",
+                 "--out", str(tmp_path / "map")]) == 0
+    assert json.loads((tmp_path / "map" / "balance_map.json").read_text())["backend"] == "ray"

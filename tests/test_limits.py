@@ -214,38 +214,22 @@ def test_every_parser_refuses_abbreviations():
     assert len(seen) > 10  # the top level, every command and every learner of `train`
 
 
-class _RecordingPool:
-    """An in-process stand-in for multiprocessing's Pool that records how many workers were asked for."""
-
-    asked: list[int] = []
-
-    def __init__(self, workers, initializer=None, initargs=()):
-        self.asked.append(workers)
-        self.initializer = initializer
-
-    def imap_unordered(self, fn, jobs):
-        return map(fn, jobs)
-
-    def terminate(self):
-        pass
-
-
 def test_balance_map_never_starts_more_workers_than_tasks(monkeypatch):
     """`balance-map --grid 2 --workers 64 --force` started 64 processes for 4 starts."""
     import importlib
 
     module = importlib.import_module("hybridctl.experiments.balance_map")  # the package exports a function of that name
-    from hybridctl.parallel import die_with_parent
+    asked, real = [], module.make_backend
 
-    class Context:
-        def Pool(self, workers, initializer=None, initargs=()):
-            assert initializer is die_with_parent  # its workers die with it, too
-            return _RecordingPool(workers, initializer, initargs)
+    def recording(name, workers=None, address=None, **kwargs):   # runs the tasks here, records what was asked
+        asked.append((name, workers))
+        backend = real("serial")
+        backend.workers = workers or 1
+        return backend
 
-    _RecordingPool.asked = []
-    monkeypatch.setattr(module.mp, "get_context", lambda method: Context())
+    monkeypatch.setattr(module, "make_backend", recording)
     result = module.balance_map("pendulum", "energy", grid=2, duration=0.2, workers=64, force=True, progress=False)
-    assert _RecordingPool.asked == [4] and result.meta["workers"] == 4
+    assert asked == [("processes", 4)] and result.meta["workers"] == 4
     assert result.balanced.shape == (2, 2)
 
 

@@ -249,7 +249,7 @@ def check_disturbances(count: int, max_states: int, samples_per_box: int = 1, fo
 
 def build_mesh(section_map: SectionMap, seeds, disturbances, box_size: float, mean=None, std=None,
                max_states: int = 1_000_000, backend: str = "serial", workers: int | None = None,
-               batch_size: int = 256, checkpoint: str | os.PathLike | None = None, checkpoint_every: int = 20,
+               address: str | None = None, batch_size: int = 256, checkpoint: str | os.PathLike | None = None, checkpoint_every: int = 20,
                resume: bool = False, progress: bool = True, checkpoint_minutes: float = 5.0,
                samples_per_box: int = 1, force: bool = False) -> ReachableMesh:
     """Reachable-state mesh of ``section_map`` from ``seeds`` under ``disturbances`` (thesis Alg. 7).
@@ -258,7 +258,8 @@ def build_mesh(section_map: SectionMap, seeds, disturbances, box_size: float, me
     :class:`GaussianDisturbance`), or a plain sequence (uniform weights). ``box_size``: the
     side of a box in normalised units, ``(state - mean) / std`` (default mean 0, std 1: the
     state's own units). ``max_states``: a cap; when reached, building stops and the mesh is
-    marked incomplete. Seeds that fail or are non-finite raise ValueError.
+    marked incomplete. Seeds that fail or are non-finite raise ValueError. Batches run on
+    ``backend`` (``workers``; ``address``: the Ray cluster, default ``RAY_ADDRESS``).
 
     ``checkpoint``: a .npz file the mesh so far is written to (atomically) every
     ``checkpoint_every`` batches and at least every ``checkpoint_minutes`` of wall time (0:
@@ -355,7 +356,7 @@ def build_mesh(section_map: SectionMap, seeds, disturbances, box_size: float, me
     start = time.perf_counter()
     complete = True
     bar = tqdm(total=len(mesh_states), initial=len(successors), desc="mesh", unit="state", disable=not progress)
-    pool = make_backend(backend, workers)
+    pool = make_backend(backend, workers, address)
     last_checkpoint = time.monotonic()
     try:
         batches = 0
@@ -433,15 +434,16 @@ class MonteCarloResult:
 
 def monte_carlo_mfpt(section_map: SectionMap, starts, disturbances, episodes: int = 1000, max_steps: int = 100_000,
                      seed: int = 0, chunks: int = 1, backend: str = "serial", workers: int | None = None,
-                     progress: bool = False, force: bool = False) -> MonteCarloResult:
+                     progress: bool = False, force: bool = False, address: str | None = None) -> MonteCarloResult:
     """Steps until failure on the true map, each step's disturbance drawn from ``disturbances``
     (``sample(rng, n)``: a Gaussian model draws continuous values, a finite set draws from the set).
 
     ``starts``: one state, or several drawn uniformly per episode. The episodes are split into
     ``chunks`` groups (each with its own random stream from ``SeedSequence(seed)``); a group's
     episodes advance together through ``section_map.step_many``. Groups run on ``backend``
-    ("serial", "processes", "ray"), so for simulator-backed maps use several chunks and
-    processes; the result depends on ``seed`` and ``chunks`` only, not on the backend.
+    ("serial", "processes", "ray"; ``address``: the Ray cluster, default ``RAY_ADDRESS``), so for
+    simulator-backed maps use several chunks and processes; the result depends on ``seed`` and
+    ``chunks`` only, not on the backend.
 
     Before any work, more than :data:`~hybridctl.limits.MAX_MONTE_CARLO` episodes raise
     LimitError (``force`` lifts it), and so do their states beyond the memory budget.
@@ -458,7 +460,7 @@ def monte_carlo_mfpt(section_map: SectionMap, starts, disturbances, episodes: in
     streams = [np.random.default_rng(seed)] if chunks == 1 else \
         [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(chunks)]
     tasks = [(section_map, starts, disturbances, n, max_steps, rng) for n, rng in zip(sizes, streams)]
-    pool = make_backend(backend, workers)
+    pool = make_backend(backend, workers, address)
     try:
         if progress and chunks > 1:
             from tqdm.auto import tqdm

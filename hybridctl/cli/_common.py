@@ -214,3 +214,28 @@ def add_quiet_flag(parser: argparse.ArgumentParser) -> None:
 def command_line(argv: list[str]) -> str:
     """The command as typed, recorded in outputs (``"hybridctl simulate acrobot ..."``)."""
     return "hybridctl " + " ".join(argv)
+
+
+def add_backend_flags(parser: argparse.ArgumentParser, default: str, what: str) -> None:
+    """``--backend``, ``--workers`` and ``--address``: where ``what`` runs, the same flags on every command
+    that runs parallel work (``--address`` defaults to ``RAY_ADDRESS``; with ``--backend ray`` and no
+    address a new local Ray instance on 127.0.0.1 is started, never a running one joined)."""
+    from ..parallel import BACKENDS
+
+    parser.add_argument("--backend", choices=BACKENDS, default=default,
+                        help=f"where {what} runs: this process, local worker processes or Ray (default {default})")
+    parser.add_argument("--workers", type=positive(int),
+                        help="worker processes, or Ray tasks in flight (default: all cores, or the cluster's "
+                             "CPUs; local workers above the cores are refused without --force)")
+    parser.add_argument("--address", default=None,
+                        help="Ray cluster to join with --backend ray (host:6379, ray://host:10001, auto; "
+                             "default: $RAY_ADDRESS, else a new local instance)")
+
+
+def check_backend_flags(args: argparse.Namespace) -> None:
+    """Refuse ``--address`` without ``--backend ray`` and local ``--workers`` above the cores (``--force``)."""
+    if args.address is not None and args.backend != "ray":
+        raise ValueError(f"--address {args.address} applies to --backend ray only, not {args.backend!r}")
+    if args.workers is not None and args.backend != "ray":  # Ray workers are not bound by local cores
+        limits.check_at_most("--workers", args.workers, limits.cpu_count(), args.force,
+                             why="cores this process may use")

@@ -8,8 +8,8 @@ from .. import io
 from ..experiments import balance_map
 from ..experiments.balance_map import ENGINES, check_balance_map
 from ..systems import load
-from ._common import (add_system_argument, add_debug_flag, add_force_flag, add_quiet_flag, cli_errors, limits_epilog,
-                      positive)
+from ._common import (add_backend_flags, add_debug_flag, add_force_flag, add_quiet_flag, add_system_argument,
+                      check_backend_flags, cli_errors, limits_epilog, positive)
 from .simulate import controller_help
 
 
@@ -21,9 +21,7 @@ def add_parser(sub) -> None:
     p.add_argument("--controller", default="energy", help=controller_help())
     p.add_argument("--grid", type=positive(int), default=41, help="grid points per axis (default 41, thesis)")
     p.add_argument("--duration", type=positive(float), help="seconds per run (default: the spec's episode)")
-    p.add_argument("--workers", type=positive(int),
-                   help="processes of the drake engine (default: all cores, at most one per task; more than the "
-                        "cores are refused without --force)")
+    add_backend_flags(p, "processes", "the drake engine's runs")
     p.add_argument("--engine", choices=ENGINES, default="drake",
                    help="drake: the Drake diagram, one run per start in worker processes (default); torch: every "
                         "start at once as one batch of the switched controller in torch (seconds)")
@@ -38,10 +36,13 @@ def add_parser(sub) -> None:
 def run_balance_map(args: argparse.Namespace) -> int:
     """Simulate every grid start, write balance_map.png and balance_map.json, print the fraction."""
     system = load(args.system)
-    check_balance_map(system, args.grid, args.duration, args.engine, args.workers, args.force)  # before --out is made
+    check_backend_flags(args)
+    check_balance_map(system, args.grid, args.duration, args.engine, args.workers if args.backend != "ray" else None,
+                      args.force)  # before --out is made
     io.output_folder(args.out)  # a file at --out fails here, not after the simulations
     result = balance_map(system, args.controller, grid=args.grid, duration=args.duration,
-                         workers=args.workers, progress=not args.quiet, engine=args.engine, force=args.force)
+                         workers=args.workers, progress=not args.quiet, engine=args.engine, force=args.force,
+                         backend=args.backend, address=args.address)
     result.meta["command"] = args.command_line
     summary = result.save(args.out)
     print(f"balanced_fraction: {summary['balanced_fraction']:.4f} "

@@ -5,10 +5,9 @@ from __future__ import annotations
 import argparse
 
 from ..experiments import MESH_MAPS, mesh_report
-from ..parallel import BACKENDS
 from ..analysis.reachable import check_disturbances
-from ..limits import MAX_MONTE_CARLO, check_at_most, cpu_count
-from ._common import (non_negative, USAGE_ERROR, add_debug_flag, add_force_flag, add_quiet_flag, cli_errors, finite,
+from ..limits import MAX_MONTE_CARLO, check_at_most
+from ._common import (non_negative, USAGE_ERROR, add_backend_flags, add_debug_flag, check_backend_flags, add_force_flag, add_quiet_flag, cli_errors, finite,
                       limits_epilog, positive)
 
 
@@ -25,11 +24,7 @@ def add_parser(sub) -> None:
     p.add_argument("--monte-carlo", type=non_negative(int), default=0, metavar="EPISODES",
                    help="also estimate the MFPT by Monte Carlo on the true map")
     p.add_argument("--sizes", type=positive(float), nargs="*", help="also mesh at these box sizes (Table 5.1)")
-    p.add_argument("--backend", choices=BACKENDS, default="serial",
-                   help="where section-map steps run: this process, local worker processes, or Ray")
-    p.add_argument("--workers", type=positive(int),
-                   help="worker processes (default: all cores; more than the cores are refused without --force, "
-                        "except on Ray)")
+    add_backend_flags(p, "serial", "section-map steps of the mesh")
     p.add_argument("--resume", action="store_true", help="continue from out/mesh_checkpoint.npz")
     p.add_argument("--overwrite", action="store_true",
                    help="replace the run the --out folder holds (without it, or --resume, such a folder is refused)")
@@ -63,8 +58,7 @@ def check_mesh_arguments(args: argparse.Namespace) -> None:
     processes above the cores."""
     check_disturbances(args.disturbances, args.max_states, force=args.force)
     check_at_most("--monte-carlo", args.monte_carlo, MAX_MONTE_CARLO, args.force, why="episodes")
-    if args.workers is not None and args.backend != "ray":  # Ray workers are not bound by local cores
-        check_at_most("--workers", args.workers, cpu_count(), args.force, why="cores this process may use")
+    check_backend_flags(args)
 
 
 @cli_errors
@@ -76,7 +70,8 @@ def run_mesh(args: argparse.Namespace) -> int:
                          monte_carlo=args.monte_carlo, sizes=args.sizes, backend=args.backend,
                          workers=args.workers, resume=args.resume, progress=not args.quiet,
                          command=args.command_line, overwrite=args.overwrite,
-                         checkpoint_every=args.checkpoint_every, checkpoint_minutes=args.checkpoint_minutes)
+                         checkpoint_every=args.checkpoint_every, checkpoint_minutes=args.checkpoint_minutes,
+                         address=args.address)
     if "error" in report:
         print(report["error"])
         return USAGE_ERROR

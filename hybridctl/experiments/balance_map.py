@@ -16,7 +16,6 @@ states at the swing-up decision times (thesis eq. 3.2), False for a diverged run
 from __future__ import annotations
 
 import json
-import multiprocessing as mp
 import os
 import time
 from dataclasses import dataclass, field
@@ -32,7 +31,7 @@ from ..drake import energy_swingup, simulate
 from ..drake.simulate import check_duration
 from ..envs import SwitchedVectorEnv
 from ..limits import MAX_GRID, MAX_TOTAL_STEPS, check_at_most, check_fits_memory, cpu_count
-from ..parallel import require_main_guard, worker_initializer
+from ..parallel import BACKENDS, make_backend
 from ..systems import System, control, load
 from ..systems.success import decision_indices, episode_return, is_balanced
 from ..viz import plot_balance_map
@@ -282,16 +281,19 @@ def torch_rollouts(system: System, controller: str, starts, duration: float | No
 def balance_map(system: System | str, controller: str = "energy", grid: int = 41, duration: float | None = None,
                 axes: tuple[int, int] | None = None, ranges=None, workers: int | None = None,
                 progress: bool = True, overrides: dict | None = None, engine: str = "drake",
-                force: bool = False) -> BalanceMap:
+                force: bool = False, backend: str = "processes", address: str | None = None) -> BalanceMap:
     """Simulate ``controller`` from every start of a ``grid`` x ``grid`` rest-state grid.
 
     Each start is the spec's nominal state with the two ``axes`` coordinates set
     from the grid (velocities at rest); success is the thesis test (eq. 3.2) on
     the decision-rate states of a ``duration``-second run (default: the spec's
-    episode). ``engine``: ``"drake"`` runs the Drake diagram in ``workers`` local
-    processes (default: all cores, at most the number of starts), each building its
+    episode). ``engine``: ``"drake"`` runs the Drake diagram on a parallel ``backend``
+    (:func:`hybridctl.parallel.make_backend`: ``"processes"``, ``workers`` local processes,
+    default all cores and at most the number of starts; ``"serial"``; ``"ray"``, a new local
+    instance or the cluster at ``address`` / ``RAY_ADDRESS``, where every worker needs the
+    system's spec and the controller's checkpoint at the same paths), each worker building its
     diagram once; ``"torch"`` runs every start as one batch in this process
-    (:func:`torch_rollouts`; ``workers`` is ignored). The map's ``meta`` records the engine,
+    (:func:`torch_rollouts`; ``workers``, ``backend`` and ``address`` are ignored). The map's ``meta`` records the engine,
     the workers and, for Drake, the workers' CPU seconds (``cpu_s``) and the load average
     at the end: on a shared machine the wall time alone says little.
 
@@ -306,7 +308,8 @@ def balance_map(system: System | str, controller: str = "energy", grid: int = 41
     elif overrides:
         raise ValueError("pass overrides only with a system name; a loaded System already carries its own")
     overrides = dict(system.spec.overrides)
-    duration, workers = check_balance_map(system, grid, duration, engine, workers, force)
+    duration, workers = check_balance_map(system, grid, duration, engine, workers if backend != "ray" else None,
+                                          force)
     (a1, a2), values1, values2, grid_states = _grid_starts(system, grid, axes, ranges)
     names = (system.state_names[a1], system.state_names[a2])
     units = (system.state_unit(a1), system.state_unit(a2))
@@ -318,39 +321,41 @@ def balance_map(system: System | str, controller: str = "energy", grid: int = 41
                           time.perf_counter() - start_time, meta={"engine": "torch", "workers": 1}, units=units)
     build_named_diagram(system, controller, log=False)  # bad names/checkpoints fail here, not in a worker
     starts = list(enumerate(grid_states))
-    workers = max(1, min(cpu_count() if workers is None else int(workers), len(starts)))
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    pool = make_backend("ray", workers, address) if backend == "ray" else None   # its size: the cluster's
+    if pool is not None:
+        workers = pool.workers
+    else:
+        workers = 1 if backend == "serial" else max(1, min(cpu_count() if workers is None else int(workers),
+                                                           len(starts)))
+    # chunks: about 4 per worker (at most 25 starts each), so that every worker stays busy to the end
     chunk = max(1, min(25, len(starts) // (4 * workers) or 1))
     jobs = [(str(system.spec.path), overrides, controller, duration, force, starts[k:k + chunk])
             for k in range(0, len(starts), chunk)]
-    workers = min(workers, len(jobs))  # a worker without a task would only cost its start-up
+    if pool is None:
+        workers = min(workers, len(jobs))  # a worker without a task would only cost its start-up
+        # one process needs no pool (spawned workers each import torch and Drake: seconds)
+        pool = make_backend("serial" if workers == 1 else "processes", workers if workers > 1 else None, address)
     balanced = np.zeros(grid * grid, dtype=bool)
     returns = np.zeros(grid * grid)
     diverged = np.zeros(grid * grid, dtype=bool)
     bar = tqdm(total=len(starts), desc=f"balance map {system.name}", disable=not progress, unit="run")
-    if workers == 1:
-        results_iter = map(_simulate_chunk, jobs)
-        pool = None
-    else:
-        # spawn: a forked child would inherit torch/OpenMP thread state from the parent.
-        require_main_guard()
-        initializer, initargs = worker_initializer()  # no orphan survives a kill -9 of this process
-        pool = mp.get_context("spawn").Pool(workers, initializer=initializer, initargs=initargs)
-        results_iter = pool.imap_unordered(_simulate_chunk, jobs)
     cpu = 0.0
-    try:
-        for results, seconds in results_iter:
-            cpu += seconds
-            for index, ok, ret, div in results:
-                balanced[index], returns[index], diverged[index] = ok, ret, div
-            bar.update(len(results))
-    finally:
-        bar.close()
-        if pool is not None:
-            pool.terminate()
+    with pool:
+        try:
+            for results, seconds in pool.imap_unordered(_simulate_chunk, jobs):
+                cpu += seconds
+                for index, ok, ret, div in results:
+                    balanced[index], returns[index], diverged[index] = ok, ret, div
+                bar.update(len(results))
+        finally:
+            bar.close()
+        workers = pool.workers
     return BalanceMap(system.name, controller, names, values1, values2, balanced.reshape(grid, grid),
                       returns.reshape(grid, grid), diverged.reshape(grid, grid), duration,
                       time.perf_counter() - start_time,
-                      meta={"engine": "drake", "workers": workers, "cpu_s": cpu, "load_average": list(os.getloadavg())}, units=units)
+                      meta={"engine": "drake", "backend": backend, "workers": workers, "cpu_s": cpu, "load_average": list(os.getloadavg())}, units=units)
 
 
 def divergence_time(times, a, b, tol: float = 1e-3) -> float | None:

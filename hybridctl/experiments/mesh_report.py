@@ -40,7 +40,7 @@ def mesh_report(map_name: str = "rimless-wheel", out: str | Path = "runs/mesh", 
                 max_states: int = 1_000_000, monte_carlo: int = 0, sizes: Sequence[float] | None = None,
                 backend: str = "serial", workers: int | None = None, resume: bool = False,
                 progress: bool = True, command: str | None = None, overwrite: bool = False,
-                checkpoint_every: int = 20, checkpoint_minutes: float = 5.0) -> dict:
+                checkpoint_every: int = 20, checkpoint_minutes: float = 5.0, address: str | None = None) -> dict:
     """Mesh the states a map reaches from its rolling gait under Gaussian slopes; write the report.
 
     Seeds the mesh with the wheel's fixed point at ``slope_mean``; the mesh uses ``disturbances``
@@ -61,6 +61,8 @@ def mesh_report(map_name: str = "rimless-wheel", out: str | Path = "runs/mesh", 
             another run holds locked (naming its pid).
         checkpoint_every, checkpoint_minutes: the mesh checkpoint's cadence in batches and in
             minutes of wall time (at least every 5 minutes by default; 0: by batches only).
+        backend, workers, address: where the mesh's batches and the Monte Carlo chunks run
+            (:func:`hybridctl.parallel.make_backend`; ``address``: a Ray cluster, default ``RAY_ADDRESS``).
 
     Returns:
         The report: ``mesh``, ``mfpt`` (with ``from_seed``), ``monte_carlo``, ``mesh_sizes``,
@@ -78,16 +80,17 @@ def mesh_report(map_name: str = "rimless-wheel", out: str | Path = "runs/mesh", 
         folder.clear()   # --overwrite: the mesh reads no input files
         return _mesh_report_in(folder.path, map_name, section_map, slopes, seed, box_size, slope_mean, slope_std,
                                disturbances, max_states, monte_carlo, sizes, backend, workers, resume, progress,
-                               command, checkpoint_every, checkpoint_minutes)
+                               command, checkpoint_every, checkpoint_minutes, address)
 
 
 def _mesh_report_in(out: Path, map_name: str, section_map, slopes, seed: float, box_size: float, slope_mean: float,
                     slope_std: float, disturbances: int, max_states: int, monte_carlo: int,
                     sizes: Sequence[float] | None, backend: str, workers: int | None, resume: bool, progress: bool,
-                    command: str | None, checkpoint_every: int, checkpoint_minutes: float) -> dict:
+                    command: str | None, checkpoint_every: int, checkpoint_minutes: float,
+                    address: str | None = None) -> dict:
     """The body of :func:`mesh_report` in its locked run folder ``out``."""
     mesh = build_mesh(section_map, [[seed]], slopes, box_size, max_states=max_states, backend=backend,
-                      workers=workers, checkpoint=out / "mesh_checkpoint.npz", resume=resume, progress=progress,
+                      workers=workers, address=address, checkpoint=out / "mesh_checkpoint.npz", resume=resume, progress=progress,
                       checkpoint_every=checkpoint_every, checkpoint_minutes=checkpoint_minutes)
     report = {} if command is None else {"command": command}
     report.update({"map": map_name, "seed_state": [seed], "mesh": mesh.summary(),
