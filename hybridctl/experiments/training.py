@@ -24,7 +24,6 @@ from .. import io
 from ..io import RunFolderError
 from ..learn import APG, ARS, SAC, SSAC, ARSConfig, SACConfig, SSACConfig
 from ..learn.apg import METHODS as APG_METHODS
-from ..learn.apg import PRESETS as APG_PRESETS
 from ..learn.apg import APGConfig
 from ..learn.checkpoint import CheckpointError, newest_checkpoint, read_meta, system_record
 from ..learn.config_check import checkpoint_minutes

@@ -18,10 +18,9 @@ import torch
 from . import checkpoint as ckpt
 from ..envs import TorchVectorEnv
 from ..systems import System
-from ..systems import load as load_system
 from .base import Learner
 from .checkpoint import PROGRESS_FILE, Saved
-from .run import EVAL_SEED, EvalResult, set_torch_threads
+from .run import EvalResult, set_torch_threads
 
 
 def progress_entry(key: str, attr: str, **options) -> Saved:
