@@ -36,7 +36,6 @@ seed gives the same run on every backend, and a resumed run continues exactly.
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -57,7 +56,7 @@ from .random_search import RandomSearchLearner
 from .rollouts import (ACCEPTED_IDS, FrozenPolicy, PolicySpec, RolloutTask, batchable,  # noqa: F401 (re-exported)
                        evaluation_seeds, make_env, measure_dimensions, recorded_env_id, recorded_env_kwargs,
                        rollouts, run_episode, run_episodes_batched)
-from .run import EvalResult, seeded, set_torch_threads
+from .run import EvalResult, seeded
 
 
 @dataclass
@@ -212,10 +211,7 @@ class ARS(RandomSearchLearner):
 
     def __init__(self, env: str | Callable[[], gym.Env], config: ARSConfig | None = None,
                  env_kwargs: dict | None = None, policy: torch.nn.Module | None = None, **overrides):
-        self.config = dataclasses.replace(config or ARSConfig(), **overrides)
-        self.config.validate()
-        set_torch_threads(self.config.torch_threads)
-        self.env, self.env_kwargs = env, env_kwargs
+        self._start(config or ARSConfig(), env, env_kwargs, overrides)
         probe = make_env(env, env_kwargs)
         if not isinstance(probe.action_space, gym.spaces.Box):
             raise ValueError(f"ARS needs a continuous (Box) action space, got {probe.action_space}")
@@ -230,22 +226,13 @@ class ARS(RandomSearchLearner):
         else:
             module = None
         self.policy = PolicySpec(obs_dim, act_dim, probe.action_space.low, probe.action_space.high, module)
-        self.env_name = env if isinstance(env, str) else getattr(env, "__name__", repr(env))
         probe.close()
         self.theta = self.policy.initial_theta()
         self.stats = RunningStats(obs_dim)
-        self.epoch, self.env_steps, self.wall_time = 0, 0, 0.0
-        self.history: list[dict] = []
-        self.log_rows: list[dict] = []
 
     def training_record(self) -> dict:
         """eval.json's training counters: epochs, env steps, wall time."""
         return {"epochs": self.epoch, "env_steps": self.env_steps, "train_wall_time_s": self.wall_time}
-
-    @property
-    def progress_count(self) -> int:
-        """Epochs so far (the progress.csv key)."""
-        return self.epoch
 
     # -- rollouts ------------------------------------------------------------------------
     def _tasks(self, thetas, seeds: list[int], max_steps: int | None = None,

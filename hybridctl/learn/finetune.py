@@ -58,7 +58,7 @@ from .random_search import RandomSearchLearner
 from .robustness import wilson_interval  # noqa: F401 (re-exported: hybridctl.learn.finetune.wilson_interval)
 from .rollouts import (ChunkTask, Shipped, batched_actions, evaluation_seeds, make_env, normalise,  # noqa: F401
                        recorded_env_id, recorded_env_kwargs, rollouts, run_chunk, unflatten)
-from .run import EvalResult, set_torch_threads
+from .run import EvalResult
 
 SELECTIONS = ("action", "all", "last")
 DIMENSION_SETTINGS = ("author", "ch4")
@@ -312,11 +312,7 @@ class FineTune(RandomSearchLearner):
     def __init__(self, env: str | Callable[[], gym.Env], policy: str | TunablePolicy | torch.nn.Module,
                  config: FineTuneConfig | None = None, env_kwargs: dict | None = None, trust: bool = False,
                  normalizer: str | None = None, **overrides):
-        self.config = dataclasses.replace(config or FineTuneConfig(), **overrides)
-        self.config.validate()
-        set_torch_threads(self.config.torch_threads)
-        self.env, self.env_kwargs = env, env_kwargs
-        self.env_name = env if isinstance(env, str) else getattr(env, "__name__", repr(env))
+        self._start(config or FineTuneConfig(), env, env_kwargs, overrides)
         if isinstance(policy, str):
             if not isinstance(env, str):
                 raise ValueError("a policy source string needs an env id, not a factory; pass a TunablePolicy")
@@ -334,9 +330,6 @@ class FineTune(RandomSearchLearner):
         self.obs_dim = self._obs_dim()
         self.theta0 = self._flat_params()
         self.theta = self.theta0.copy()
-        self.update, self.env_steps, self.wall_time = 0, 0, 0.0
-        self.history: list[dict] = []
-        self.log_rows: list[dict] = []
 
     # -- parameters ------------------------------------------------------------------------
     def _obs_dim(self) -> int:
@@ -359,11 +352,6 @@ class FineTune(RandomSearchLearner):
         with torch.no_grad():
             for name, value in rows.items():
                 params[name].copy_(value[0])
-
-    @property
-    def progress_count(self) -> int:
-        """Updates so far (the progress.csv key)."""
-        return self.update
 
     # -- rollouts ------------------------------------------------------------------------
     def _postprocessor(self, reward: str | None = None) -> PostProcessor:

@@ -21,11 +21,13 @@ after the step (ARS: the running observation normalisation).
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from ..parallel import make_backend
 from .base import Learner
-from .run import check_finite
+from .run import check_finite, set_torch_threads
 
 __all__ = ["draws", "antithetic", "random_search_step", "RandomSearchLearner"]
 
@@ -99,6 +101,25 @@ class RandomSearchLearner(Learner):
     def update_row(self, step_size: float, noise: float) -> dict:
         """Hook: the update's own columns of its progress row."""
         return {}
+
+    # -- state ----------------------------------------------------------------------------------
+    def _start(self, config, env, env_kwargs: dict | None, overrides: dict) -> None:
+        """A fresh learner's settings (``config`` with ``overrides``, validated; torch threads), env
+        (``env_name``: an id as given, a factory by its name) and counters (zero, empty history)."""
+        self.config = dataclasses.replace(config, **overrides)
+        self.config.validate()
+        set_torch_threads(self.config.torch_threads)
+        self.env, self.env_kwargs = env, env_kwargs
+        self.env_name = env if isinstance(env, str) else getattr(env, "__name__", repr(env))
+        setattr(self, self.log_key, 0)
+        self.env_steps, self.wall_time = 0, 0.0
+        self.history: list[dict] = []
+        self.log_rows: list[dict] = []
+
+    @property
+    def progress_count(self) -> int:
+        """Updates so far (ARS's epochs, fine-tuning's updates: the progress.csv key)."""
+        return getattr(self, self.log_key)
 
     # -- the update ----------------------------------------------------------------------------
     @property

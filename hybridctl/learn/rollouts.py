@@ -597,4 +597,5 @@ def _run_system_chunk(task: ChunkTask) -> list[dict]:
 
 
 def normalise(normalizer, obs: np.ndarray) -> np.ndarray:
+    """``normalizer(obs)`` as float64 (a frozen observation normaliser; None: ``obs`` itself)."""
     return obs if normalizer is None else np.asarray(normalizer(obs), dtype=np.float64)
