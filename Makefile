@@ -47,6 +47,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/training.py
 	$(BIN)/python benchmarks/mesh_scaling.py
 	$(BIN)/python benchmarks/mujoco_rollout.py
+	$(BIN)/python benchmarks/ray_scaling.py
 
 # The documentation site, offline, into site/ (open site/index.html): the README as home page,
 # ARCHITECTURE.md, the API reference from the docstrings and the four notebooks, executed

@@ -38,7 +38,7 @@ from hybridctl.parallel import ProcessBackend  # noqa: E402
 
 THESIS_STATES = 275_658       # the thesis' hopper mesh (Ch. 5)
 CLUSTER_WORKERS = 16
-DEFAULT_FIGURE = ROOT / "notebooks" / "data" / "ch5" / "mesh_scaling.png"
+DEFAULT_FIGURE = ROOT / "results" / "ch5" / "mesh_scaling.png"
 
 
 def hopper_problem(box_size: float) -> dict:
