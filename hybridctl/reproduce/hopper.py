@@ -9,8 +9,10 @@ per mesh: size, completeness, exact MFPT (Krylov solve) and the eigenvalue estim
 1/(1 - lambda_2), both averaged over the seed apexes. Monte Carlo runs the true map
 from the same apexes with pushes drawn from the same set. Writes ``results/ch5/hopper.json``.
 
+```text
 usage: python -m hybridctl.reproduce.hopper [--magnitude 15] [--box-sizes 2 1.5 1]
        [--max-states 3000] [--episodes 300] [--workers 2]
+```
 """
 
 from __future__ import annotations

@@ -28,11 +28,13 @@ This script measures them per box size against one recorded Monte Carlo run of t
   velocity) after each step: how sensitive the map is to a box-sized state error.
 - transients (3): ``mesh_mfpt_seeds`` (from the seeds) against ``mesh_mfpt_quasi_stationary``.
 
+```text
 usage: python -m hybridctl.reproduce.hopper_error [--box-sizes 1 0.7 0.5 0.35 0.25]
        [--episodes 200] [--jitter-episodes 100] [--keep-rows]
 ``--keep-rows --box-sizes 0.18`` adds a finer row to the record and keeps the others.
 Checkpoints (meshes, recorded runs) go to ``--work`` (runs/ch5/error) and are reused.
 Writes ``results/ch5/hopper_error.json`` and ``.png`` (``--out``); reads ``hopper.json`` beside it.
+```
 """
 
 from __future__ import annotations

@@ -12,10 +12,12 @@ Same policy, section map, seeds and pushes as ``hopper.py`` / ``hopper_error.py`
 hopper, 25 pushes in [-100, 100] N along x at the apex). Monte Carlo references: ``hopper.json``
 (seed 1, 300 runs) and ``hopper_error.json`` (seed 2, 200 runs).
 
+```text
 usage: python -m hybridctl.reproduce.hopper_ulam --runs 1:4 0.7:4 1:16 0.7:8 [--time-budget-s 3600]
 Runs are BOX:K pairs, done in order; mesh checkpoints go to ``--work`` (runs/ch5/ulam) and resume.
 Writes ``results/ch5/hopper_ulam.json`` and ``.png`` (``--out``) after each run; reads ``hopper.json`` and
 ``hopper_error.json`` beside it.
+```
 """
 
 from __future__ import annotations

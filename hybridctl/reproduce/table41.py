@@ -14,9 +14,11 @@ for the lower/upper mesh dimension (after the first 200 steps) and 5 of the norm
 steps for the return. Table 4.4: failure rates (early termination) under the thesis'
 action noise, observation noise and push settings, identity vs lower mesh dimension.
 
+```text
 usage: python -m hybridctl.reproduce.table41 --train ENV SEED [--epochs 100 40] [--runs runs/ch4]
        python -m hybridctl.reproduce.table41 [--runs runs/ch4] [--robust-episodes 20]
        [--robust-steps 2000] [--workers 2] [--out results/ch4/results.json]
+```
 """
 
 from __future__ import annotations

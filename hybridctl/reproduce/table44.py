@@ -36,8 +36,10 @@ where it stopped, and a run with more seeds reuses the cells it shares with an e
 reused only for the same policy weights (a hash of ``model.pt`` and ``normalization.json``).
 ``--fresh`` ignores the cache.
 
+```text
 usage: python -m hybridctl.reproduce.table44 --seeds 1 2 3 4 [--env Walker2d-v5] [--episodes 25]
        [--grid-episodes 10] [--train-only] [--fresh]
+```
 """
 
 from __future__ import annotations

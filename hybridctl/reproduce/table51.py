@@ -15,11 +15,13 @@ one unpushed run, for each box size. A policy that does not hop (fewer than 4 ap
 steps) is recorded as such and gets no mesh. Training and meshes resume from their
 checkpoints under ``--work``; the record (``results/ch5/table51.json``) is rewritten after each step.
 
+```text
 usage: python -m hybridctl.reproduce.table51 --seeds 1 2 [--box-sizes 0.4 0.3 0.2]
        [--max-states 20000] [--epochs 100 40] [--out RECORD] [--merge RECORD ...]
 Two processes can share the work folder on different seeds with their own ``--out``; then
 ``python -m hybridctl.reproduce.table51 --merge A.json B.json`` copies their runs into the record and rewrites the summary
 (per-regime means and medians, per-seed sign tests against the thesis' claims, ``table51.png``).
+```
 """
 
 from __future__ import annotations

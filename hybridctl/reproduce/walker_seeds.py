@@ -13,8 +13,10 @@ clock, kept across resumes) and the 5-episode evaluation of ``eval.json``. A see
 evaluation episode ends early (1,000 steps) and the mean return reaches ``--min-return`` (2,000, the
 bar of ``table44``; standing still earns about 1,000).
 
+```text
 usage: python -m hybridctl.reproduce.walker_seeds [--train 150 --seeds 1 2 3]
        [--work results/ch4/walker_runs] [--out results/ch4/walker_seeds.json]
+```
 """
 
 from __future__ import annotations
