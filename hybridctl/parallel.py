@@ -202,53 +202,41 @@ class ProcessBackend(SerialBackend):
 
     def map(self, fn: Callable, tasks: Sequence) -> list:
         """Results of ``fn`` over ``tasks``, in task order."""
-        results: dict[int, Any] = {}
-        pending = list(range(len(tasks)))
+        results = dict(self._completed(fn, tasks))
+        return [results[i] for i in range(len(tasks))]
+
+    def imap_unordered(self, fn: Callable, tasks: Sequence) -> Iterator:
+        """``fn`` over ``tasks``, each result as soon as its task is done (completion order)."""
+        for _, result in self._completed(fn, tasks):
+            yield result
+
+    def _completed(self, fn: Callable, tasks: Sequence) -> Iterator[tuple[int, Any]]:
+        """(task index, result) as tasks finish. A worker that dies breaks the pool: what finished is
+        kept, the pool is rebuilt and the unfinished tasks run again, up to ``retries`` times."""
+        pending = set(range(len(tasks)))
         for attempt in range(self.retries + 1):
             pool = self._executor()
             futures = {}
             try:
                 # inside the try: a pool whose worker died since the last map breaks already at submit
-                for i in pending:
+                for i in sorted(pending):
                     futures[pool.submit(fn, tasks[i])] = i
                 for future in cf.as_completed(futures):
-                    results[futures[future]] = future.result()
-                break
+                    result = future.result()
+                    pending.discard(futures[future])
+                    yield futures[future], result
+                return
             except cf.process.BrokenProcessPool:
                 # a worker died: keep what finished, rebuild the pool, rerun the rest
                 for future, i in futures.items():
-                    if future.done() and not future.cancelled() and future.exception() is None:
-                        results[i] = future.result()
-                pending = [i for i in pending if i not in results]
+                    if i in pending and future.done() and not future.cancelled() and future.exception() is None:
+                        pending.discard(i)
+                        yield i, future.result()
                 self._pool.shutdown(wait=False, cancel_futures=True)
                 self._pool = None
                 if attempt == self.retries:
                     raise RuntimeError(f"rollout workers died {self.retries + 1} times; "
                                        f"{len(pending)} of {len(tasks)} tasks unfinished") from None
-        return [results[i] for i in range(len(tasks))]
-
-    def imap_unordered(self, fn: Callable, tasks: Sequence) -> Iterator:
-        """``fn`` over ``tasks``, each result as soon as its task is done (completion order). A worker
-        that dies breaks the pool: it is rebuilt and the tasks not yet yielded run again, up to
-        ``retries`` times, as in :meth:`map`."""
-        pending = list(range(len(tasks)))
-        for attempt in range(self.retries + 1):
-            pool = self._executor()
-            futures = {}
-            try:
-                for i in pending:
-                    futures[pool.submit(fn, tasks[i])] = i
-                for future in cf.as_completed(futures):
-                    result = future.result()
-                    pending.remove(futures[future])
-                    yield result
-                return
-            except cf.process.BrokenProcessPool:
-                self._pool.shutdown(wait=False, cancel_futures=True)
-                self._pool = None
-                if attempt == self.retries:
-                    raise RuntimeError(f"workers died {self.retries + 1} times; {len(pending)} of {len(tasks)} "
-                                       f"tasks unfinished") from None
 
     def close(self) -> None:
         """Shut the pool down."""
@@ -311,18 +299,20 @@ class RayBackend(SerialBackend):
         without a copy per task."""
         return self._ray.put(value)
 
-    def map(self, fn: Callable, tasks: Sequence) -> list:
-        """Results of ``fn`` over ``tasks`` as Ray tasks (each asking for ``task_resources``), in task
-        order; a task whose worker died is retried by Ray (``max_retries``)."""
+    def _submit(self, fn: Callable, tasks: Sequence) -> list:
+        """``fn`` over ``tasks`` as Ray tasks (each asking for ``task_resources``; a task whose worker
+        died is retried by Ray, ``max_retries``); their object references, in task order."""
         if fn not in self._remote:
             self._remote[fn] = self._ray.remote(max_retries=3, **self.task_resources)(fn)
-        return self._ray.get([self._remote[fn].remote(t) for t in tasks])
+        return [self._remote[fn].remote(t) for t in tasks]
+
+    def map(self, fn: Callable, tasks: Sequence) -> list:
+        """Results of ``fn`` over ``tasks`` as Ray tasks, in task order."""
+        return self._ray.get(self._submit(fn, tasks))
 
     def imap_unordered(self, fn: Callable, tasks: Sequence) -> Iterator:
         """``fn`` over ``tasks`` as Ray tasks, each result as soon as its task is done (``ray.wait``)."""
-        if fn not in self._remote:
-            self._remote[fn] = self._ray.remote(max_retries=3, **self.task_resources)(fn)
-        waiting = [self._remote[fn].remote(t) for t in tasks]
+        waiting = self._submit(fn, tasks)
         while waiting:
             done, waiting = self._ray.wait(waiting, num_returns=1)
             yield self._ray.get(done[0])
