@@ -51,9 +51,13 @@ EVAL_SEED = 12345
 
 @contextlib.contextmanager
 def seeded(seed: int) -> Iterator[None]:
-    """Run a block (network initialisation) on the global torch RNG seeded with ``seed``,
-    then put the global RNG back as it was: a learner's seed never leaks into the caller's."""
-    with torch.random.fork_rng(devices=[]):
+    """Run a block (network initialisation) on the global CPU torch RNG seeded with ``seed``,
+    then put the global RNG back as it was: a learner's seed never leaks into the caller's.
+
+    Tensors made inside without a device are made on the CPU whatever the default device:
+    initial weights come from the CPU generator, so one seed gives the same weights on every
+    device, and the learner moves them to its own (``.to(device)``)."""
+    with torch.random.fork_rng(devices=[]), torch.device("cpu"):
         torch.manual_seed(int(seed))
         yield
 
