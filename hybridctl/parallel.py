@@ -17,6 +17,10 @@ in task order, so the same seed gives the same result on every backend::
   (``address="ray://host:10001"`` or ``"auto"``). Needs the optional ``ray`` extra.
   A local instance is started on 127.0.0.1 without its dashboard, and its workers get
   this process's ``sys.path``; on a cluster, pass ``runtime_env`` to ship code.
+  What one task asks for (CPUs, GPUs, memory) and the runtime environment can also be set
+  for every Ray backend made inside a block, ``with ray_options(task_resources=...,
+  runtime_env=...):``, which is how the command line's ``--task-cpus``, ``--task-gpus``,
+  ``--task-memory`` and ``--runtime-env`` reach workloads that make their own backend.
 
 Simulator objects (Drake systems, MuJoCo models) do not pickle: tasks carry plain
 parameters, and workers build their simulators themselves (see :func:`cached_env`).
@@ -26,7 +30,10 @@ from __future__ import annotations
 
 import ast
 import concurrent.futures as cf
+import contextlib
+import contextvars
 import ctypes
+import json
 import multiprocessing as mp
 import os
 import signal
@@ -36,6 +43,13 @@ import time
 from typing import Any, Callable, Iterator, Sequence
 
 BACKENDS = ("serial", "processes", "ray")
+
+TASK_RESOURCE_KEYS = ("num_cpus", "num_gpus", "memory")
+"""What one Ray task may ask for (Ray's own names; ``memory`` in bytes)."""
+RUNTIME_ENV_KEYS = ("working_dir", "py_modules", "pip", "uv", "conda", "env_vars", "excludes", "image_uri", "config")
+"""The Ray runtime-environment fields accepted (Ray's own names); anything else is refused as a typo."""
+MAX_RUNTIME_ENV_BYTES = 64 * 1024
+"""A runtime environment is a few paths and package names; its JSON above this is refused."""
 
 _ENV_CACHE: dict[Any, Any] = {}
 
@@ -245,6 +259,57 @@ class ProcessBackend(SerialBackend):
             self._pool = None
 
 
+_RAY_OPTIONS: contextvars.ContextVar[dict] = contextvars.ContextVar("hybridctl_ray_options", default={})
+
+
+def check_task_resources(task_resources: dict | None) -> dict | None:
+    """``task_resources`` if it is None or a dict of :data:`TASK_RESOURCE_KEYS` to numbers >= 0
+    (``num_cpus``/``num_gpus`` may be fractions, ``memory`` is whole bytes); else ValueError naming the key."""
+    if task_resources is None:
+        return None
+    if not isinstance(task_resources, dict):
+        raise ValueError(f"task_resources must be a dict with keys from {TASK_RESOURCE_KEYS}, got {task_resources!r}")
+    for key, value in task_resources.items():
+        if key not in TASK_RESOURCE_KEYS:
+            raise ValueError(f"task_resources key {key!r} is not one of {TASK_RESOURCE_KEYS}")
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0 or value == float("inf"):
+            raise ValueError(f"task_resources[{key!r}] must be a finite number >= 0, got {value!r}")
+        if key == "memory" and int(value) != value:
+            raise ValueError(f"task_resources['memory'] is in bytes and must be whole, got {value!r}")
+    return dict(task_resources)
+
+
+def check_runtime_env(runtime_env: dict | None) -> dict | None:
+    """``runtime_env`` if it is None or a dict of :data:`RUNTIME_ENV_KEYS` whose JSON is at most
+    :data:`MAX_RUNTIME_ENV_BYTES`; else ValueError naming the key or the size."""
+    if runtime_env is None:
+        return None
+    if not isinstance(runtime_env, dict):
+        raise ValueError(f"runtime_env must be a dict (a JSON object) with keys from {RUNTIME_ENV_KEYS}, "
+                         f"got {type(runtime_env).__name__}")
+    for key in runtime_env:
+        if key not in RUNTIME_ENV_KEYS:
+            raise ValueError(f"runtime_env key {key!r} is not one of {RUNTIME_ENV_KEYS}")
+    size = len(json.dumps(runtime_env))
+    if size > MAX_RUNTIME_ENV_BYTES:
+        raise ValueError(f"runtime_env is {size:,} bytes of JSON; at most {MAX_RUNTIME_ENV_BYTES:,} are accepted")
+    return dict(runtime_env)
+
+
+@contextlib.contextmanager
+def ray_options(task_resources: dict | None = None, runtime_env: dict | None = None) -> Iterator[None]:
+    """Inside the block, every :class:`RayBackend` made without its own ``task_resources`` or
+    ``runtime_env`` uses these: the way to give resources to workloads that make their own
+    backend (meshes, balance maps, learners). Both are checked first (:func:`check_task_resources`,
+    :func:`check_runtime_env`); no effect on the serial and process backends."""
+    options = {"task_resources": check_task_resources(task_resources), "runtime_env": check_runtime_env(runtime_env)}
+    token = _RAY_OPTIONS.set({k: v for k, v in options.items() if v is not None})
+    try:
+        yield
+    finally:
+        _RAY_OPTIONS.reset(token)
+
+
 def ray_address(address: str | None = None) -> str | None:
     """The Ray cluster to join: ``address`` (``--address``), else the ``RAY_ADDRESS`` environment
     variable (as ``ray job submit`` and Ray's own tools set it), else None: a new local instance."""
@@ -265,6 +330,8 @@ class RayBackend(SerialBackend):
             user's specs and models to a cluster); a local instance's workers get this process's
             ``sys.path`` by default.
         task_resources: what one task asks for (``{"num_cpus": 1, "num_gpus": 0.5, "memory": 2**30}``).
+
+    ``runtime_env`` and ``task_resources`` left None take the enclosing :func:`ray_options`' values.
     """
 
     name = "ray"
@@ -278,13 +345,19 @@ class RayBackend(SerialBackend):
                               "pip install -c constraints.txt -e '.[ray]')") from exc
         if workers is not None and (not isinstance(workers, int) or isinstance(workers, bool) or workers < 1):
             raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
+        defaults = _RAY_OPTIONS.get()
+        runtime_env = check_runtime_env(runtime_env if runtime_env is not None else defaults.get("runtime_env"))
+        task_resources = check_task_resources(task_resources if task_resources is not None
+                                              else defaults.get("task_resources"))
         self._ray = ray
         self._started_here = not ray.is_initialized()
         address = ray_address(address)
         if self._started_here:
             if address is None:
                 # a new local instance on loopback only; workers import what this process imports
-                env = runtime_env or {"env_vars": {"PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}}
+                # (a user's runtime_env is kept, with this PYTHONPATH added unless it sets its own)
+                env = dict(runtime_env or {})
+                env["env_vars"] = {"PYTHONPATH": os.pathsep.join(p for p in sys.path if p), **env.get("env_vars", {})}
                 ray.init(address="local", num_cpus=workers, include_dashboard=False, log_to_driver=False,
                          _node_ip_address="127.0.0.1", runtime_env=env)
             else:
@@ -292,6 +365,9 @@ class RayBackend(SerialBackend):
         cluster_cpus = max(1, int(ray.cluster_resources().get("CPU", 1)))
         self.workers = workers or cluster_cpus
         self.task_resources = dict(task_resources or {})
+        if runtime_env is not None and not self._started_here:
+            # Ray was started before (a notebook's ray.init): the env goes with each task instead
+            self.task_resources["runtime_env"] = runtime_env
         self._remote: dict[Callable, Any] = {}
 
     def put(self, value: Any) -> Any:

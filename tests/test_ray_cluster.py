@@ -88,3 +88,79 @@ def test_ray_only_settings_with_a_local_backend_are_refused():
     with pytest.raises(ValueError, match=r"task_resources \{'num_gpus': 1\} \(--task-resources\) applies to "
                                          r"backend 'ray' only, not 'processes'"):
         make_backend("processes", task_resources={"num_gpus": 1})
+
+
+def _task_view(_):
+    """What a Ray task sees: its assigned resources and one env var (module level: Ray ships it by name)."""
+    import ray
+    return ray.get_runtime_context().get_assigned_resources(), os.environ.get("HYBRIDCTL_PROBE")
+
+
+@pytest.mark.xdist_group("ray")
+def test_ray_options_reach_every_task_of_a_backend_made_inside(local_ray):
+    """``ray_options`` (the CLI's --task-cpus/--task-gpus/--task-memory/--runtime-env) sets what each task
+    of a Ray backend made inside asks for and its env, also when Ray was started before (per task)."""
+    from hybridctl.parallel import make_backend, ray_options
+    with ray_options(task_resources={"num_cpus": 2}, runtime_env={"env_vars": {"HYBRIDCTL_PROBE": "yes"}}):
+        backend = make_backend("ray")
+    resources, probe = backend.map(_task_view, [0])[0]
+    assert resources.get("CPU") == 2 and probe == "yes"
+    plain = make_backend("ray")                      # outside the block: Ray's defaults
+    resources, probe = plain.map(_task_view, [0])[0]
+    assert resources.get("CPU") == 1 and probe is None
+
+
+def test_ray_options_are_checked_first():
+    from hybridctl.parallel import ray_options
+    with pytest.raises(ValueError, match="task_resources key 'gpus'"):
+        with ray_options(task_resources={"gpus": 1}):
+            pass
+    with pytest.raises(ValueError, match=r"task_resources\['num_cpus'\] must be a finite number >= 0"):
+        with ray_options(task_resources={"num_cpus": -1}):
+            pass
+    with pytest.raises(ValueError, match="runtime_env key 'pip_packages'"):
+        with ray_options(runtime_env={"pip_packages": ["x"]}):
+            pass
+
+
+def test_cli_ray_task_flags(tmp_path):
+    """The shared flags: refused without --backend ray, values checked, a file read within its limit."""
+    import argparse
+    from hybridctl.cli._common import add_backend_flags, check_backend_flags, ray_task_options
+    parser = argparse.ArgumentParser()
+    add_backend_flags(parser, "serial", "work")
+    parser.add_argument("--force", action="store_true")
+    args = parser.parse_args(["--task-gpus", "0.5"])
+    with pytest.raises(ValueError, match="--task-gpus applies to --backend ray only, not 'serial'"):
+        check_backend_flags(args)
+    env_file = tmp_path / "env.json"
+    env_file.write_text('{"working_dir": "."}')
+    args = parser.parse_args(["--backend", "ray", "--task-cpus", "2", "--task-memory", "0.5",
+                              "--runtime-env", str(env_file)])
+    check_backend_flags(args)
+    assert ray_task_options(args) == {"task_resources": {"num_cpus": 2.0, "memory": 2**29},
+                                      "runtime_env": {"working_dir": "."}}
+    env_file.write_text(" " * (64 * 1024 + 1))
+    with pytest.raises(ValueError, match="at most 65,536 bytes"):
+        check_backend_flags(parser.parse_args(["--backend", "ray", "--runtime-env", str(env_file)]))
+    with pytest.raises(ValueError, match="not valid JSON"):
+        check_backend_flags(parser.parse_args(["--backend", "ray", "--runtime-env", "{nope"]))
+
+
+def test_train_cli_gives_ray_task_flags_to_the_learners_backends(monkeypatch, tmp_path):
+    """``hybridctl train ars ... --backend ray --task-cpus 2 --runtime-env JSON``: the learner's backends
+    are made inside ray_options with those values (seen from a stand-in for the training driver)."""
+    from hybridctl import parallel
+    from hybridctl.cli import main, train as train_cli
+    seen = {}
+
+    def fake_train(*args, **kwargs):
+        seen.update(parallel._RAY_OPTIONS.get())
+        raise ValueError("stop here")
+    monkeypatch.setattr(train_cli, "train_and_evaluate", fake_train)
+    with pytest.raises(SystemExit, match="stop here"):
+        main(["train", "ars", "Pendulum-v1", "--backend", "ray", "--task-cpus", "2", "--task-gpus", "0.25",
+              "--runtime-env", '{"env_vars": {"A": "1"}}', "--out", str(tmp_path / "run")])
+    assert seen == {"task_resources": {"num_cpus": 2.0, "num_gpus": 0.25}, "runtime_env": {"env_vars": {"A": "1"}}}
+    with pytest.raises(SystemExit, match="--task-gpus applies to --backend ray only, not 'processes'"):
+        main(["train", "ars", "Pendulum-v1", "--task-gpus", "1", "--out", str(tmp_path / "r2")])

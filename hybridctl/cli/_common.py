@@ -11,8 +11,10 @@ from __future__ import annotations
 
 import argparse
 import functools
+import json
 import math
 import sys
+from pathlib import Path
 from typing import Callable
 
 import gymnasium
@@ -230,12 +232,78 @@ def add_backend_flags(parser: argparse.ArgumentParser, default: str, what: str) 
     parser.add_argument("--address", default=None,
                         help="Ray cluster to join with --backend ray (host:6379, ray://host:10001, auto; "
                              "default: $RAY_ADDRESS, else a new local instance)")
+    add_ray_task_flags(parser)
+
+
+def add_ray_task_flags(parser: argparse.ArgumentParser) -> None:
+    """``--task-cpus``, ``--task-gpus``, ``--task-memory`` and ``--runtime-env``: what one Ray task asks
+    for and the environment Ray builds for the tasks (with ``--backend ray`` only)."""
+    group = parser.add_argument_group("Ray tasks (with --backend ray)")
+    group.add_argument("--task-cpus", type=positive(float), metavar="N",
+                       help="CPUs one Ray task asks for (Ray's num_cpus; default 1)")
+    group.add_argument("--task-gpus", type=non_negative(float), metavar="N",
+                       help="GPUs one Ray task asks for (Ray's num_gpus, fractions share a GPU; default 0)")
+    group.add_argument("--task-memory", type=positive(float), metavar="GIB",
+                       help="memory one Ray task reserves, in GiB (Ray's memory; default none reserved)")
+    group.add_argument("--runtime-env", metavar="JSON|FILE.json",
+                       help="Ray runtime environment of the tasks, a JSON object or a .json file of one (at most "
+                            "64 KiB), e.g. '{\"working_dir\": \".\"}' to ship this folder's specs and models to "
+                            "a cluster; keys: working_dir, py_modules, pip, uv, conda, env_vars, excludes, "
+                            "image_uri, config")
+
+
+def ray_task_options(args: argparse.Namespace) -> dict:
+    """``task_resources`` and ``runtime_env`` (each None when not given) from :func:`add_ray_task_flags`'
+    flags, for :func:`hybridctl.parallel.ray_options`; ValueError naming the flag for a bad value."""
+    from ..parallel import MAX_RUNTIME_ENV_BYTES, check_runtime_env
+
+    resources = {key: value for key, value in (
+        ("num_cpus", getattr(args, "task_cpus", None)), ("num_gpus", getattr(args, "task_gpus", None)),
+        ("memory", None if getattr(args, "task_memory", None) is None else int(args.task_memory * 2**30)))
+        if value is not None}
+    text, runtime_env = getattr(args, "runtime_env", None), None
+    if text is not None:
+        if not text.lstrip().startswith("{"):       # a file name
+            path = Path(text)
+            if not path.is_file():
+                raise ValueError(f"--runtime-env {text}: neither a JSON object nor an existing .json file")
+            size = path.stat().st_size
+            if size > MAX_RUNTIME_ENV_BYTES:
+                raise ValueError(f"--runtime-env {text}: at most {MAX_RUNTIME_ENV_BYTES:,} bytes, this file has {size:,}")
+            text = path.read_text(encoding="utf-8", errors="replace")
+        try:
+            runtime_env = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"--runtime-env is not valid JSON: {exc}") from None
+        try:
+            check_runtime_env(runtime_env)
+        except ValueError as exc:
+            raise ValueError(f"--runtime-env: {exc}") from None
+    return {"task_resources": resources or None, "runtime_env": runtime_env}
+
+
+def ray_options_for(args: argparse.Namespace):
+    """The context (:func:`hybridctl.parallel.ray_options`) in which a command's workloads make their
+    Ray backends with the ``--task-*`` and ``--runtime-env`` flags' values."""
+    from ..parallel import ray_options
+
+    return ray_options(**ray_task_options(args))
 
 
 def check_backend_flags(args: argparse.Namespace) -> None:
     """Refuse ``--address`` without ``--backend ray`` and local ``--workers`` above the cores (``--force``)."""
     if args.address is not None and args.backend != "ray":
         raise ValueError(f"--address {args.address} applies to --backend ray only, not {args.backend!r}")
+    check_ray_task_flags(args, args.backend)
     if args.workers is not None and args.backend != "ray":  # Ray workers are not bound by local cores
         limits.check_at_most("--workers", args.workers, limits.cpu_count(), args.force,
                              why="cores this process may use")
+
+
+def check_ray_task_flags(args: argparse.Namespace, backend: str) -> None:
+    """Refuse ``--task-cpus``/``--task-gpus``/``--task-memory``/``--runtime-env`` unless ``backend`` is
+    "ray" (they would be ignored), and check their values (:func:`ray_task_options`)."""
+    for flag in ("task_cpus", "task_gpus", "task_memory", "runtime_env"):
+        if getattr(args, flag, None) is not None and backend != "ray":
+            raise ValueError(f"--{flag.replace('_', '-')} applies to --backend ray only, not {backend!r}")
+    ray_task_options(args)

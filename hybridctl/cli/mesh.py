@@ -7,7 +7,7 @@ import argparse
 from ..experiments import MESH_MAPS, mesh_report
 from ..analysis.reachable import check_disturbances
 from ..limits import MAX_MONTE_CARLO, check_at_most
-from ._common import (non_negative, USAGE_ERROR, add_backend_flags, add_debug_flag, check_backend_flags, add_force_flag, add_quiet_flag, cli_errors, finite,
+from ._common import (non_negative, USAGE_ERROR, add_backend_flags, add_debug_flag, ray_options_for, check_backend_flags, add_force_flag, add_quiet_flag, cli_errors, finite,
                       limits_epilog, positive)
 
 
@@ -65,16 +65,22 @@ def check_mesh_arguments(args: argparse.Namespace) -> None:
 def run_mesh(args: argparse.Namespace) -> int:
     """Build the mesh and write the MFPT report and figures; exit 2 when the mesh hit --max-states."""
     check_mesh_arguments(args)
-    report = mesh_report(args.map, args.out, box_size=args.box_size, slope_mean=args.slope_mean,
-                         slope_std=args.slope_std, disturbances=args.disturbances, max_states=args.max_states,
-                         monte_carlo=args.monte_carlo, sizes=args.sizes, backend=args.backend,
-                         workers=args.workers, resume=args.resume, progress=not args.quiet,
-                         command=args.command_line, overwrite=args.overwrite,
-                         checkpoint_every=args.checkpoint_every, checkpoint_minutes=args.checkpoint_minutes,
-                         address=args.address)
+    with ray_options_for(args):   # --task-cpus/--task-gpus/--task-memory/--runtime-env for the Ray tasks
+        report = _mesh_report(args)
     if "error" in report:
         print(report["error"])
         return USAGE_ERROR
     print(result_line(report))
     print(f"wrote {args.out}/mfpt.json, transition_matrix.npz, mesh.npz (ReachableMesh.load) and figures")
     return 0
+
+
+def _mesh_report(args: argparse.Namespace) -> dict:
+    """:func:`mesh_report` with the command's flags."""
+    return mesh_report(args.map, args.out, box_size=args.box_size, slope_mean=args.slope_mean,
+                       slope_std=args.slope_std, disturbances=args.disturbances, max_states=args.max_states,
+                       monte_carlo=args.monte_carlo, sizes=args.sizes, backend=args.backend,
+                       workers=args.workers, resume=args.resume, progress=not args.quiet,
+                       command=args.command_line, overwrite=args.overwrite,
+                       checkpoint_every=args.checkpoint_every, checkpoint_minutes=args.checkpoint_minutes,
+                       address=args.address)

@@ -29,7 +29,8 @@ from ..systems.spec import CH7_REWARD_KINDS
 from ..learn.sac import OBS_TRANSFORMS
 from ..learn.ssac import REWARDS
 from ..parallel import BACKENDS
-from ._common import add_system_argument, CommandParser, add_debug_flag, add_quiet_flag, cli_errors, positive
+from ._common import (CommandParser, add_debug_flag, add_quiet_flag, add_ray_task_flags, add_system_argument,
+                      check_ray_task_flags, cli_errors, positive, ray_options_for)
 
 CHOICES = {"obs_transform": OBS_TRANSFORMS, "reward": REWARDS, "gate_class_weight_from": ("warm", "all"),
            "postprocess": POSTPROCESS_KINDS, "postprocess_form": POSTPROCESS_FORMS, "backend": BACKENDS,
@@ -328,7 +329,11 @@ def add_common_flags(parser: argparse.ArgumentParser, algorithm: str) -> set[str
             "thesis trains 750 identity epochs, then 250 with post-processing)"))
     add_quiet_flag(run)
     add_debug_flag(run)
-    return {s for action in actions for s in action.option_strings}
+    options = {s for action in actions for s in action.option_strings}
+    if ALGORITHMS[algorithm].uses_backend:   # its rollouts or population members run on a backend
+        add_ray_task_flags(parser)
+        options |= {"--task-cpus", "--task-gpus", "--task-memory", "--runtime-env"}
+    return options
 
 
 def add_parser(sub) -> None:
@@ -377,12 +382,17 @@ def resume_help(algorithm: str) -> str:
 @cli_errors
 def run_train(args: argparse.Namespace) -> int:
     """Train, checkpoint, evaluate and print the evaluation (exit 3 when training diverged)."""
-    run = train_and_evaluate(args.algorithm, args.system, out=args.out, settings=config_settings(args),
-                             variant=getattr(args, "preset", None) or getattr(args, "variant", None),
-                             resume=args.resume,
-                             init=getattr(args, "init", None), eval_episodes=args.eval_episodes,
-                             progress=not args.quiet, command=args.command_line, force=args.force,
-                             overwrite=args.overwrite, spec=parse_spec_pairs(getattr(args, "spec", None)))
+    settings = config_settings(args)
+    if ALGORITHMS[args.algorithm].uses_backend:
+        backend = settings.get("backend", ALGORITHMS[args.algorithm].config_class.backend)
+        check_ray_task_flags(args, backend)
+    with ray_options_for(args):   # --task-cpus/--task-gpus/--task-memory/--runtime-env (none: Ray's defaults)
+        run = train_and_evaluate(args.algorithm, args.system, out=args.out, settings=settings,
+                                 variant=getattr(args, "preset", None) or getattr(args, "variant", None),
+                                 resume=args.resume,
+                                 init=getattr(args, "init", None), eval_episodes=args.eval_episodes,
+                                 progress=not args.quiet, command=args.command_line, force=args.force,
+                                 overwrite=args.overwrite, spec=parse_spec_pairs(getattr(args, "spec", None)))
     result, out = run.evaluation, run.out
     if args.algorithm in APG_METHODS:
         print(f"return of the {result['which']} policy over {result['episodes']} held-out starts: "
