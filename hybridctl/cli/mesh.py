@@ -23,6 +23,9 @@ def add_parser(sub) -> None:
     p.add_argument("--max-states", type=positive(int), default=1_000_000, help="cap on mesh states")
     p.add_argument("--monte-carlo", type=non_negative(int), default=0, metavar="EPISODES",
                    help="also estimate the MFPT by Monte Carlo on the true map")
+    p.add_argument("--monte-carlo-chunks", type=positive(int), default=1, metavar="N",
+                   help="groups the Monte Carlo episodes run in, one task each with its own random stream (the "
+                        "estimate depends on N, not on the backend; N >= --workers fills the workers; default 1)")
     p.add_argument("--sizes", type=positive(float), nargs="*", help="also mesh at these box sizes (Table 5.1)")
     add_backend_flags(p, "serial", "section-map steps of the mesh")
     p.add_argument("--resume", action="store_true", help="continue from out/mesh_checkpoint.npz")
@@ -58,6 +61,9 @@ def check_mesh_arguments(args: argparse.Namespace) -> None:
     processes above the cores."""
     check_disturbances(args.disturbances, args.max_states, force=args.force)
     check_at_most("--monte-carlo", args.monte_carlo, MAX_MONTE_CARLO, args.force, why="episodes")
+    if args.monte_carlo and args.monte_carlo_chunks > args.monte_carlo:
+        raise ValueError(f"--monte-carlo-chunks must be in [1, --monte-carlo={args.monte_carlo}], "
+                         f"got {args.monte_carlo_chunks}")
     check_backend_flags(args)
 
 
@@ -83,4 +89,4 @@ def _mesh_report(args: argparse.Namespace) -> dict:
                        workers=args.workers, resume=args.resume, progress=not args.quiet,
                        command=args.command_line, overwrite=args.overwrite,
                        checkpoint_every=args.checkpoint_every, checkpoint_minutes=args.checkpoint_minutes,
-                       address=args.address)
+                       address=args.address, monte_carlo_chunks=args.monte_carlo_chunks)

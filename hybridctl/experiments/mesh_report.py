@@ -40,7 +40,8 @@ def mesh_report(map_name: str = "rimless-wheel", out: str | Path = "runs/mesh", 
                 max_states: int = 1_000_000, monte_carlo: int = 0, sizes: Sequence[float] | None = None,
                 backend: str = "serial", workers: int | None = None, resume: bool = False,
                 progress: bool = True, command: str | None = None, overwrite: bool = False,
-                checkpoint_every: int = 20, checkpoint_minutes: float = 5.0, address: str | None = None) -> dict:
+                checkpoint_every: int = 20, checkpoint_minutes: float = 5.0, address: str | None = None,
+                monte_carlo_chunks: int = 1) -> dict:
     """Mesh the states a map reaches from its rolling gait under Gaussian slopes; write the report.
 
     Seeds the mesh with the wheel's fixed point at ``slope_mean``; the mesh uses ``disturbances``
@@ -52,6 +53,9 @@ def mesh_report(map_name: str = "rimless-wheel", out: str | Path = "runs/mesh", 
     Args:
         monte_carlo: episodes of a Monte Carlo MFPT estimate on the true map (0: none), with
             continuous slopes and with the mesh's slope set.
+        monte_carlo_chunks: groups the Monte Carlo episodes are split into, each a task on
+            ``backend`` with its own random stream: the estimate depends on it (not on the backend),
+            so it is a setting of its own; at least the worker count fills the workers (default 1).
         sizes: further box sizes to mesh at (thesis Table 5.1); two complete ones give
             ``reachable_dimension``.
         resume: continue the mesh from ``out/mesh_checkpoint.npz``.
@@ -61,7 +65,8 @@ def mesh_report(map_name: str = "rimless-wheel", out: str | Path = "runs/mesh", 
             another run holds locked (naming its pid).
         checkpoint_every, checkpoint_minutes: the mesh checkpoint's cadence in batches and in
             minutes of wall time (at least every 5 minutes by default; 0: by batches only).
-        backend, workers, address: where the mesh's batches and the Monte Carlo chunks run
+        backend, workers, address: where the mesh's batches, the Monte Carlo chunks and the meshes of
+            ``sizes`` run
             (:func:`hybridctl.parallel.make_backend`; ``address``: a Ray cluster, default ``RAY_ADDRESS``).
 
     Returns:
@@ -80,14 +85,14 @@ def mesh_report(map_name: str = "rimless-wheel", out: str | Path = "runs/mesh", 
         folder.clear()   # --overwrite: the mesh reads no input files
         return _mesh_report_in(folder.path, map_name, section_map, slopes, seed, box_size, slope_mean, slope_std,
                                disturbances, max_states, monte_carlo, sizes, backend, workers, resume, progress,
-                               command, checkpoint_every, checkpoint_minutes, address)
+                               command, checkpoint_every, checkpoint_minutes, address, monte_carlo_chunks)
 
 
 def _mesh_report_in(out: Path, map_name: str, section_map, slopes, seed: float, box_size: float, slope_mean: float,
                     slope_std: float, disturbances: int, max_states: int, monte_carlo: int,
                     sizes: Sequence[float] | None, backend: str, workers: int | None, resume: bool, progress: bool,
                     command: str | None, checkpoint_every: int, checkpoint_minutes: float,
-                    address: str | None = None) -> dict:
+                    address: str | None = None, monte_carlo_chunks: int = 1) -> dict:
     """The body of :func:`mesh_report` in its locked run folder ``out``."""
     mesh = build_mesh(section_map, [[seed]], slopes, box_size, max_states=max_states, backend=backend,
                       workers=workers, address=address, checkpoint=out / "mesh_checkpoint.npz", resume=resume, progress=progress,
@@ -104,15 +109,19 @@ def _mesh_report_in(out: Path, map_name: str, section_map, slopes, seed: float, 
     mesh.save(out / "mesh.npz")
     result = mesh.mfpt()
     report["mfpt"] = {**result.report(), "from_seed": result.mean(mesh.seed_distribution())}
+    where = {"backend": backend, "workers": workers, "address": address}
     if monte_carlo:
-        continuous = monte_carlo_mfpt(section_map, [[seed]], slopes, episodes=monte_carlo, seed=0)
-        same = monte_carlo_mfpt(section_map, [[seed]], slopes.finite_set(), episodes=monte_carlo, seed=0)
+        continuous = monte_carlo_mfpt(section_map, [[seed]], slopes, episodes=monte_carlo, seed=0,
+                                      chunks=monte_carlo_chunks, **where)
+        same = monte_carlo_mfpt(section_map, [[seed]], slopes.finite_set(), episodes=monte_carlo, seed=0,
+                                chunks=monte_carlo_chunks, **where)
         report["monte_carlo"] = {"continuous_disturbance": continuous.summary(), "mesh_disturbance_set": same.summary()}
     viz.plot_transition_sparsity(T, path=out / "sparsity.png")
     viz.plot_cumulative_mass(T, path=out / "cumulative_mass.png")
     viz.plot_mesh_states(mesh, path=out / "states.png")
     if sizes:
-        rows = mesh_sizes(section_map, [[seed]], slopes, sorted(set(sizes) | {box_size}), max_states=max_states)
+        rows = mesh_sizes(section_map, [[seed]], slopes, sorted(set(sizes) | {box_size}), max_states=max_states,
+                          **where)
         report["mesh_sizes"] = rows
         if sum(r["complete"] for r in rows) >= 2:
             report["reachable_dimension"] = reachable_dimension(rows)

@@ -1,0 +1,39 @@
+"""``hybridctl mesh``'s Monte Carlo chunks and its extra mesh sizes run on the chosen backend, with the
+same numbers as in this process (before: only the main mesh used --backend; Monte Carlo and the sizes
+ran serially whatever the flags said)."""
+
+import json
+
+from hybridctl.analysis import reachable
+from hybridctl.cli import main
+from hybridctl.experiments.mesh_report import mesh_report
+
+
+def test_monte_carlo_and_sizes_use_the_backend_and_give_the_same_numbers(tmp_path, monkeypatch):
+    made = []
+    real = reachable.make_backend
+
+    def counting(name, *args, **kwargs):
+        made.append(name)
+        return real(name, *args, **kwargs)
+
+    settings = dict(box_size=0.05, monte_carlo=60, monte_carlo_chunks=3, sizes=[0.1], progress=False)
+    serial = mesh_report("rimless-wheel", tmp_path / "serial", backend="serial", **settings)
+    monkeypatch.setattr(reachable, "make_backend", counting)
+    pooled = mesh_report("rimless-wheel", tmp_path / "pooled", backend="processes", workers=2, **settings)
+    # the mesh, two Monte Carlo estimates and two meshes of the sizes (0.05 and 0.1): all on the pool
+    assert made == ["processes"] * 5
+    def numbers(value):    # times left out
+        if isinstance(value, dict):
+            return {k: numbers(v) for k, v in value.items() if "wall_time" not in k and k != "seconds"}
+        return [numbers(v) for v in value] if isinstance(value, list) else value
+    for key in ("monte_carlo", "mesh_sizes", "mfpt"):
+        assert json.dumps(numbers(pooled[key]), sort_keys=True) == json.dumps(numbers(serial[key]), sort_keys=True), key
+    assert pooled["monte_carlo"]["continuous_disturbance"]["episodes"] == 60
+
+
+def test_monte_carlo_chunks_flag_is_checked(tmp_path, capsys):
+    import pytest
+    with pytest.raises(SystemExit):
+        main(["mesh", "rimless-wheel", "--monte-carlo", "4", "--monte-carlo-chunks", "5", "--out", str(tmp_path)])
+    assert "--monte-carlo-chunks must be in [1, --monte-carlo=4], got 5" in capsys.readouterr().err
