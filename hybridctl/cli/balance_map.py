@@ -21,10 +21,15 @@ def add_parser(sub) -> None:
     p.add_argument("--controller", default="energy", help=controller_help())
     p.add_argument("--grid", type=positive(int), default=41, help="grid points per axis (default 41, thesis)")
     p.add_argument("--duration", type=positive(float), help="seconds per run (default: the spec's episode)")
-    add_backend_flags(p, "processes", "the drake engine's runs")
+    # the default backend depends on --engine: None here, chosen in run_balance_map (the text is the help's)
+    add_backend_flags(p, "processes for --engine drake, serial for --engine torch", "the grid's simulation")
+    p.set_defaults(backend=None)
     p.add_argument("--engine", choices=ENGINES, default="drake",
-                   help="drake: the Drake diagram, one run per start in worker processes (default); torch: every "
-                        "start at once as one batch of the switched controller in torch (seconds)")
+                   help="drake: the Drake diagram, one run per start (default); torch: batched rollouts of the "
+                        "switched controller in torch, every start as one batch (seconds), or with --backend "
+                        "processes/ray one chunk of the grid per worker, each chunk one batch (the same map)")
+    p.add_argument("--device", help="torch device of the torch engine's rollouts (cpu, cuda, cuda:0; default cpu); "
+                                    "refused for --engine drake")
     p.add_argument("--out", default="runs/balance_map", help="output folder")
     add_force_flag(p)
     add_quiet_flag(p)
@@ -36,16 +41,18 @@ def add_parser(sub) -> None:
 def run_balance_map(args: argparse.Namespace) -> int:
     """Simulate every grid start, write balance_map.png and balance_map.json, print the fraction."""
     system = load(args.system)
+    if args.backend is None:     # the engine's default: Drake runs in worker processes, torch as one batch here
+        args.backend = "serial" if args.engine == "torch" else "processes"
     check_backend_flags(args)
     check_balance_map(system, args.grid, args.duration, args.engine, args.workers if args.backend != "ray" else None,
-                      args.force)  # before --out is made
+                      args.force, args.device)  # before --out is made
     io.output_folder(args.out)  # a file at --out fails here, not after the simulations
     result = balance_map(system, args.controller, grid=args.grid, duration=args.duration,
                          workers=args.workers, progress=not args.quiet, engine=args.engine, force=args.force,
-                         backend=args.backend, address=args.address)
+                         backend=args.backend, address=args.address, device=args.device)
     result.meta["command"] = args.command_line
     summary = result.save(args.out)
     print(f"balanced_fraction: {summary['balanced_fraction']:.4f} "
-          f"({summary['balanced_count']}/{args.grid * args.grid}), wall {result.wall_time:.1f} s ({args.engine})")
+          f"({summary['balanced_count']}/{args.grid * args.grid}), wall {result.wall_time:.1f} s ({args.engine}, {args.backend})")
     print(f"wrote {args.out}/balance_map.png, balance_map.json")
     return 0

@@ -2,11 +2,13 @@
 
 Two engines simulate the same named controller (:mod:`.controllers`) from every grid start:
 
-- ``"drake"``: the Drake diagram, in local worker processes; each builds its diagram once
-  and resets one Simulator for every start.
-- ``"torch"``: every start at once as one batch of the switched controller in torch
+- ``"drake"``: the Drake diagram, one run per start on a parallel backend (serial, local
+  processes or Ray); each worker builds its diagram once and resets one Simulator for every start.
+- ``"torch"``: the starts as batches of the switched controller in torch on one ``device``
   (:func:`torch_rollouts`: the policy, the gate with hysteresis, the LQR and the saturation of
-  :class:`hybridctl.envs.SwitchedVectorEnv`, the dynamics of ``System.step_unchecked``).
+  :class:`hybridctl.envs.SwitchedVectorEnv`, the dynamics of ``System.step_unchecked``): every start
+  as one batch in this process (serial), or the grid split into one chunk per worker of a parallel
+  backend, each chunk one batch; the map is the same cell for cell.
 
 Both judge a start by the same test: :func:`hybridctl.systems.success.is_balanced` on the
 states at the swing-up decision times (thesis eq. 3.2), False for a diverged run.
@@ -30,6 +32,8 @@ from .. import io
 from ..drake import energy_swingup, simulate
 from ..drake.simulate import check_duration
 from ..envs import SwitchedVectorEnv
+from ..envs.switched import switched_decision
+from ..learn.sac import check_device_available
 from ..limits import MAX_GRID, MAX_TOTAL_STEPS, check_at_most, check_fits_memory, cpu_count
 from ..parallel import BACKENDS, make_backend
 from ..systems import System, control, load
@@ -147,15 +151,38 @@ TORCH_BYTES_PER_VALUE = 3 * 8
 copy and the decision-rate states cut from it."""
 
 
+def check_device(engine: str, device: str | torch.device | None) -> torch.device | None:
+    """The torch engine's device as a ``torch.device`` (None: no device was asked for).
+
+    Refuses (ValueError, one line naming ``--device``): a device with the drake engine (Drake
+    simulates on the CPU), a name torch does not know, and a CUDA device this machine lacks
+    (:func:`hybridctl.learn.sac.check_device_available`).
+    """
+    if device is None:
+        return None
+    if engine != "torch":
+        raise ValueError(f"--device {device} applies to --engine torch only (the {engine} engine simulates on the CPU)")
+    try:
+        device = torch.device(device)
+    except (RuntimeError, TypeError):
+        raise ValueError(f"--device {device!r} is not a torch device (e.g. cpu, cuda, cuda:0)") from None
+    check_device_available("--device", device)
+    return device
+
+
 def check_balance_map(system: System, grid: int, duration: float | None, engine: str = "drake",
-                      workers: int | None = None, force: bool = False) -> tuple[float, int | None]:
+                      workers: int | None = None, force: bool = False,
+                      device: str | torch.device | None = None) -> tuple[float, int | None]:
     """Check a balance map's size before any work; returns (duration, workers) as they will be used.
 
     Refuses (one line naming the flag and its limit): a grid outside [2, MAX_GRID], a duration as
     :func:`hybridctl.drake.simulate.check_duration` does, more than MAX_TOTAL_STEPS time steps of
     all runs together, local ``workers`` above the cores this process may use (``force`` lifts
-    these), and batched arrays of the torch engine beyond the memory budget (nothing lifts that).
+    these; both engines), batched arrays of the torch engine beyond the memory budget (nothing
+    lifts that; checked for the whole grid, as local workers hold their chunks at once), and a
+    ``device`` as :func:`check_device` does.
     """
+    check_device(engine, device)
     if not (isinstance(grid, (int, np.integer)) and grid >= 2):
         raise ValueError(f"--grid must be >= 2 (an integer), got {grid!r}")
     check_at_most("--grid", int(grid), MAX_GRID, force, why="points per axis")
@@ -169,7 +196,7 @@ def check_balance_map(system: System, grid: int, duration: float | None, engine:
         decisions = duration / min(system.control_period, system.swingup_period) + 1
         check_fits_memory("--grid and --duration", runs * decisions * system.n_states * TORCH_BYTES_PER_VALUE,
                           "the torch engine's batched states")
-    elif workers is not None:
+    if workers is not None:
         check_at_most("--workers", int(workers), cpu_count(), force, why="cores this process may use")
     return duration, workers
 
@@ -194,22 +221,30 @@ class _ConstantGate(torch.nn.Module):
         self.value = float(value)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return torch.full((*x.shape[:-1], 1), self.value, dtype=x.dtype)
+        """The constant probability for every row of ``x`` (..., n), on ``x``'s device and dtype: (..., 1)."""
+        return torch.full((*x.shape[:-1], 1), self.value, dtype=x.dtype, device=x.device)
 
 
-def _torch_swingup(system: System, swingup, period: float | None):
-    """(policy(x [N, n], h) -> (u [N, m], h), initial h(N), period) for a ControllerParts swing-up,
-    with the periods :func:`hybridctl.drake.build_hybrid_diagram` gives its blocks."""
+def _parameter_dtype(module, default: torch.dtype) -> torch.dtype:
+    """The dtype of ``module``'s first parameter (what it computes in), else ``default``."""
+    for tensor in getattr(module, "parameters", lambda: [])():
+        return tensor.dtype
+    return default
+
+
+def _torch_swingup(system: System, swingup, period: float | None, device: torch.device):
+    """(policy(x [N, n], h) -> (u [N, m], h), initial h(N), period) for a ControllerParts swing-up on
+    ``device`` (a learned module is moved there), with the periods
+    :func:`hybridctl.drake.build_hybrid_diagram` gives its blocks."""
     if swingup is None:
         law = energy_swingup(system)
         return (lambda x, h: (law(x), h)), (lambda n: None), period or system.control_period
     if isinstance(swingup, str) and swingup == "zero":
-        return ((lambda x, h: (torch.zeros(len(x), system.n_actions, dtype=x.dtype), h)), (lambda n: None),
-                period or system.control_period)
+        return ((lambda x, h: (torch.zeros(len(x), system.n_actions, dtype=x.dtype, device=x.device), h)),
+                (lambda n: None), period or system.control_period)
     if isinstance(swingup, torch.nn.Module):
-        module = swingup.eval()
-        params = list(module.parameters())
-        dtype = params[0].dtype if params else torch.float64
+        module = swingup.to(device).eval()
+        dtype = _parameter_dtype(module, torch.float64)
         if hasattr(module, "initial_state"):       # recurrent (APG's GRU), as RecurrentTorchPolicy
             def recurrent(x, h):
                 u, h = module(x.to(dtype), h)
@@ -219,15 +254,38 @@ def _torch_swingup(system: System, swingup, period: float | None):
     raise ValueError(f"the torch engine cannot run the swing-up {swingup!r}")
 
 
-def torch_rollouts(system: System, controller: str, starts, duration: float | None = None) -> dict:
-    """Simulate a named controller from every row of ``starts`` (N, n) at once, in batched torch.
+def _torch_parts(system: System, controller: str):
+    """(ControllerParts, gate module) of a named controller, built on the CPU.
+
+    Checkpoints load and the spec's gate builds inside ``torch.device("cpu")`` whatever the
+    default device, as :func:`hybridctl.learn.run.seeded` builds networks: the caller moves them
+    to its device (``.to(device)``)."""
+    with torch.device("cpu"):
+        parts = controller_parts(system, controller)
+        gate = parts.gate
+        if gate is None:
+            gate = control.CostToGoGate(system)
+        elif isinstance(gate, str):
+            gate = _ConstantGate(1.0 if gate == "always" else 0.0)
+    return parts, gate
+
+
+def torch_rollouts(system: System, controller: str, starts, duration: float | None = None,
+                   device: str | torch.device = "cpu") -> dict:
+    """Simulate a named controller from every row of ``starts`` (N, n) at once, in batched torch on ``device``.
 
     The swing-up acts every its period (the periods of the Drake blocks: a learned policy
     ``swingup_period``, a hand-designed law ``control.period``), held in between; inside,
-    :class:`hybridctl.envs.SwitchedVectorEnv` runs the gate with hysteresis, the LQR and the
+    :func:`hybridctl.envs.switched.switched_decision` (the decision of
+    :class:`hybridctl.envs.SwitchedVectorEnv`) runs the gate with hysteresis, the LQR and the
     saturation every ``control.period`` and ``System.step_unchecked`` every ``dt``, in float64,
     as the Drake diagram does. ``duration`` (default: the spec's episode) must be a whole
     number of swing-up periods.
+
+    Everything stepped lives on ``device``: the states, the policy (a loaded one is moved there),
+    the gate, the LQR gain and the per-run records. The loop copies nothing to the host: the
+    states come back once, after the last decision. A run that diverges keeps its last finite
+    state from then on (the env would restart it from a random state; either is meaningless).
 
     Returns a dict: ``states`` (N, D + 1, n) at the swing-up's decision times ``times`` (D + 1,)
     from t = 0, ``diverged`` (N,) bool (a diverged row's states after its divergence are
@@ -236,32 +294,44 @@ def torch_rollouts(system: System, controller: str, starts, duration: float | No
     the decision states before a divergence), ``wall_time`` (s).
     """
     start_time = time.perf_counter()
+    device = torch.device(device)
     duration = system.episode_duration if duration is None else float(duration)
     starts = np.atleast_2d(np.asarray(starts, dtype=float))
     n_runs = len(starts)
-    parts = controller_parts(system, controller)
-    policy, initial_state, period = _torch_swingup(system, parts.swingup, parts.swingup_period)
-    gate = parts.gate
-    if gate is None:
-        gate = control.CostToGoGate(system)
-    elif isinstance(gate, str):
-        gate = _ConstantGate(1.0 if gate == "always" else 0.0)
+    parts, gate = _torch_parts(system, controller)
+    if isinstance(gate, torch.nn.Module):
+        gate = gate.to(device)
+    policy, initial_state, period = _torch_swingup(system, parts.swingup, parts.swingup_period, device)
     overrides = {**system.spec.overrides, "episode__duration": duration}
     run_system = load(str(system.spec.path), **overrides)
-    env = SwitchedVectorEnv(run_system, n_runs, gate=gate, decision_period=period,
-                            gate_on=parts.gate_on, gate_off=parts.gate_off, dtype=torch.float64)
-    obs, _ = env.reset(options={"state": starts})
+    K = run_system.lqr()[0]
+    # the env checks the gate thresholds, the schedule, the batch's memory and the starts; its decision
+    # function runs here directly, since env.step copies flags to the host every decision (autoreset)
+    env = SwitchedVectorEnv(run_system, n_runs, gate=gate, K=K, decision_period=period, gate_on=parts.gate_on,
+                            gate_off=parts.gate_off, device=device, dtype=torch.float64)
+    x, _ = env.reset(options={"state": starts})
+    gain = torch.as_tensor(K, dtype=torch.float64, device=device)
+    gate_dtype, limit = _parameter_dtype(gate, torch.float64), run_system.action_limit
     h = initial_state(n_runs)
-    states = [obs]
-    ended_at = torch.full((n_runs,), env.max_decisions + 1)   # index of the first state after a divergence
+    mode = torch.zeros(n_runs, dtype=torch.bool, device=device)      # every run starts in swing-up
+    ended_at = torch.full((n_runs,), env.max_decisions + 1, device=device)  # first state after a divergence
+    finite_actions = torch.ones((), dtype=torch.bool, device=device)
+    states = [x]
     with torch.no_grad():
         for j in range(1, env.max_decisions + 1):
-            u, h = policy(obs, h)
-            obs, _, terminated, _, info = env.step(u)
-            ended_at = torch.where(terminated & (ended_at > j), j, ended_at)
-            states.append(torch.where(info["_final_obs"][:, None], info["final_obs"], obs))
-    states = torch.stack(states, dim=1).numpy()
-    ended_at = ended_at.numpy()
+            u, h = policy(x, h)
+            finite_actions = finite_actions & torch.isfinite(u).all()
+            u = u.clamp(-limit, limit)                    # as env.step clips the agent's action
+            x_next, diverged, mode, _ = switched_decision(run_system, gate, x, u, mode, gain, env.substeps,
+                                                          env.gate_stride, gate_dtype, env.gate_on, env.gate_off)
+            ended = ended_at <= j                         # diverged before this decision: frozen
+            x = torch.where(ended[:, None], x, x_next)   # a diverging row is back at its last finite state
+            ended_at = torch.where(diverged & ~ended, j, ended_at)
+            states.append(x)
+    if not bool(finite_actions):
+        raise ValueError(f"the swing-up of {controller!r} gave a NaN or Inf action (clipped to [-{limit}, {limit}])")
+    states = torch.stack(states, dim=1).cpu().numpy()
+    ended_at = ended_at.cpu().numpy()
     diverged = ended_at <= env.max_decisions
     stride = system.swingup_period / period
     if abs(stride - round(stride)) > 1e-9:
@@ -278,51 +348,108 @@ def torch_rollouts(system: System, controller: str, starts, duration: float | No
             "wall_time": time.perf_counter() - start_time}
 
 
+def _torch_chunk(args) -> tuple[int, dict, float]:
+    """Worker: the batched torch rollouts of one chunk of grid starts; returns (index of its first
+    start, its ``balanced``/``returns``/``diverged``, the CPU seconds this process spent on it)."""
+    cpu = time.process_time()
+    spec_path, overrides, controller, duration, device, threads, first, starts = args
+    if threads is not None:      # a worker process: one thread each, so that the workers share the cores
+        torch.set_num_threads(threads)
+    check_device_available("--device", torch.device(device))    # a Ray worker's own GPUs
+    result = torch_rollouts(load(spec_path, **overrides), controller, starts, duration, device)
+    return first, {key: result[key] for key in ("balanced", "returns", "diverged")}, time.process_time() - cpu
+
+
+def _torch_map(system: System, controller: str, grid_states: np.ndarray, duration: float, device: torch.device,
+               backend: str, workers: int | None, address: str | None, progress: bool):
+    """(balanced, returns, diverged (grid * grid,), meta) of the torch engine: one batched chunk of
+    the starts per worker of ``backend`` (serial: one batch, in this process)."""
+    n = len(grid_states)
+    pool = make_backend("ray", workers, address) if backend == "ray" else None   # its size: the cluster's
+    if pool is not None:
+        workers = pool.workers
+    else:
+        workers = 1 if backend == "serial" else max(1, min(cpu_count() if workers is None else int(workers), n))
+        # one process needs no pool (spawned workers each import torch and Drake: seconds)
+        pool = make_backend("serial" if workers == 1 else "processes", workers if workers > 1 else None, address)
+    if pool.name != "serial":
+        _torch_parts(system, controller)   # a bad name or checkpoint fails here, not in a worker
+    # one chunk per worker: every chunk costs the same (all runs take every decision), so more
+    # chunks would only add per-task costs
+    threads = None if pool.name == "serial" else 1
+    jobs = [(str(system.spec.path), dict(system.spec.overrides), controller, duration, str(device), threads,
+             int(rows[0]), grid_states[rows]) for rows in np.array_split(np.arange(n), min(workers, n))]
+    balanced, returns, diverged = np.zeros(n, dtype=bool), np.zeros(n), np.zeros(n, dtype=bool)
+    bar = tqdm(total=n, desc=f"balance map {system.name} (torch)", disable=not progress, unit="run")
+    cpu = 0.0
+    with pool:
+        try:
+            for first, result, seconds in pool.imap_unordered(_torch_chunk, jobs):
+                cpu += seconds
+                rows = slice(first, first + len(result["balanced"]))
+                balanced[rows], returns[rows], diverged[rows] = result["balanced"], result["returns"], result["diverged"]
+                bar.update(len(result["balanced"]))
+        finally:
+            bar.close()
+        workers = pool.workers
+    meta = {"engine": "torch", "backend": backend, "workers": workers, "chunks": len(jobs), "device": str(device),
+            "cpu_s": cpu, "load_average": list(os.getloadavg())}
+    return balanced, returns, diverged, meta
+
+
 def balance_map(system: System | str, controller: str = "energy", grid: int = 41, duration: float | None = None,
                 axes: tuple[int, int] | None = None, ranges=None, workers: int | None = None,
                 progress: bool = True, overrides: dict | None = None, engine: str = "drake",
-                force: bool = False, backend: str = "processes", address: str | None = None) -> BalanceMap:
+                force: bool = False, backend: str | None = None, address: str | None = None,
+                device: str | torch.device | None = None) -> BalanceMap:
     """Simulate ``controller`` from every start of a ``grid`` x ``grid`` rest-state grid.
 
     Each start is the spec's nominal state with the two ``axes`` coordinates set
     from the grid (velocities at rest); success is the thesis test (eq. 3.2) on
     the decision-rate states of a ``duration``-second run (default: the spec's
-    episode). ``engine``: ``"drake"`` runs the Drake diagram on a parallel ``backend``
+    episode). Both engines run on a parallel ``backend``
     (:func:`hybridctl.parallel.make_backend`: ``"processes"``, ``workers`` local processes,
-    default all cores and at most the number of starts; ``"serial"``; ``"ray"``, a new local
-    instance or the cluster at ``address`` / ``RAY_ADDRESS``, where every worker needs the
-    system's spec and the controller's checkpoint at the same paths), each worker building its
-    diagram once; ``"torch"`` runs every start as one batch in this process
-    (:func:`torch_rollouts`; ``workers``, ``backend`` and ``address`` are ignored). The map's ``meta`` records the engine,
-    the workers and, for Drake, the workers' CPU seconds (``cpu_s``) and the load average
-    at the end: on a shared machine the wall time alone says little.
+    default all cores and at most the number of starts; ``"serial"``, this process; ``"ray"``, a
+    new local instance or the cluster at ``address`` / ``RAY_ADDRESS``, where every worker needs the
+    system's spec and the controller's checkpoint at the same paths). ``engine``: ``"drake"`` runs
+    the Drake diagram (default backend ``"processes"``), each worker building its diagram once and
+    taking chunks of starts; ``"torch"`` runs batched torch rollouts (:func:`torch_rollouts`) on
+    ``device`` (default ``"cpu"``; the drake engine refuses one), by default every start as one batch
+    in this process (``"serial"``), else one chunk of the grid per worker, each chunk one batch: the
+    same map cell for cell. The map's ``meta`` records the engine, the backend, the workers, the
+    workers' CPU seconds (``cpu_s``) and the load average at the end: on a shared machine the wall
+    time alone says little.
 
     The size is checked before any work (:func:`check_balance_map`: grid, duration, all steps
-    together, workers, memory); ``force`` lifts the stated caps, not the memory limit. Never
+    together, workers, memory, device); ``force`` lifts the stated caps, not the memory limit. Never
     more worker processes start than there are tasks.
     """
     if engine not in ENGINES:
         raise ValueError(f"engine must be one of {ENGINES}, got {engine!r}")
+    if backend is None:
+        backend = "serial" if engine == "torch" else "processes"
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     if isinstance(system, str):
         system = load(system, **dict(overrides or {}))
     elif overrides:
         raise ValueError("pass overrides only with a system name; a loaded System already carries its own")
     overrides = dict(system.spec.overrides)
     duration, workers = check_balance_map(system, grid, duration, engine, workers if backend != "ray" else None,
-                                          force)
+                                          force, device)
     (a1, a2), values1, values2, grid_states = _grid_starts(system, grid, axes, ranges)
     names = (system.state_names[a1], system.state_names[a2])
     units = (system.state_unit(a1), system.state_unit(a2))
     start_time = time.perf_counter()
     if engine == "torch":
-        result = torch_rollouts(system, controller, grid_states, duration)
-        return BalanceMap(system.name, controller, names, values1, values2, result["balanced"].reshape(grid, grid),
-                          result["returns"].reshape(grid, grid), result["diverged"].reshape(grid, grid), duration,
-                          time.perf_counter() - start_time, meta={"engine": "torch", "workers": 1}, units=units)
+        balanced, returns, diverged, meta = _torch_map(system, controller, grid_states, duration,
+                                                       torch.device("cpu" if device is None else device), backend,
+                                                       workers, address, progress)
+        return BalanceMap(system.name, controller, names, values1, values2, balanced.reshape(grid, grid),
+                          returns.reshape(grid, grid), diverged.reshape(grid, grid), duration,
+                          time.perf_counter() - start_time, meta=meta, units=units)
     build_named_diagram(system, controller, log=False)  # bad names/checkpoints fail here, not in a worker
     starts = list(enumerate(grid_states))
-    if backend not in BACKENDS:
-        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     pool = make_backend("ray", workers, address) if backend == "ray" else None   # its size: the cluster's
     if pool is not None:
         workers = pool.workers
