@@ -127,7 +127,7 @@ def test_the_pool_closes_when_training_fails(recording, monkeypatch):
     ("backend", "threads", r"APGConfig.backend must be one of \('serial', 'processes', 'ray'\), got 'threads'"),
     ("workers", 0, "APGConfig.workers must be None .* or an integer >= 1, got 0"),
     ("workers", 1.5, "APGConfig.workers must be an integer or None, got 1.5"),
-    ("ray_address", "auto", r"APGConfig.ray_address \(--ray-address\) applies to backend 'ray' only, not 'serial'"),
+    ("address", "auto", r"APGConfig.address \(--address\) applies to backend 'ray' only, not 'serial'"),
 ])
 def test_bad_parallel_settings_name_the_field(field, value, message):
     with pytest.raises(ValueError, match=message):
@@ -143,7 +143,7 @@ def test_ray_gives_the_serial_result(local_ray):
 @pytest.mark.parametrize("flags, message", [
     (["--backend", "bogus"], "argument --backend: invalid choice: 'bogus'"),
     (["--workers", "0"], "argument --workers: must be > 0, got 0"),
-    (["--ray-address", "auto"], "APGConfig.ray_address (--ray-address) applies to backend 'ray' only, not 'serial'"),
+    (["--address", "auto"], "APGConfig.address (--address) applies to backend 'ray' only, not 'serial'"),
 ])
 def test_cli_flags_and_one_line_errors(capsys, tmp_path, flags, message):
     from hybridctl.cli import main
@@ -152,7 +152,7 @@ def test_cli_flags_and_one_line_errors(capsys, tmp_path, flags, message):
         main(["train", "ce-apg", "cartpole", "--help"])
     assert stop.value.code == 0
     shown = capsys.readouterr().out
-    assert all(flag in shown for flag in ("--backend {serial,processes,ray}", "--workers N|none", "--ray-address"))
+    assert all(flag in shown for flag in ("--backend {serial,processes,ray}", "--workers N|none", "--address"))
     try:
         code = main(["train", "ce-apg", "cartpole", *flags, "--epochs", "1", "--out", str(tmp_path / "run")])
     except SystemExit as stop:

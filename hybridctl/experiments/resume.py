@@ -15,11 +15,13 @@ from typing import Any, Callable
 __all__ = ["RESUME_APPLIED", "resume_changes", "describe_refused", "resume_settings"]
 
 RESUME_APPLIED = ("total_steps", "epochs", "checkpoint_every", "checkpoint_minutes", "log_every", "tensorboard",
-                  "save_replay", "torch_threads", "backend", "workers", "address", "ray_address", "eval_episodes")
+                  "save_replay", "torch_threads", "backend", "workers", "address", "eval_episodes")
 """Config fields a resumed run takes from the command line: how long to train and how to record,
 checkpoint, evaluate and parallelise it. They do not change the algorithm's math. Every other
 field (learning rates, gamma, network sizes, batch sizes, seed, num_envs, ...) does: a resume
-with another value refuses, naming the field (``force`` applies it anyway)."""
+with another value refuses, naming the field (``force`` applies it anyway). The APG family's
+former ``ray_address`` is ``address`` (an old checkpoint's recorded ``ray_address`` is read as
+``address`` when it loads), so no setting given today has the old name."""
 
 
 def resume_changes(recorded: dict, settings: dict, applied: Iterable[str] = RESUME_APPLIED

@@ -217,8 +217,9 @@ def refuse_unless_forced(problems: list[str], force: bool = False) -> bool:
 
 
 def config_from_meta(config_class: type, meta: dict, overrides: dict | None = None, found: Path | None = None):
-    """The ``config_class`` recorded in a checkpoint's config.json (fields it no longer has are
-    dropped with a warning naming them, so older checkpoints load), validated, with ``overrides`` applied.
+    """The ``config_class`` recorded in a checkpoint's config.json (renamed fields mapped by the
+    class's ``upgrade_recorded`` when it has one; fields it no longer has are dropped with a
+    warning naming them, so older checkpoints load), validated, with ``overrides`` applied.
 
     A recorded value the config refuses raises :class:`CheckpointError` naming the file (the
     checkpoint at ``found``) and the field; an override it refuses stays the caller's ValueError.
@@ -227,12 +228,15 @@ def config_from_meta(config_class: type, meta: dict, overrides: dict | None = No
     where = found / CONFIG_FILE if found is not None else CONFIG_FILE
     if not isinstance(meta.get("config"), dict):
         raise CheckpointError(f"{where}: 'config' must be an object {{...}}, got {_shown_short(meta.get('config'))}")
-    dropped = sorted(set(meta["config"]) - names)
+    recorded = meta["config"]
+    if hasattr(config_class, "upgrade_recorded"):   # the config's own renamed fields (APG's ray_address)
+        recorded = config_class.upgrade_recorded(recorded)
+    dropped = sorted(set(recorded) - names)
     if dropped:
         warnings.warn(f"{where}: {config_class.__name__} no longer has the recorded field(s) {dropped}: "
                       f"loaded without them", UserWarning, stacklevel=2)
     try:
-        config = config_class(**{k: v for k, v in meta["config"].items() if k in names})
+        config = config_class(**{k: v for k, v in recorded.items() if k in names})
         if hasattr(config, "validate"):
             config.validate()
     except (TypeError, ValueError, OverflowError) as exc:

@@ -26,6 +26,11 @@ Outputs are scaled to the actuator limit (``action_limit * tanh(.)``). Observati
 normalised by frozen ``obs_mean`` / ``obs_std`` buffers (shared by the members; the
 learner updates them between APG runs, never inside one). Initialisation as the author's
 code: every parameter zero, then perturbed by N(0, init_std^2) (init_std = 0.05).
+
+Device: a population lives on ``device`` (default torch's default device); its initial
+perturbation is always drawn on the CPU (from ``generator``, or the global CPU RNG) and then
+moved, so one seed gives the same members on every device. Everything it makes afterwards
+(recurrent states, copies, written parameters) follows its own device.
 """
 
 from __future__ import annotations
@@ -94,7 +99,7 @@ class PolicyPopulation(torch.nn.Module):
 
     def __init__(self, layers: list[Layer], members: int, action_limit: float, init_std: float = 0.05,
                  dtype: torch.dtype = torch.float64, generator: torch.Generator | None = None,
-                 kind: str = "custom", hidden: tuple[int, ...] = ()):
+                 kind: str = "custom", hidden: tuple[int, ...] = (), device: str | torch.device | None = None):
         super().__init__()
         if members < 1:
             raise ValueError(f"members must be >= 1, got {members}")
@@ -107,17 +112,20 @@ class PolicyPopulation(torch.nn.Module):
         self.obs_dim, self.act_dim = layers[0].n_in, layers[-1].n_out
         self.hidden_dim = sum(layer.n_out for layer in layers if layer.kind == "gru")
         self.names: list[str] = []
+        draw_on = generator.device if generator is not None else torch.device("cpu")
+        device = torch.device(device) if device is not None else torch.get_default_device()
         for i, layer in enumerate(self.layers):
             for pname, shape in layer.shapes().items():
                 name = f"l{i}_{pname}"
-                # the author's initialisation: zero, then perturbed by N(0, init_std^2)
-                value = torch.zeros((self.members, *shape), dtype=dtype)
+                # the author's initialisation: zero, then perturbed by N(0, init_std^2), drawn on the CPU
+                # (or the generator's device) so a seed gives the same members wherever they then live
+                value = torch.zeros((self.members, *shape), dtype=dtype, device=draw_on)
                 if init_std > 0:
-                    value += init_std * torch.randn(value.shape, dtype=dtype, generator=generator)
-                self.register_parameter(name, torch.nn.Parameter(value))
+                    value += init_std * torch.randn(value.shape, dtype=dtype, generator=generator, device=draw_on)
+                self.register_parameter(name, torch.nn.Parameter(value.to(device)))
                 self.names.append(name)
-        self.register_buffer("obs_mean", torch.zeros(self.obs_dim, dtype=dtype))
-        self.register_buffer("obs_std", torch.ones(self.obs_dim, dtype=dtype))
+        self.register_buffer("obs_mean", torch.zeros(self.obs_dim, dtype=dtype, device=device))
+        self.register_buffer("obs_std", torch.ones(self.obs_dim, dtype=dtype, device=device))
 
     # ------------------------------------------------------------------ constructors
     @classmethod
@@ -143,6 +151,11 @@ class PolicyPopulation(torch.nn.Module):
         """The parameters' dtype."""
         return getattr(self, self.names[0]).dtype
 
+    @property
+    def device(self) -> torch.device:
+        """The device of the parameters and buffers."""
+        return self.obs_mean.device
+
     def stacked(self) -> list[torch.Tensor]:
         """The parameters [K, ...] in a fixed order (the order of :meth:`to_flat`)."""
         return [getattr(self, n) for n in self.names]
@@ -153,7 +166,7 @@ class PolicyPopulation(torch.nn.Module):
 
     def from_flat(self, flat: torch.Tensor) -> "PolicyPopulation":
         """Write a [K, P] matrix (or a [P] vector, given to every member) into the parameters."""
-        flat = torch.as_tensor(flat, dtype=self.dtype)
+        flat = torch.as_tensor(flat, dtype=self.dtype, device=self.device)
         if flat.dim() == 1:
             flat = flat.expand(self.members, -1)
         if tuple(flat.shape) != (self.members, self.n_params):
@@ -170,14 +183,14 @@ class PolicyPopulation(torch.nn.Module):
     def set_normalization(self, mean, std) -> None:
         """Freeze new observation statistics (std floored at 1e-8)."""
         with torch.no_grad():
-            self.obs_mean.copy_(torch.as_tensor(mean, dtype=self.dtype))
-            self.obs_std.copy_(torch.as_tensor(std, dtype=self.dtype).clamp_min(1e-8))
+            self.obs_mean.copy_(torch.as_tensor(mean, dtype=self.dtype, device=self.device))
+            self.obs_std.copy_(torch.as_tensor(std, dtype=self.dtype, device=self.device).clamp_min(1e-8))
 
     def resized(self, members: int, flat: torch.Tensor | None = None) -> "PolicyPopulation":
-        """A new population of ``members`` members with these layers and normalisation
-        (parameters from ``flat`` [members, P] when given, else zero)."""
+        """A new population of ``members`` members with these layers and normalisation, on this one's
+        device (parameters from ``flat`` [members, P] when given, else zero)."""
         new = PolicyPopulation(self.layers, members, self.action_limit, init_std=0.0, dtype=self.dtype,
-                               kind=self.kind, hidden=self.hidden_sizes)
+                               kind=self.kind, hidden=self.hidden_sizes, device=self.device)
         new.set_normalization(self.obs_mean, self.obs_std)
         if flat is not None:
             new.from_flat(flat)
@@ -197,7 +210,7 @@ class PolicyPopulation(torch.nn.Module):
     # ------------------------------------------------------------------ evaluation
     def initial_state(self, batch: int) -> torch.Tensor:
         """Zero recurrent state [K, batch, hidden] ([K, batch, 0] for stateless policies)."""
-        return torch.zeros((self.members, batch, self.hidden_dim), dtype=self.dtype, device=self.obs_mean.device)
+        return torch.zeros((self.members, batch, self.hidden_dim), dtype=self.dtype, device=self.device)
 
     def forward(self, obs: torch.Tensor, state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Actions [K, N, act_dim] (scaled to the limit) and the next state for obs [K, N, obs_dim]."""
@@ -324,5 +337,5 @@ class Policy(torch.nn.Module):
 
     def from_flat(self, flat: torch.Tensor) -> "Policy":
         """Write a [P] vector into the parameters."""
-        self.population.from_flat(torch.as_tensor(flat).reshape(1, -1))
+        self.population.from_flat(torch.as_tensor(flat, device=self.population.device).reshape(1, -1))
         return self

@@ -48,7 +48,18 @@ members, one task each (:mod:`.split`); the parent joins the chunks in member or
 as in one process (CEM update, best member, normalisation, counters), so a split run equals the
 serial one up to float rounding. apg (one member) and cem (no APG phase) always run here. The
 backend opens on the first split epoch and closes when ``learn`` returns or fails
-(:meth:`APGFamily.close_backend` after calling ``train_epoch`` directly).
+(:meth:`APGFamily.close_backend` after calling ``train_epoch`` directly). ``APGConfig.address``
+names a Ray cluster (``--address``, as for every learner; older checkpoints' ``ray_address``
+loads as ``address``).
+
+Devices (``APGConfig.device``, ``--device cuda``): the population's parameters (MLP, GRU or
+linear), the members, the CEM mean, std and draws (the epoch's generator is on the device),
+the Adam moments, the start states and every rollout, evaluation included, live on the
+device; the host reads back once per APG update (the NaN guard) and per epoch (the progress
+row). The initial members are drawn on the CPU from the seed and moved, so one seed starts
+alike everywhere (a CUDA generator's CEM draws differ from the CPU's). A split phase sends
+CPU arrays to its workers and moves the results back; checkpoints load onto the configured
+device whichever device wrote them.
 
 Interactions are counted honestly: K x N x T policy steps per APG iteration (x the
 integrator sub-steps per policy step for the physics steps, logged separately).
@@ -75,7 +86,7 @@ from .config import (METHOD_CLASSES, METHODS, OBSERVATIONS, PRESETS, TAKEOVERS, 
 from .core import (APGProblem, BatchedAdam, ClosedLoopPolicy, LQRTakeover, Phase, apg_episode, apg_iteration,
                    apg_phase, cem_update, clip_gradients, compiled_policy_step, evaluate_members,
                    gradient_norms_by_horizon, member_gradients, observation_size, observe, policy_step,
-                   population_returns, returns_along_direction, start_states)
+                   population_returns, returns_along_direction, start_array, start_states)
 from .split import apg_chunk, split_apg_phase
 from .family import APGFamily, EpochStep
 from .methods import APG, CEAPG, CEM, PAPG, ShortHorizonAPG
@@ -84,5 +95,6 @@ __all__ = ["APG", "ShortHorizonAPG", "PAPG", "CEM", "CEAPG", "APGFamily", "Epoch
            "METHOD_CLASSES", "METHODS", "PRESETS", "OBSERVATIONS", "TAKEOVERS", "APGProblem", "Phase",
            "BatchedAdam", "LQRTakeover", "ClosedLoopPolicy", "apg_chunk", "split_apg_phase", "policy_step",
            "compiled_policy_step", "observe", "observation_size", "population_returns", "member_gradients",
-           "clip_gradients", "lr_schedule", "parse_policy", "cem_update", "start_states", "apg_iteration",
-           "apg_episode", "apg_phase", "evaluate_members", "gradient_norms_by_horizon", "returns_along_direction"]
+           "clip_gradients", "lr_schedule", "parse_policy", "cem_update", "start_states", "start_array",
+           "apg_iteration", "apg_episode", "apg_phase", "evaluate_members", "gradient_norms_by_horizon",
+           "returns_along_direction"]

@@ -7,10 +7,13 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import torch
+
 from ... import systems as systems_mod
 from ...parallel import BACKENDS
 from ..config_check import check_fields, check_types
 from ..policies import KINDS as POLICY_KINDS
+from ..sac import check_device_available
 
 __all__ = ["APGConfig", "METHODS", "PRESETS", "OBSERVATIONS", "TAKEOVERS", "METHOD_CLASSES", "parse_policy",
            "lr_schedule"]
@@ -84,14 +87,33 @@ class APGConfig:
     checkpoint_every: int = 1          # epochs between checkpoints
     eval_episodes: int = 16            # held-out starts in evaluate()
     torch_threads: int = 1             # see run.set_torch_threads (also in each worker)
+    device: str = "cpu"                # hybridctl: where the population, its rollouts, Adam, the CEM draws and the
+    #                                    start states live ("cpu", "cuda", "cuda:1"); initial weights are drawn on
+    #                                    the CPU from the seed and moved, so a seed starts alike on every device.
+    #                                    The split APG phase's workers use it too (arrays travel between them)
     # --- parallel (hybridctl; the thesis' author ran one member per XLA CPU device)
     backend: str = "serial"            # hybridctl: "serial" (one process), "processes" (spawned local processes)
     #                                    or "ray" (a population that does not fit one process): each epoch's
     #                                    APG phase runs as contiguous chunks of members, one per worker
     workers: int | None = None         # hybridctl: number of chunks; None: the backend's workers (every core,
     #                                    or the Ray cluster's CPUs)
-    ray_address: str | None = None     # hybridctl: the Ray cluster ("ray://host:10001", "auto"); None starts a
-    #                                    local Ray instance (backend "ray" only)
+    address: str | None = None         # hybridctl: the Ray cluster ("ray://host:10001", "auto"), as ARS's and
+    #                                    fine-tuning's; None: RAY_ADDRESS, else a new local Ray instance (backend
+    #                                    "ray" only). Older checkpoints recorded it as ``ray_address``
+
+    RENAMED = {"ray_address": "address"}
+    """Fields older checkpoints recorded under another name (old name -> today's), see :meth:`upgrade_recorded`."""
+
+    @classmethod
+    def upgrade_recorded(cls, recorded: dict) -> dict:
+        """A checkpoint's recorded config in today's field names (``ray_address`` is ``address`` since
+        the flag became ``--address`` for every learner); today's name wins when both are present."""
+        out = dict(recorded)
+        for old, new in cls.RENAMED.items():
+            if old in out:
+                value = out.pop(old)
+                out.setdefault(new, value)
+        return out
 
     def describe_budget(self) -> str:
         """The run's budget in a run's account: epochs of members x batch x horizon steps."""
@@ -117,9 +139,15 @@ class APGConfig:
         if self.workers is not None and self.workers < 1:
             raise ValueError(f"APGConfig.workers must be None (the backend's workers) or an integer >= 1, "
                              f"got {self.workers!r}")
-        if self.ray_address is not None and (self.backend != "ray" or not self.ray_address.strip()):
-            raise ValueError(f"APGConfig.ray_address must be None or a non-empty address with backend 'ray', "
-                             f"got {self.ray_address!r} with backend {self.backend!r}")
+        if self.address is not None and (self.backend != "ray" or not self.address.strip()):
+            raise ValueError(f"APGConfig.address must be None or a non-empty address with backend 'ray', "
+                             f"got {self.address!r} with backend {self.backend!r}")
+        try:
+            device = torch.device(self.device)
+        except (RuntimeError, TypeError):
+            raise ValueError(f"APGConfig.device must be a torch device such as 'cpu' or 'cuda:0', "
+                             f"got {self.device!r}") from None
+        check_device_available("APGConfig.device", device)
         if self.elites > self.population:
             raise ValueError(f"APGConfig.elites ({self.elites}) must be <= population ({self.population})")
         for name in ("beta1", "beta2"):

@@ -8,6 +8,12 @@ K x N states one (K N, n) batch through ``System.step_unchecked``, the loss the 
 members' losses, one backward; member k's gradient is the slice k (members share nothing).
 Every member has its own Adam moments and step count (:class:`BatchedAdam`), so a member
 whose gradient is skipped is not moved.
+
+Device: everything here follows its inputs' device (the population's, ``APGConfig.device``):
+states, returns, masks, observation sums and Adam moments are made there, and nothing in a
+rollout copies to the host (a NaN guard and the guard counters read back once per APG update).
+The start states are drawn by numpy from their seed words (the same starts on every device)
+and copied to the device once per APG phase.
 """
 
 from __future__ import annotations
@@ -29,8 +35,9 @@ from .config import APGConfig, parse_policy
 
 __all__ = ["APGProblem", "Phase", "BatchedAdam", "LQRTakeover", "ClosedLoopPolicy", "observe", "observation_size",
            "policy_step", "compiled_policy_step", "population_returns", "member_gradients", "clip_gradients",
-           "cem_update", "start_states", "apg_iteration", "apg_episode", "apg_phase", "evaluate_members",
-           "add_observation_sums", "median_norm", "gradient_norms_by_horizon", "returns_along_direction"]
+           "cem_update", "start_states", "start_array", "apg_iteration", "apg_episode", "apg_phase",
+           "evaluate_members", "add_observation_sums", "median_norm", "gradient_norms_by_horizon",
+           "returns_along_direction"]
 
 
 # ============================================================================ the rollout and its gradients
@@ -96,12 +103,12 @@ class LQRTakeover:
     switching time.
     """
 
-    def __init__(self, system: System, dtype: torch.dtype = torch.float64):
+    def __init__(self, system: System, dtype: torch.dtype = torch.float64, device: str | torch.device = "cpu"):
         K, S = system.lqr()
         gate = control.CostToGoGate(system)
         self.system = system
-        self.K = torch.as_tensor(K, dtype=dtype)
-        self.S = torch.as_tensor(S, dtype=dtype)
+        self.K = torch.as_tensor(K, dtype=dtype, device=device)   # on the rollout's device: no copy per step
+        self.S = torch.as_tensor(S, dtype=dtype, device=device)
         self.scale, self.on, self.off = float(gate.scale), float(system.gate.on), float(system.gate.off)
         self.limit = float(system.action_limit)
 
@@ -130,30 +137,32 @@ def population_returns(system: System, pop: PolicyPopulation, x0: torch.Tensor, 
                        keep_states: bool = False, step=None, takeover: LQRTakeover | None = None):
     """Roll K members x N starts out as one batch; the differentiable returns [K, N].
 
-    ``x0``: [N, n] (the same starts for every member) or [K, N, n]. ``state``: the policies'
-    recurrent state [K, N, h] (None: zero). Each policy step holds the action over
-    ``substeps`` integrator steps of ``System.step_unchecked`` and then collects
-    ``System.reward`` of the new state. ``truncation``: detach the states every that many
-    steps (truncated BPTT). Returns (returns [K, N], final x [K, N, n], final state, obs
-    sums (sum, sum of squares, count) for the normalisation, and the states [K, N, T+1, n]
-    when ``keep_states``, else None). ``step``: the per-step function (default
-    :func:`policy_step`; :func:`compiled_policy_step` for the fused one). ``takeover``: the
-    switched controller's LQR half (:class:`LQRTakeover`); then ``state`` and the returned state
-    are the pair (recurrent state, gate mode [K, N]), the mode starting off (the swing-up acts).
+    ``x0``: [N, n] (the same starts for every member) or [K, N, n], moved to the population's
+    dtype and device. ``state``: the policies' recurrent state [K, N, h] (None: zero). Each
+    policy step holds the action over ``substeps`` integrator steps of
+    ``System.step_unchecked`` and then collects ``System.reward`` of the new state.
+    ``truncation``: detach the states every that many steps (truncated BPTT). Returns
+    (returns [K, N], final x [K, N, n], final state, obs sums (sum, sum of squares, count) for
+    the normalisation, and the states [K, N, T+1, n] when ``keep_states``, else None).
+    ``step``: the per-step function (default :func:`policy_step`; :func:`compiled_policy_step`
+    for the fused one). ``takeover``: the switched controller's LQR half
+    (:class:`LQRTakeover`); then ``state`` and the returned state are the pair (recurrent
+    state, gate mode [K, N]), the mode starting off (the swing-up acts).
     """
     step = step or policy_step
     K = pop.members
     if x0.dim() == 2:
         x0 = x0.unsqueeze(0).expand(K, -1, -1)
     N = x0.shape[1]
-    x = x0.to(pop.dtype)
+    x = x0.to(dtype=pop.dtype, device=pop.device)
     if takeover is None:
         h, mode = (pop.initial_state(N) if state is None else state), None
     else:
-        h, mode = (pop.initial_state(N), torch.zeros((K, N), dtype=torch.bool)) if state is None else state
-    total = torch.zeros((K, N), dtype=pop.dtype)
-    o_sum = torch.zeros(pop.obs_dim, dtype=torch.float64)
-    o_sq = torch.zeros(pop.obs_dim, dtype=torch.float64)
+        h, mode = ((pop.initial_state(N), torch.zeros((K, N), dtype=torch.bool, device=x.device)) if state is None
+                   else state)
+    total = torch.zeros((K, N), dtype=pop.dtype, device=x.device)
+    o_sum = torch.zeros(pop.obs_dim, dtype=torch.float64, device=x.device)
+    o_sq = torch.zeros(pop.obs_dim, dtype=torch.float64, device=x.device)
     kept = [x.detach()] if keep_states else None
     for t in range(horizon):
         if truncation is not None and t > 0 and t % truncation == 0:
@@ -161,8 +170,10 @@ def population_returns(system: System, pop: PolicyPopulation, x0: torch.Tensor, 
         x, h, reward, obs, mode = step(system, pop, x, h, substeps, observation, takeover, mode)
         with torch.no_grad():
             od = obs.detach().reshape(-1, pop.obs_dim).double()
-            finite = torch.isfinite(od).all(-1)
-            od = od[finite]
+            finite = torch.isfinite(od).all(-1, keepdim=True)
+            # zero the non-finite rows rather than drop them: the same sums, without the host sync a
+            # boolean index costs on a GPU (it must learn how many rows remain)
+            od = torch.where(finite, od, torch.zeros_like(od))
             o_sum += od.sum(0)
             o_sq += (od * od).sum(0)
         total = total + reward
@@ -185,20 +196,20 @@ def member_gradients(pop: PolicyPopulation, loss_per_member: torch.Tensor) -> to
     grads = torch.autograd.grad(total, params, allow_unused=True)
     flat = torch.cat([(torch.zeros_like(p) if g is None else g).reshape(pop.members, -1)
                       for p, g in zip(params, grads)], dim=1)
-    flat[~finite] = float("nan")
-    return flat
+    return flat.masked_fill(~finite[:, None], float("nan"))   # no boolean index: no host sync on a GPU
 
 
 class BatchedAdam:
     """Adam on K stacked parameter vectors [K, P], each member with its own moments and step
-    count; a masked-out member is not touched (moments, counts and parameters unchanged)."""
+    count; a masked-out member is not touched (moments, counts and parameters unchanged).
+    The moments live on ``device`` (None: torch's default), the parameters' device."""
 
     def __init__(self, members: int, n_params: int, betas=(0.9, 0.999), eps: float = 1e-8,
-                 dtype: torch.dtype = torch.float64):
+                 dtype: torch.dtype = torch.float64, device: str | torch.device | None = None):
         self.betas, self.eps = (float(betas[0]), float(betas[1])), float(eps)
-        self.m = torch.zeros((members, n_params), dtype=dtype)
-        self.v = torch.zeros((members, n_params), dtype=dtype)
-        self.t = torch.zeros(members, dtype=torch.int64)
+        self.m = torch.zeros((members, n_params), dtype=dtype, device=device)
+        self.v = torch.zeros((members, n_params), dtype=dtype, device=device)
+        self.t = torch.zeros(members, dtype=torch.int64, device=device)
 
     def step(self, theta: torch.Tensor, grad: torch.Tensor, mask: torch.Tensor, lr: float) -> torch.Tensor:
         """The new parameters [K, P] after a gradient DESCENT step on ``grad`` for members in ``mask``."""
@@ -249,8 +260,10 @@ class ClosedLoopPolicy(torch.nn.Module):
         return self.policy.initial_state(batch)
 
     def forward(self, x: torch.Tensor, state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Action and next recurrent state for raw states x."""
-        return self.policy(observe(self.system, x.to(self.policy.population.dtype), self.observation), state)
+        """Action and next recurrent state for raw states x (moved to the policy's dtype and device)."""
+        population = self.policy.population
+        return self.policy(observe(self.system, x.to(dtype=population.dtype, device=population.device),
+                                   self.observation), state)
 
     def numpy_forward(self, x: np.ndarray, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`forward` in numpy (:meth:`Policy.numpy_forward`), for the Drake block on one state."""
@@ -267,8 +280,9 @@ class APGProblem:
     """What an APG iteration needs, built once per (system, config, member count): the system (with
     the config's Ch. 7 reward), the population whose parameters are the iteration's scratch
     buffer (``from_flat``) and whose frozen normalisation the rollouts use, the integrator
-    sub-steps per policy step, the per-step function (eager or compiled) and the LQR takeover.
-    A learner holds one; a worker of the split APG phase builds its own."""
+    sub-steps per policy step, the per-step function (eager or compiled), the LQR takeover and
+    the device (``config.device``) everything lives on. A learner holds one; a worker of the
+    split APG phase builds its own."""
 
     system: System
     config: APGConfig
@@ -278,11 +292,14 @@ class APGProblem:
     substeps: int
     step: Callable
     takeover: "LQRTakeover | None"
+    device: torch.device
 
     @classmethod
     def build(cls, system: System, config: APGConfig, members: int) -> "APGProblem":
-        """The problem of ``members`` policies (initialised from ``config.seed``) on ``system``."""
+        """The problem of ``members`` policies (initialised from ``config.seed`` on the CPU, then moved to
+        ``config.device``: the same initial members on every device) on ``system``."""
         dtype = torch.float64 if config.dtype == "float64" else torch.float32
+        device = torch.device(config.device)
         period = config.control_period if config.control_period is not None else system.swingup_period
         ratio = period / system.dt
         check_at_most("APGConfig.horizon x control_period / integrator.dt", config.horizon * ratio,
@@ -295,25 +312,37 @@ class APGProblem:
             pop = PolicyPopulation.build(kind, observation_size(system, config.observation), system.n_actions,
                                          system.action_limit, members=members, hidden=widths,
                                          init_std=config.init_std, dtype=dtype)
-        return cls(system, config, pop, dtype, float(period), int(round(ratio)),
+        return cls(system, config, pop.to(device), dtype, float(period), int(round(ratio)),
                    compiled_policy_step() if config.compile else policy_step,
-                   LQRTakeover(system, dtype) if config.takeover == "lqr" else None)
+                   LQRTakeover(system, dtype, device) if config.takeover == "lqr" else None, device)
 
     def starts(self, n: int, seed_words) -> torch.Tensor:
-        """:func:`start_states` of this problem."""
-        return start_states(self.system, self.config, n, seed_words, self.dtype)
+        """:func:`start_states` of this problem, on its device."""
+        return start_states(self.system, self.config, n, seed_words, self.dtype, self.device)
+
+    def phase_starts(self, epoch: int) -> torch.Tensor:
+        """The starts of every APG iteration of ``epoch``'s phase [apg_iterations, batch, n]: iteration i's
+        are :meth:`starts` seeded (seed, epoch, i, 1), drawn together and copied to the device once."""
+        cfg = self.config
+        draws = [start_array(self.system, cfg, cfg.batch, [cfg.seed, epoch, it, 1]) for it in range(cfg.apg_iterations)]
+        return torch.as_tensor(np.stack(draws), dtype=self.dtype, device=self.device)
 
 
-def start_states(system: System, config: APGConfig, n: int, seed_words, dtype: torch.dtype) -> torch.Tensor:
-    """n start states [n, n_states] from the numpy seed ``seed_words``: hanging down
+def start_array(system: System, config: APGConfig, n: int, seed_words) -> np.ndarray:
+    """n start states [n, n_states] (float64 numpy) from the numpy seed ``seed_words``: hanging down
     +- U(-start_noise, start_noise), or the spec's spread when ``config.start_noise`` is None."""
     rng = np.random.default_rng(np.random.SeedSequence(list(seed_words)))
     if config.start_noise is None:
-        x0 = system.sample_initial_states(n, rng)
-    else:
-        x0 = system.initial_state.nominal + rng.uniform(-config.start_noise, config.start_noise,
-                                                        size=(n, system.n_states))
-    return torch.as_tensor(x0, dtype=dtype)
+        return np.asarray(system.sample_initial_states(n, rng))
+    return system.initial_state.nominal + rng.uniform(-config.start_noise, config.start_noise,
+                                                      size=(n, system.n_states))
+
+
+def start_states(system: System, config: APGConfig, n: int, seed_words, dtype: torch.dtype,
+                 device: str | torch.device = "cpu") -> torch.Tensor:
+    """:func:`start_array` as a tensor of ``dtype`` on ``device``: drawn by numpy from the seed words,
+    so every device starts from the same states."""
+    return torch.as_tensor(start_array(system, config, n, seed_words), dtype=dtype, device=device)
 
 
 def add_observation_sums(total, sums):
@@ -370,7 +399,8 @@ def apg_iteration(problem: APGProblem, theta: torch.Tensor, x0: torch.Tensor, lr
     scores = torch.where(torch.isfinite(member_return.detach()), member_return.detach().double(),
                          torch.full_like(member_return.detach().double(), -math.inf))
     h = (h[0].detach(), h[1]) if isinstance(h, tuple) else h.detach()
-    return Iteration(new, scores, norms, ok, x.detach(), h, list(sums), int((~finite).sum()), int(large.sum()))
+    nan_grads, large_grads = torch.stack([(~finite).sum(), large.sum()]).tolist()   # one read-back for both
+    return Iteration(new, scores, norms, ok, x.detach(), h, list(sums), nan_grads, large_grads)
 
 
 def apg_episode(problem: APGProblem, theta: torch.Tensor, x0: torch.Tensor, lr: float, adam: "BatchedAdam",
@@ -381,7 +411,7 @@ def apg_episode(problem: APGProblem, theta: torch.Tensor, x0: torch.Tensor, lr: 
     observation sums with this episode's added to ``obs_sums``, NaN gradients, large gradients)."""
     horizon = problem.config.horizon
     done, state, x, nan, large = 0, None, x0, 0, 0
-    total, norms = torch.zeros(theta.shape[0], dtype=torch.float64), []
+    total, norms = torch.zeros(theta.shape[0], dtype=torch.float64, device=theta.device), []
     while done < horizon:
         steps = min(unroll, horizon - done)
         it = apg_iteration(problem, theta, x, lr, adam, state=state, horizon=steps, where=where)
@@ -418,8 +448,9 @@ def apg_phase(problem: APGProblem, theta: torch.Tensor, adam: "BatchedAdam", lr:
     cfg = problem.config
     adam = copy.copy(adam)
     returns, norms, obs_sums, nan, large = [], [], None, 0, 0
+    starts = problem.phase_starts(epoch)     # one host-to-device copy for the phase
     for it in range(cfg.apg_iterations):
-        x0 = problem.starts(cfg.batch, [cfg.seed, epoch, it, 1])
+        x0 = starts[it]
         theta, ret, nrm, obs_sums, n, l = apg_episode(problem, theta, x0, lr, adam, unroll, obs_sums,
                                                       f"at epoch {epoch}, iteration {iterations + it}")
         returns.append(ret)
@@ -464,7 +495,8 @@ def returns_along_direction(system: System, pop: PolicyPopulation, x0: torch.Ten
     a random direction d), evaluated as one batch (one member per scale); theta is left unchanged."""
     scales = [float(v) for v in scales]
     theta = pop.to_flat()[0]
-    probe = pop.resized(len(scales), torch.stack([theta + v * direction.to(theta.dtype) for v in scales]))
+    direction = direction.to(dtype=theta.dtype, device=theta.device)
+    probe = pop.resized(len(scales), torch.stack([theta + v * direction for v in scales]))
     with torch.no_grad():
         returns, *_ = population_returns(system, probe, x0, horizon, substeps, observation)
     return returns.mean(1).double().tolist()

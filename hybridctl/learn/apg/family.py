@@ -4,6 +4,12 @@ epoch loop on the training skeleton (:meth:`hybridctl.learn.run.Run.updates`), t
 (in this process, or split over a parallel backend: :mod:`.split`), evaluation and the trained
 policy. A method (:mod:`.methods`) writes only what differs: its epoch update, which member is
 the result, its member count, presets and config checks.
+
+Device (``APGConfig.device``): the population, the members, the CEM mean and std, the Adam
+moments, the observation statistics, the epoch's generator and every rollout live there; the
+initial members are drawn on the CPU from the seed and moved. The host gets copies once per
+epoch (the progress row, the best score) and at evaluation; checkpoints load onto the
+configured device whatever device wrote them.
 """
 
 from __future__ import annotations
@@ -109,23 +115,25 @@ class APGFamily(Learner):
         self.system = self._system(system, cfg)
         self.K = self.member_count(cfg)
         self.problem = APGProblem.build(self.system, cfg, self.K)
-        self.pop, self.dtype = self.problem.pop, self.problem.dtype
+        # the checkpointer reads tensor files onto ``self.device`` (torch.load's map_location)
+        self.pop, self.dtype, self.device = self.problem.pop, self.problem.dtype, self.problem.device
         self.period, self.substeps, self.takeover = self.problem.period, self.problem.substeps, self.problem.takeover
         P = self.pop.n_params
         # CEM / CE-APG: theta = 0 with std sigma_0 (the author's zero-initialised weights); PAPG/APG: members
         # start as the population's own perturbed-zero initialisation
-        self.mean = torch.zeros(P, dtype=torch.float64)
-        self.std = torch.full((P,), float(cfg.init_std), dtype=torch.float64)
+        self.mean = torch.zeros(P, dtype=torch.float64, device=self.device)
+        self.std = torch.full((P,), float(cfg.init_std), dtype=torch.float64, device=self.device)
         self.members = self.pop.to_flat().double()
         self.best = self.members[0].clone()
         self.best_score = -math.inf
-        self.adam = BatchedAdam(self.K, P, (cfg.beta1, cfg.beta2))
-        self.stats = torch.zeros(2 * self.pop.obs_dim + 1, dtype=torch.float64)   # sum, sum of squares, count
+        self.adam = BatchedAdam(self.K, P, (cfg.beta1, cfg.beta2), device=self.device)
+        self.stats = torch.zeros(2 * self.pop.obs_dim + 1, dtype=torch.float64,   # sum, sum of squares, count
+                                 device=self.device)
         self.epoch = self.iterations = self.env_steps = self.nan_grads = self.large_grads = 0
         self.wall_time = 0.0
         self.history: list[dict] = []
         self.log_rows: list[dict] = []
-        self.last_scores = torch.full((self.K,), -math.inf, dtype=torch.float64)
+        self.last_scores = torch.full((self.K,), -math.inf, dtype=torch.float64, device=self.device)
         self._backend = None    # the worker pool of a split APG phase (opened on first use)
 
     def __getnewargs_ex__(self):
@@ -163,8 +171,10 @@ class APGFamily(Learner):
 
     # ------------------------------------------------------------------ randomness
     def _generator(self, epoch: int) -> torch.Generator:
-        """The torch generator of ``epoch`` (from the seed alone: a resumed run continues exactly)."""
-        return torch.Generator().manual_seed(int(np.random.SeedSequence([self.config.seed, epoch]).generate_state(1)[0]))
+        """The torch generator of ``epoch`` on the learner's device (from the seed alone: a resumed run
+        continues exactly; a CUDA generator draws other numbers than the CPU's from the same seed)."""
+        seed = int(np.random.SeedSequence([self.config.seed, epoch]).generate_state(1)[0])
+        return torch.Generator(device=self.device).manual_seed(seed)
 
     def starts(self, n: int, seed_words) -> torch.Tensor:
         """n start states [n, n_states]: hanging down +- U(-start_noise, start_noise), or the spec's spread."""
@@ -192,7 +202,7 @@ class APGFamily(Learner):
             phase = apg_phase(self.problem, theta, adam, lr, self.epoch, self.iterations, self.unroll(cfg))
         else:
             if self._backend is None:
-                self._backend = make_backend(cfg.backend, workers=cfg.workers, address=cfg.ray_address)
+                self._backend = make_backend(cfg.backend, workers=cfg.workers, address=cfg.address)
             system = self.system.name if self.system.name in known_systems() else str(self.system.spec.path)
             phase = split_apg_phase(self._backend, self.problem, system, theta, adam, lr, self.epoch, self.iterations,
                                     self.unroll(cfg))
@@ -223,7 +233,8 @@ class APGFamily(Learner):
         self.keep_best(step.finals, scores, top)
         if cfg.normalize and step.obs_sums is not None:
             o_sum, o_sq, count = step.obs_sums
-            self.stats += torch.cat([o_sum, o_sq, torch.tensor([float(count)], dtype=torch.float64)])
+            self.stats += torch.cat([o_sum, o_sq, torch.tensor([float(count)], dtype=torch.float64,
+                                                               device=self.device)])
             self._apply_stats()
         self.epoch += 1
         finite = step.history[torch.isfinite(step.history)]
@@ -305,8 +316,8 @@ class APGFamily(Learner):
                                                           horizon or self.config.horizon, self.substeps,
                                                           self.config.observation, keep_states=True,
                                                           takeover=self.takeover)
-        r = returns[0].double().numpy()
-        s = states[0].double().numpy()
+        r = returns[0].double().cpu().numpy()   # the evaluation's one copy to the host
+        s = states[0].double().cpu().numpy()
         balanced, upright = stabilisation(s, self.system, lookback=max(1, int(round(1.0 / self.period))))
         out = EvalResult.from_returns(r[np.isfinite(r)], success_rate=float(balanced.mean()),
                                       upright_rate=float(upright.mean()),

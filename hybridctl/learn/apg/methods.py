@@ -133,7 +133,8 @@ class CEM(APG):
 
     def epoch_update(self, lr: float) -> EpochStep:
         """Candidates from N(mean, std^2) (the epoch's own generator), :meth:`improve`, the CEM update."""
-        noise = torch.randn((self.K, self.pop.n_params), dtype=torch.float64, generator=self._generator(self.epoch))
+        noise = torch.randn((self.K, self.pop.n_params), dtype=torch.float64, generator=self._generator(self.epoch),
+                            device=self.device)
         candidates = self.mean[None] + self.std[None] * noise
         finals, history, scores, grad_norm, obs_sums = self.improve(candidates, lr)
         self.mean, self.std, elite = cem_update(self.mean, finals, scores, self.config.elites)
@@ -157,7 +158,8 @@ class CEAPG(CEM):
     def improve(self, candidates: torch.Tensor, lr: float):
         """The APG phase of the candidates; ranked by the mean of their last ``rank_window`` returns."""
         cfg = self.config
-        phase = self.run_apg_phase(candidates, lr, BatchedAdam(self.K, self.pop.n_params, (cfg.beta1, cfg.beta2)))
+        phase = self.run_apg_phase(candidates, lr, BatchedAdam(self.K, self.pop.n_params, (cfg.beta1, cfg.beta2),
+                                                               device=self.device))
         scores = phase.returns[-cfg.rank_window:].mean(0)
         return phase.theta, phase.returns, scores, median_norm(phase.norms), phase.obs_sums
 

@@ -8,6 +8,10 @@ each: :func:`split_apg_phase` cuts the parameters and Adam moments into chunks, 
 order into one :class:`~.core.Phase`, which the learner then uses as the serial phase's. The
 rollouts of a chunk are bitwise those of the whole population; the observation sums are added
 chunk by chunk, so a split run equals the serial one up to float rounding.
+
+Devices: tasks and results carry CPU numpy arrays only (a worker may sit on another machine);
+a worker builds its problem on the config's ``device`` and moves the arrays there, and the
+joined results are moved back to the learner's device.
 """
 
 from __future__ import annotations
@@ -49,15 +53,15 @@ def apg_chunk(task: dict) -> dict:
     moments, returns and gradient norms [iterations, k], observation sums and counters.
     """
     set_torch_threads(task["config"]["torch_threads"])
-    theta = torch.tensor(task["theta"])
-    members = theta.shape[0]
+    members = np.shape(task["theta"])[0]
     problem = cached_env(("apg", task["system"], repr(task["overrides"]), repr(task["config"]), members),
                          lambda: APGProblem.build(systems_mod.load(task["system"], **task["overrides"]),
                                                   APGConfig(**task["config"]), members))
+    theta = torch.tensor(task["theta"], device=problem.device)
     problem.pop.set_normalization(*task["normalization"])
     state = task["adam"]
-    adam = BatchedAdam(members, theta.shape[1], state["betas"], state["eps"])
-    adam.m, adam.v, adam.t = (torch.tensor(state[k]) for k in ("m", "v", "t"))
+    adam = BatchedAdam(members, theta.shape[1], state["betas"], state["eps"], device=problem.device)
+    adam.m, adam.v, adam.t = (torch.tensor(state[k], device=problem.device) for k in ("m", "v", "t"))
     phase = apg_phase(problem, theta, adam, task["lr"], task["epoch"], task["iterations"], task["unroll"])
     o_sum, o_sq, count = phase.obs_sums
     return {"theta": _array(phase.theta), "returns": _array(phase.returns), "norms": _array(phase.norms),
@@ -70,8 +74,9 @@ def split_apg_phase(backend, problem: APGProblem, system: str, theta: torch.Tens
                     epoch: int, iterations: int, unroll: int) -> Phase:
     """:func:`~.core.apg_phase` of the members ``theta`` [K, P] as contiguous chunks on ``backend``
     (one per worker), joined in member order: the same :class:`~.core.Phase` as in one process
-    up to float rounding. ``system``: the name (or spec path) a worker loads ``problem.system``
-    by, with its spec overrides; ``adam`` is not changed."""
+    up to float rounding, on ``problem.device`` (the chunks travel as CPU arrays). ``system``:
+    the name (or spec path) a worker loads ``problem.system`` by, with its spec overrides;
+    ``adam`` is not changed."""
     cfg = problem.config
     record = dataclasses.asdict(cfg)
     normalization = (_array(problem.pop.obs_mean), _array(problem.pop.obs_std))
@@ -82,11 +87,16 @@ def split_apg_phase(backend, problem: APGProblem, system: str, theta: torch.Tens
               "normalization": normalization}
              for lo, hi in chunk_bounds(theta.shape[0], backend.workers)]
     results = backend.map(apg_chunk, tasks)
-    joined = {key: torch.cat([torch.tensor(r[key]) for r in results], dim=0 if key == "theta" else 1)
+    device = problem.device
+
+    def back(array) -> torch.Tensor:   # a copy of a worker's array (Ray's are read-only) on the learner's device
+        return torch.tensor(np.asarray(array), device=device)
+
+    joined = {key: torch.cat([back(r[key]) for r in results], dim=0 if key == "theta" else 1)
               for key in ("theta", "returns", "norms")}
     new_adam = copy.copy(adam)
-    new_adam.m, new_adam.v, new_adam.t = (torch.cat([torch.tensor(r["adam"][i]) for r in results]) for i in range(3))
-    obs_sums = [torch.tensor(sum(r["obs_sums"][i] for r in results)) for i in (0, 1)] + \
+    new_adam.m, new_adam.v, new_adam.t = (torch.cat([back(r["adam"][i]) for r in results]) for i in range(3))
+    obs_sums = [back(sum(r["obs_sums"][i] for r in results)) for i in (0, 1)] + \
                [sum(r["obs_sums"][2] for r in results)]
     return Phase(joined["theta"], joined["returns"], joined["norms"], new_adam, obs_sums,
                  results[0]["iterations"],   # every chunk ran the same iterations
