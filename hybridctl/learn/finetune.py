@@ -22,12 +22,14 @@ observations (:class:`~hybridctl.analysis.PostProcessor`).
 
 The update is antithetic random search (:mod:`hybridctl.learn.random_search`, shared with ARS:
 all directions kept, the schedules per update); the episodes come from
-:mod:`hybridctl.learn.rollouts` (shared with ARS and the failure rates): fixed chunks of
-``chunk_size`` perturbed policies, one batched forward of the chunk's policies
-(``torch.func.vmap`` over their weights) per env step, over the chunk's envs (gymnasium envs,
-the MuJoCo batch stepper, a hybridctl system's batched torch env for sac/ssac sources). Chunks
-are spread over a :mod:`hybridctl.parallel` backend; because the chunks do not depend on the
-backend or the number of workers, a seed gives the same run on every backend. This file holds
+:mod:`hybridctl.learn.rollouts` (shared with ARS and the failure rates): chunks of perturbed
+policies, one batched forward of the chunk's policies (``torch.func.vmap`` over their weights)
+per env step, over the chunk's envs (gymnasium envs, the MuJoCo batch stepper, or a hybridctl
+system's batched torch dynamics for sac/ssac sources, on ``device``). Chunks are spread over a
+:mod:`hybridctl.parallel` backend, by default enough of them to give each of its workers two;
+the policy, its normaliser and the post-processor go to the backend once per update
+(``backend.put``). A chunk's numbers do not depend on its size (2 rows or more, measured bit for
+bit), so a seed gives the same run on every backend and worker count. This file holds
 what is fine-tuning's own: the settings and schedules, the sources (:func:`load_policy`), the
 parameter selection, the frozen normaliser, the SB3 export.
 """
@@ -56,9 +58,11 @@ from .checkpoint import PROGRESS_FILE, Saved
 from .config_check import check_fields, check_types
 from .random_search import RandomSearchLearner
 from .robustness import wilson_interval  # noqa: F401 (re-exported: hybridctl.learn.finetune.wilson_interval)
-from .rollouts import (ChunkTask, Shipped, batched_actions, evaluation_seeds, make_env, normalise,  # noqa: F401
+from .rollouts import (AUTO_CHUNK_MAX, AUTO_CHUNK_MAX_ACCELERATOR, ChunkInputs, ChunkTask,  # noqa: F401
+                       Shipped, batched_actions, chunk_slices, evaluation_seeds, make_env, normalise,
                        recorded_env_id, recorded_env_kwargs, rollouts, run_chunk, unflatten)
 from .run import EvalResult
+from .sac import check_device_available
 
 SELECTIONS = ("action", "all", "last")
 DIMENSION_SETTINGS = ("author", "ch4")
@@ -83,12 +87,18 @@ class FineTuneConfig:
     #                                     normalised observations (policy_refinement); "ch4": the Ch. 4 defaults
     episode_steps: int | None = None   # None: the env's own limit
     seed: int = 0
-    chunk_size: int = 64               # hybridctl: perturbed policies per batched rollout task (fixed, so the
-    #                                    result does not depend on the backend or the worker count; 2n / chunk_size
-    #                                    tasks per update: lower it when there are more workers than tasks)
+    chunk_size: int | None = None      # hybridctl: perturbed policies per batched rollout task; None ("auto"):
+    #                                    near-equal chunks of 2 to 64 rows (4,096 for a system on an accelerator),
+    #                                    at least 2 tasks per backend worker; an int: chunks of that size. Any size
+    #                                    >= 2 gives the same numbers bit for bit (measured): a one-row chunk of a
+    #                                    system's float64 CPU rollout takes System.step's plain-float path, which
+    #                                    can differ in the last bit
     backend: str = "processes"         # "serial", "processes" (local, default), "ray"
     workers: int | None = None         # None: every core (processes) or the cluster's CPUs (ray)
     address: str | None = None         # Ray cluster address (backend "ray")
+    device: str = "cpu"                # hybridctl: where a hybridctl system's rollouts run (sac/ssac sources: the
+    #                                    policy, gate and batched dynamics; "cuda:0" on a GPU); gymnasium and MuJoCo
+    #                                    envs step on the host, so their rollouts stay on the CPU
     checkpoint_every: int = 10         # updates between atomic checkpoints
     checkpoint_minutes: float = 5.0    # hybridctl: also a checkpoint at least every this many minutes
     eval_episodes: int = 100           # thesis Sec. 6.3: 100 Monte Carlo trials per agent
@@ -98,8 +108,18 @@ class FineTuneConfig:
         """Raise ValueError naming the first invalid field."""
         check_types(self)
         check_fields(self, positive=("step_size_start", "step_size_end", "noise_start", "noise_end"),
-                     integers_from_1=("updates", "n_directions", "chunk_size", "checkpoint_every", "eval_episodes",
+                     integers_from_1=("updates", "n_directions", "checkpoint_every", "eval_episodes",
                                       "torch_threads"), integers_from_0=("seed",))
+        if self.chunk_size is not None and self.chunk_size < 1:
+            raise ValueError(f"FineTuneConfig.chunk_size must be None (auto: from the backend's workers) or an "
+                             f"integer >= 1, got {self.chunk_size!r}")
+        try:
+            device = torch.device(self.device)
+        except (RuntimeError, TypeError):
+            raise ValueError(f"FineTuneConfig.device must be a torch device such as 'cpu' or 'cuda:0', "
+                             f"got {self.device!r}") from None
+        if self.backend != "ray":   # a Ray cluster's workers may have a GPU this machine lacks: checked there
+            check_device_available(f"{type(self).__name__}.device", device)
         for name, allowed in (("select", SELECTIONS), ("reward", POSTPROCESS_KINDS), ("reward_form", POSTPROCESS_FORMS),
                               ("dimension_settings", DIMENSION_SETTINGS), ("backend", BACKENDS)):
             if getattr(self, name) not in allowed:
@@ -156,9 +176,11 @@ class ScaledModule(torch.nn.Module):
     def __init__(self, net: torch.nn.Module | None, obs_dim: int, act_dim: int, low, high):
         super().__init__()
         self.net = net
+        # built on the CPU, as the learner's copy of every policy (rollout workers move their own copy)
         if net is None:  # ARS's linear policy: action = M z, M (act_dim, obs_dim)
-            self.weight = torch.nn.Parameter(torch.zeros(act_dim, obs_dim, dtype=torch.float64))
-        low, high = torch.as_tensor(low, dtype=torch.float64), torch.as_tensor(high, dtype=torch.float64)
+            self.weight = torch.nn.Parameter(torch.zeros(act_dim, obs_dim, dtype=torch.float64, device="cpu"))
+        low = torch.as_tensor(low, dtype=torch.float64, device="cpu")
+        high = torch.as_tensor(high, dtype=torch.float64, device="cpu")
         self.register_buffer("low", low)
         self.register_buffer("high", high)
 
@@ -244,7 +266,7 @@ def load_policy(source: str, env: str, trust: bool = False, normalizer: str | No
         module = ScaledModule(spec.module, spec.obs_dim, spec.act_dim, spec.low, spec.high)
         if spec.module is None:
             with torch.no_grad():
-                module.weight.copy_(torch.as_tensor(agent.theta.reshape(spec.act_dim, spec.obs_dim)))
+                module.weight.copy_(torch.as_tensor(agent.theta.reshape(spec.act_dim, spec.obs_dim), device="cpu"))
         else:
             spec.actor(agent.theta)  # loads theta into the module's weights
         tunable = TunablePolicy(module, AffineNormalizer(agent.stats.mean, agent.stats.std), source,
@@ -322,6 +344,10 @@ class FineTune(RandomSearchLearner):
         if not isinstance(policy, TunablePolicy):
             raise TypeError(f"policy must be a source string, a TunablePolicy or an nn.Module, got "
                             f"{type(policy).__name__}")
+        if policy.system is None and torch.device(self.config.device).type != "cpu":
+            raise ValueError(f"FineTuneConfig.device {self.config.device!r} applies to a hybridctl system's rollouts "
+                             f"(sac/ssac sources, whose dynamics are torch); {self.env_name} steps on the host, so "
+                             f"its rollouts run on the CPU: leave device 'cpu'")
         self.tunable = policy
         self.tunable.module.eval()
         self.names = self.tunable.parameter_names(self.config.select)
@@ -347,8 +373,10 @@ class FineTune(RandomSearchLearner):
 
     def _write_theta(self) -> None:
         """Put theta into the module's parameters (for saving, predict, export)."""
-        rows = unflatten(self.tunable.module, self.names, torch.as_tensor(self.theta[None], dtype=torch.float64))
         params = dict(self.tunable.module.named_parameters())
+        device = params[self.names[0]].device   # the learner's copy of the module (the CPU; workers move theirs)
+        rows = unflatten(self.tunable.module, self.names,
+                         torch.as_tensor(self.theta[None], dtype=torch.float64, device=device))
         with torch.no_grad():
             for name, value in rows.items():
                 params[name].copy_(value[0])
@@ -360,23 +388,30 @@ class FineTune(RandomSearchLearner):
 
     def _rollouts(self, thetas: np.ndarray, seeds: list[int], backend, postprocessor: PostProcessor,
                   max_steps: int | None = None, keep_states: bool = False) -> list[dict]:
-        """One episode per (theta row, seed), in fixed chunks of ``chunk_size`` spread over ``backend``
-        (:class:`~hybridctl.learn.rollouts.ChunkTask`: a system's torch env for sac/ssac sources, the
-        MuJoCo batch stepper where it applies, else gymnasium envs)."""
-        size = self.config.chunk_size
+        """One episode per (theta row, seed), in chunks spread over ``backend``
+        (:class:`~hybridctl.learn.rollouts.ChunkTask`: a system's torch dynamics on ``device`` for
+        sac/ssac sources, the MuJoCo batch stepper where it applies, else gymnasium envs).
+
+        The chunks: ``chunk_size`` rows each, or ("auto", None) :func:`~hybridctl.learn.rollouts.chunk_slices`
+        from the backend's worker count. The policy, gate, normaliser and post-processor go to the
+        backend once (``backend.put``: Ray keeps one copy in its object store) and every task carries
+        the reference, not a copy."""
         module, gate = self._shipped()
         engine = "auto" if batch_supports(self.env, self.env_kwargs) else "backend"
-        tasks = [ChunkTask(self.env, self.env_kwargs, module, self.names, thetas[i:i + size],
-                           seeds[i:i + size], self.tunable.normalizer, max_steps or self.config.episode_steps,
-                           postprocessor, self.tunable.system, gate, keep_states, engine)
-                 for i in range(0, len(seeds), size)]
+        device = self.config.device if self.tunable.system is not None else "cpu"
+        largest = AUTO_CHUNK_MAX if torch.device(device).type == "cpu" else AUTO_CHUNK_MAX_ACCELERATOR
+        inputs = backend.put(ChunkInputs(module, self.names, self.tunable.normalizer, postprocessor, gate))
+        tasks = [ChunkTask(self.env, self.env_kwargs, inputs, thetas[rows], seeds[rows],
+                           max_steps or self.config.episode_steps, self.tunable.system, keep_states, engine, device)
+                 for rows in chunk_slices(len(seeds), self.config.chunk_size, getattr(backend, "workers", 1), largest)]
         return rollouts(tasks, backend)
 
-    def _shipped(self) -> tuple[Shipped, Shipped]:
-        """The policy and gate as bytes for the workers, made once: the parameters they keep are never
-        changed (the perturbed ones travel in the chunks' theta rows)."""
+    def _shipped(self) -> tuple[Shipped, Shipped | None]:
+        """The policy and gate (None: no gate) as bytes for the workers, made once: the parameters they
+        keep are never changed (the perturbed ones travel in the chunks' theta rows)."""
         if getattr(self, "_shipped_pair", None) is None:
-            self._shipped_pair = (Shipped(self.tunable.module), Shipped(self.tunable.gate))
+            gate = Shipped(self.tunable.gate) if self.tunable.gate is not None else None
+            self._shipped_pair = (Shipped(self.tunable.module), gate)
         return self._shipped_pair
 
     def perturbed_rollouts(self, thetas: np.ndarray, seeds: list[int], backend) -> list[dict]:
@@ -403,9 +438,9 @@ class FineTune(RandomSearchLearner):
                              "deterministic=False is not supported")
         self._write_theta()
         z = normalise(self.tunable.normalizer, np.asarray(obs, dtype=np.float64))
-        dtype = next(self.tunable.module.parameters()).dtype
+        first = next(self.tunable.module.parameters())
         with torch.no_grad():
-            return self.tunable.module(torch.as_tensor(z, dtype=dtype)).double().numpy()
+            return self.tunable.module(torch.as_tensor(z, dtype=first.dtype, device=first.device)).double().cpu().numpy()
 
     def tuned_module(self) -> torch.nn.Module:
         """A copy of the policy module with the fine-tuned weights (normalised observations -> actions),

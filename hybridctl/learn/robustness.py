@@ -36,7 +36,7 @@ def wilson_interval(failures: int, n: int, z: float = 1.96) -> tuple[float, floa
 
 def failure_rates(policy, env=None, conditions: dict | None = None,
                   episodes: int = 50, episode_steps: int = 10_000, seed: int = 0, backend: str = "processes",
-                  workers: int | None = None, engine: str | None = None) -> dict:
+                  workers: int | None = None, engine: str | None = None, address: str | None = None) -> dict:
     """Fraction of episodes that terminate early under each disturbance condition.
 
     ``policy``: an :class:`~hybridctl.learn.ars.ARS` agent (anything with ``frozen_policy()``,
@@ -52,6 +52,10 @@ def failure_rates(policy, env=None, conditions: dict | None = None,
     episodes together on the batched MuJoCo stepper where it applies (Hopper/Walker2d/HalfCheetah
     v5, linear or plain-callable policies; the same numbers bit for bit) on ``workers`` threads;
     ``"backend"``: one episode per task on ``backend``.
+
+    ``backend``, ``workers``, ``address``: where the episodes run, as for every parallel workload
+    (:func:`~hybridctl.parallel.make_backend`: ``address`` is a Ray cluster's, for ``backend="ray"``;
+    None there: ``RAY_ADDRESS``, else a new local instance).
     """
     conditions = conditions or {"none": {}}
     if episodes < 1 or episode_steps < 1:
@@ -78,7 +82,7 @@ def failure_rates(policy, env=None, conditions: dict | None = None,
     seeds = evaluation_seeds(seed, episodes)
     identity = PostProcessor("identity")
     report = {}
-    with make_backend(backend, workers) as pool:
+    with make_backend(backend, workers, address) as pool:
         for name, cond in conditions.items():
             tasks = [RolloutTask(env, env_kwargs, frozen.spec, frozen.theta, frozen.obs_mean, frozen.obs_std, s,
                                  episode_steps, 0.0, identity,

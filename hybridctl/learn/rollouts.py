@@ -12,10 +12,14 @@ Two execution strategies, kept apart because each reproduces its learner's numbe
   whole batch stepped together on the MuJoCo batch stepper
   (:class:`~hybridctl.envs.mujoco_batch.MujocoBatchEnv`, :func:`run_episodes_batched`,
   ``engine="auto"``). ARS and :func:`~hybridctl.learn.robustness.failure_rates` use it.
-* :class:`ChunkTask` -- a fixed chunk of B episodes of a torch module whose named parameters
+* :class:`ChunkTask` -- a chunk of B episodes of a torch module whose named parameters
   come from the rows of ``thetas``: one ``torch.func.vmap`` forward of ``functional_call`` per
   env step, over gymnasium envs, the MuJoCo batch stepper (one thread), or a hybridctl
-  system's batched torch env (SSAC: gate + LQR inside). Fine-tuning uses it.
+  system's batched torch dynamics (SSAC: gate + LQR inside), the latter on any torch device
+  with no copy to the host until the chunk ends. What every chunk of a batch reads and none
+  changes (the policy, its normaliser, the post-processor: :class:`ChunkInputs`) is shipped
+  once per batch (``backend.put``; the tasks carry the reference). :func:`chunk_slices` splits
+  a batch into chunks, by default from the backend's worker count. Fine-tuning uses it.
 
 Every result: ``finite`` (False: only ``steps`` follows), ``return`` (post-processed by the
 task's :class:`~hybridctl.analysis.PostProcessor`, e.g. the dimension reward), ``raw_return``,
@@ -32,8 +36,10 @@ ids read from files) lives here too.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 import os
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
@@ -231,27 +237,99 @@ class Shipped:
 
 
 @dataclass
+class ChunkInputs:
+    """What every chunk of one batch of rollouts reads and none changes (plain, picklable): shipped
+    once per batch with ``backend.put`` (Ray: one copy in the object store), the tasks carry the
+    reference (:attr:`ChunkTask.inputs`)."""
+
+    shipped: Shipped              # the policy module (non-perturbed parameters at their values)
+    names: list[str]              # the perturbed parameters, in the order of a theta row
+    normalizer: Any               # frozen observation normaliser (None: observations as they are)
+    postprocessor: PostProcessor
+    gate: Shipped | None = None   # SSAC's gate (the switched dynamics: gate + LQR inside the rollout)
+
+
+def shared_value(value: Any) -> Any:
+    """The value behind ``backend.put(value)``'s result, in a worker: ``ray.get`` of a Ray object
+    reference (Ray resolves references only where they are a task's own argument, not inside
+    one), the value itself from every other backend (their ``put`` is the identity)."""
+    ray = sys.modules.get("ray")   # a Ray reference exists only where ray is imported already
+    if ray is not None and isinstance(value, getattr(ray, "ObjectRef", ())):
+        return ray.get(value)
+    return value
+
+
+@dataclass
 class ChunkTask:
     """Episodes of ``len(seeds)`` policies (rows of ``thetas``), one per env seed (plain, picklable)."""
 
     env: Any
     env_kwargs: dict | None
-    shipped: Shipped
-    names: list[str]
+    inputs: Any                   # a ChunkInputs, or the reference backend.put returned for it
     thetas: np.ndarray            # (B, P) float64
     seeds: list[int]
-    normalizer: Any
     max_steps: int | None
-    postprocessor: PostProcessor
-    system: str | None = None     # a hybridctl system's name: its batched torch env (sac/ssac policies)
-    gate: Shipped | None = None   # SSAC's gate (the switched env: gate + LQR inside the rollout)
+    system: str | None = None     # a hybridctl system's name: its batched torch dynamics (sac/ssac policies)
     keep_states: bool = False
     engine: str = "auto"          # "auto": the MuJoCo batch stepper where it applies; "backend": gymnasium envs
+    device: str = "cpu"           # where a system's rollout runs (gymnasium and MuJoCo envs step on the host)
+
+    @property
+    def shared(self) -> ChunkInputs:
+        """The batch's shared inputs (fetched from the object store where :attr:`inputs` is a reference)."""
+        return shared_value(self.inputs)
 
     @property
     def module(self) -> torch.nn.Module:
         """The policy module (non-perturbed parameters at their values; perturbed ones come from thetas)."""
-        return self.shipped.get()
+        return self.shared.shipped.get()
+
+    @property
+    def names(self) -> list[str]:
+        """The perturbed parameters' names, in the order of a theta row."""
+        return self.shared.names
+
+    @property
+    def normalizer(self):
+        """The frozen observation normaliser (None: none)."""
+        return self.shared.normalizer
+
+    @property
+    def postprocessor(self) -> PostProcessor:
+        """The return post-processor."""
+        return self.shared.postprocessor
+
+
+AUTO_CHUNK_MAX = 64
+"""Largest chunk :func:`chunk_slices` makes by itself on the CPU (the fixed size of earlier versions):
+more rows gain a CPU worker little, and smaller chunks leave other workers something to do."""
+AUTO_CHUNK_MAX_ACCELERATOR = 4096
+"""Largest automatic chunk of a system's rollouts on an accelerator, where one wide batch is the point."""
+TASKS_PER_WORKER = 2
+"""Automatic chunking gives every worker at least this many tasks (where there are rows enough), so a
+worker that finishes early finds another."""
+
+
+def chunk_slices(total: int, chunk_size: int | None, workers: int = 1, largest: int = AUTO_CHUNK_MAX) -> list[slice]:
+    """The row ranges of the chunks of a batch of ``total`` rollouts.
+
+    ``chunk_size`` an int: consecutive chunks of that many rows (the last one shorter). None
+    ("auto"): near-equal chunks (sizes differ by at most one), enough that each of the backend's
+    ``workers`` gets :data:`TASKS_PER_WORKER` of them, none larger than ``largest`` and none of a
+    single row (where ``total`` >= 2). Chunks of 2 rows or more give the same numbers bit for bit
+    whatever their size (measured on gymnasium, MuJoCo and system envs); a one-row chunk of a
+    system's float64 CPU rollout takes :meth:`~hybridctl.systems.System.step`'s plain-float path,
+    which can differ from the batched one in the last bit.
+    """
+    if total < 1:
+        return []
+    if chunk_size is not None:
+        return [slice(i, min(i + chunk_size, total)) for i in range(0, total, chunk_size)]
+    chunks = max(-(-total // largest), TASKS_PER_WORKER * max(1, int(workers)))
+    chunks = max(1, min(chunks, total // 2))
+    base, extra = divmod(total, chunks)
+    bounds = np.cumsum([0] + [base + 1] * extra + [base] * (chunks - extra))
+    return [slice(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
 
 
 def unflatten(module: torch.nn.Module, names: list[str], thetas: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -481,6 +559,7 @@ def _set_push(env: gym.Env, force: np.ndarray) -> None:
 def run_chunk(task: ChunkTask) -> list[dict]:
     """Roll out one episode per row of ``task.thetas``; one result dict per row, in row order."""
     torch.set_num_threads(1)
+    task = dataclasses.replace(task, inputs=task.shared)   # fetched once per task (Ray: from the object store)
     if task.system is not None:
         return _run_system_chunk(task)
     if task.engine == "auto" and batch_supports(task.env, task.env_kwargs):
@@ -488,8 +567,7 @@ def run_chunk(task: ChunkTask) -> list[dict]:
     n = len(task.seeds)
     envs = cached_env(("finetune", repr(task.env), repr(task.env_kwargs), task.max_steps, n),
                       lambda: [make_env(task.env, task.env_kwargs, task.max_steps) for _ in range(n)])
-    dtype = next(task.module.parameters()).dtype
-    params = unflatten(task.module, task.names, torch.as_tensor(task.thetas, dtype=torch.float64))
+    module, params = _host_policy(task)
     space = envs[0].action_space
     obs = np.stack([np.asarray(e.reset(seed=int(s))[0], dtype=np.float64).reshape(-1) for e, s in zip(envs, task.seeds)])
     z = normalise(task.normalizer, obs)
@@ -498,7 +576,7 @@ def run_chunk(task: ChunkTask) -> list[dict]:
     active, terminated, finite, success = np.ones(n, bool), np.zeros(n, bool), np.ones(n, bool), [None] * n
     limit = task.max_steps or math.inf
     while active.any():
-        actions = batched_actions(task.module, params, torch.as_tensor(z, dtype=dtype)).numpy()
+        actions = _host_actions(module, params, z)
         actions = actions.astype(space.dtype, copy=False).reshape((n, *space.shape))
         stepped = np.flatnonzero(active)
         for i in stepped:
@@ -511,6 +589,20 @@ def run_chunk(task: ChunkTask) -> list[dict]:
         returns[stepped] += rewards[stepped]
         z = _after_step(task, obs, returns, steps, stepped, finite, active, limit, history)
     return _chunk_results(task, history, returns, steps, terminated, finite, success)
+
+
+def _host_policy(task: ChunkTask) -> tuple[torch.nn.Module, dict[str, torch.Tensor]]:
+    """The policy module on the CPU and the chunk's parameter rows for it: gymnasium and MuJoCo envs
+    step on the host, so their policies run there (their observations and actions are numpy)."""
+    module = task.module.to("cpu")
+    rows = torch.as_tensor(task.thetas, dtype=torch.float64, device="cpu")
+    return module, unflatten(module, task.names, rows)
+
+
+def _host_actions(module: torch.nn.Module, params: dict[str, torch.Tensor], z: np.ndarray) -> np.ndarray:
+    """The chunk's actions (numpy) for normalised observations ``z`` (numpy) on the host."""
+    dtype = next(module.parameters()).dtype
+    return batched_actions(module, params, torch.as_tensor(z, dtype=dtype, device="cpu")).numpy()
 
 
 def _after_step(task: ChunkTask, obs, returns, steps, stepped, finite, active, limit, history) -> np.ndarray:
@@ -540,8 +632,7 @@ def _run_mujoco_chunk(task: ChunkTask) -> list[dict]:
     n = len(task.seeds)
     env = cached_env(("finetune-batch", task.env, repr(task.env_kwargs), n),
                      lambda: MujocoBatchEnv(task.env, num_envs=n, nthread=1, env_kwargs=task.env_kwargs))
-    dtype = next(task.module.parameters()).dtype
-    params = unflatten(task.module, task.names, torch.as_tensor(task.thetas, dtype=torch.float64))
+    module, params = _host_policy(task)
     space = env.action_space
     obs = env.reset(task.seeds)
     z = normalise(task.normalizer, obs)
@@ -550,7 +641,7 @@ def _run_mujoco_chunk(task: ChunkTask) -> list[dict]:
     active, terminated, finite = np.ones(n, bool), np.zeros(n, bool), np.ones(n, bool)
     limit = task.max_steps or env.max_episode_steps or math.inf
     while active.any():
-        actions = batched_actions(task.module, params, torch.as_tensor(z, dtype=dtype)).numpy()
+        actions = _host_actions(module, params, z)
         actions = actions.astype(space.dtype, copy=False).reshape((n, *space.shape))
         stepped = np.flatnonzero(active)
         o, r, term, _ = env.step(actions[stepped], ids=stepped)
@@ -562,37 +653,85 @@ def _run_mujoco_chunk(task: ChunkTask) -> list[dict]:
     return _chunk_results(task, history, returns, steps, terminated, finite, None)
 
 
+def _system_decision(system, gate: torch.nn.Module | None, device: torch.device
+                     ) -> tuple[Callable[[torch.Tensor, torch.Tensor, torch.Tensor], tuple], int, int]:
+    """(decide, substeps, decisions per episode) of ``system``'s swing-up env: ``decide(x, u, mode)`` ->
+    ``(x_next, diverged, mode)`` is one decision of :class:`~hybridctl.envs.TorchVectorEnv` (the action
+    held over the substeps) or, with SSAC's ``gate``, of :class:`~hybridctl.envs.SwitchedVectorEnv`
+    (gate + LQR inside, at the env's default K, thresholds and gate stride), on ``device``."""
+    from ..envs.single import advance, decision_schedule
+    from ..envs.switched import switched_decision
+    _, substeps, decisions = decision_schedule(system, None)
+    if gate is None:
+        return (lambda x, u, mode: (*advance(system, x, u, substeps), mode)), substeps, decisions
+    K = torch.as_tensor(system.lqr()[0], dtype=torch.float64, device=device)
+    stride = max(1, int(round(system.control_period / system.dt)))
+    gate_dtype = next((p.dtype for p in gate.parameters()), torch.float64)
+
+    def decide(x, u, mode):
+        with torch.no_grad():
+            x, diverged, mode, _ = switched_decision(system, gate, x, u, mode, K, substeps, stride, gate_dtype,
+                                                     system.gate.on, system.gate.off)
+        return x, diverged, mode
+    return decide, substeps, decisions
+
+
 def _run_system_chunk(task: ChunkTask) -> list[dict]:
-    """A hybridctl system's swing-up: the chunk's episodes on its batched torch env (SSAC: gate + LQR inside)."""
-    from ..envs import SwitchedVectorEnv, TorchVectorEnv
+    """A hybridctl system's swing-up: the chunk's episodes on its batched torch dynamics (SSAC: gate + LQR
+    inside), on ``task.device``, the semantics of its :class:`~hybridctl.envs.TorchVectorEnv` (actions
+    clipped, reward 0 and the last finite state on divergence, truncation after the episode's decisions,
+    the thesis success test on the last states of a truncated episode).
+
+    No copy to the host until the chunk ends: returns, step counts, terminations and states stay on the
+    device; every episode starts together, so the loop runs a known number of decisions (the episode
+    length or ``max_steps``) and asks the device nothing about which episodes still run.
+    """
+    from ..systems.success import is_balanced
+    device = torch.device(task.device)
+    if device.type == "cuda":
+        from .sac import check_device_available
+        check_device_available("the rollout device", device)
     system = load_system(task.system)
     n = len(task.seeds)
-    gate = task.gate.get() if task.gate is not None else None
-    if gate is not None:
-        env = SwitchedVectorEnv(system, n, gate=gate, dtype=torch.float64)
-    else:
-        env = TorchVectorEnv(system, n, dtype=torch.float64)
+    gate = task.shared.gate.get().to(device) if task.shared.gate is not None else None
+    decide, _, decisions = _system_decision(system, gate, device)
+    module = task.module.to(device)
+    dtype = next(module.parameters()).dtype
+    params = unflatten(module, task.names, torch.as_tensor(task.thetas, dtype=torch.float64, device=device))
     x0 = np.concatenate([system.sample_initial_states(1, np.random.default_rng(int(s))) for s in task.seeds])
-    obs, _ = env.reset(seed=int(task.seeds[0]), options={"state": x0})
-    dtype = next(task.module.parameters()).dtype
-    params = unflatten(task.module, task.names, torch.as_tensor(task.thetas, dtype=torch.float64))
-    states = [[row] for row in obs.numpy()]
-    returns, steps = np.zeros(n), np.zeros(n, dtype=int)
-    active, terminated, success = np.ones(n, bool), np.zeros(n, bool), [None] * n
-    limit = task.max_steps or math.inf
-    while active.any():
-        actions = batched_actions(task.module, params, obs.to(dtype)).to(torch.float64)
-        obs, rewards, term, trunc, infos = env.step(actions)
-        x, r = obs.numpy(), rewards.numpy()
-        for i in np.flatnonzero(active):
-            returns[i] += float(r[i])
-            steps[i] += 1
-            states[i].append(x[i])
-            if bool(term[i]) or bool(trunc[i]) or steps[i] >= limit:
-                active[i], terminated[i] = False, bool(term[i])
-                success[i] = bool(infos["success"][i]) if bool(infos["_success"][i]) else False
-    return [episode_result(np.stack(states[i]), returns[i], returns[i], int(steps[i]), bool(terminated[i]),
-                           task.postprocessor, finite=bool(np.isfinite(returns[i])), success=success[i],
+    x = torch.as_tensor(x0, dtype=torch.float64, device=device)
+    horizon = int(min(task.max_steps or decisions, decisions))
+    states = torch.empty((horizon + 1, n, x.shape[1]), dtype=torch.float64, device=device)
+    states[0] = x
+    mode = torch.zeros(n, dtype=torch.bool, device=device)           # every episode starts in swing-up
+    returns = torch.zeros(n, dtype=torch.float64, device=device)
+    steps = torch.zeros(n, dtype=torch.long, device=device)
+    active = torch.ones(n, dtype=torch.bool, device=device)
+    terminated = torch.zeros(n, dtype=torch.bool, device=device)
+    bad_action = torch.zeros((), dtype=torch.bool, device=device)
+    limit = system.action_limit
+    for k in range(horizon):
+        u = batched_actions(module, params, x.to(dtype)).to(torch.float64)
+        bad_action |= ~torch.isfinite(u).all()
+        x, diverged, mode = decide(x, u.clamp(-limit, limit), mode)
+        reward = torch.where(diverged, 0.0, system.reward(x))
+        returns = torch.where(active, returns + reward, returns)
+        steps += active.long()
+        states[k + 1] = x
+        terminated |= active & diverged
+        active &= ~diverged
+    # one copy to the host per chunk
+    states_np, returns_np = states.cpu().numpy(), returns.cpu().numpy()
+    steps_np, terminated_np = steps.cpu().numpy(), terminated.cpu().numpy()
+    if bad_action.cpu().numpy():
+        raise ValueError(f"actions must be finite (clipped to [-{limit}, {limit}]); got NaN or Inf")
+    # the env's success test: an episode truncated after its decisions, balanced over its last states
+    success = np.zeros(n, dtype=bool)
+    if horizon == decisions:
+        success = ~terminated_np & np.asarray(is_balanced(states_np.transpose(1, 0, 2), system), dtype=bool)
+    return [episode_result(states_np[: steps_np[i] + 1, i], float(returns_np[i]), float(returns_np[i]),
+                           int(steps_np[i]), bool(terminated_np[i]), task.postprocessor,
+                           finite=bool(np.isfinite(returns_np[i])), success=bool(success[i]),
                            keep_states=task.keep_states) for i in range(n)]
 
 
