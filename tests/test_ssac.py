@@ -89,7 +89,7 @@ def test_the_thread_count_is_set_before_the_gate_warm_start(monkeypatch):
     from hybridctl.learn import ssac as ssac_module
     threads = []
 
-    def fake_warm_start(system, config):
+    def fake_warm_start(system, config, device="cpu"):
         threads.append(torch.get_num_threads())
         return GateNet(system), np.zeros((2, 4)), np.array([True, False]), {}
 

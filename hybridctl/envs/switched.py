@@ -26,7 +26,8 @@ class SwitchedVectorEnv(TorchVectorEnv):
         system, num_envs, decision_period, device, dtype, seed, autoreset_mode: as
             :class:`TorchVectorEnv`.
         gate: a torch module mapping states (B, n) to probabilities (B, 1), e.g.
-            ``hybridctl.learn.GateNet`` or ``hybridctl.drake.CostToGoGate``.
+            ``hybridctl.learn.GateNet`` or ``hybridctl.drake.CostToGoGate``; it is moved to
+            the env's ``device`` (in place, ``Module.to``), where the decisions run.
             Replace it at any time with :meth:`set_gate` (SSAC refits it).
         K: LQR gain (m, n); default ``system.lqr()``.
         gate_on, gate_off: hysteresis thresholds (default: the spec's 0.9 / 0.5).
@@ -58,9 +59,15 @@ class SwitchedVectorEnv(TorchVectorEnv):
         self._infos: dict[str, torch.Tensor] = {}
 
     def set_gate(self, gate: torch.nn.Module) -> None:
-        """Use ``gate`` (states (B, n) -> probabilities (B, 1)) from the next decision on."""
+        """Use ``gate`` (states (B, n) -> probabilities (B, 1)) from the next decision on.
+
+        A torch module is moved to the env's device first (in place, as ``Module.to`` does; a
+        no-op where it is there already): the gate runs inside every decision, on the env's
+        states. A plain callable is used as it is."""
         if not callable(gate):
             raise TypeError(f"gate must be a torch module or callable, got {type(gate).__name__}")
+        if isinstance(gate, torch.nn.Module):
+            gate.to(self.device)
         self.gate = gate
 
     def lqr(self, x: torch.Tensor) -> torch.Tensor:

@@ -80,11 +80,23 @@ class GateNet(torch.nn.Module):
     Features are the wrapped state error divided by ``feature_scale`` (by default
     the spec's ``gate.warm_far`` spread, so features are O(1)) and, with
     ``cost_feature``, log(1 + V / gate.cost_scale) of the LQR cost-to-go V.
+
+    The net is built on the CPU whatever torch's default device (initial weights from the
+    CPU RNG, so one seed gives the same gate on every device) and then moved to ``device``
+    (None: it stays on the CPU).
     """
 
     def __init__(self, system: System, hidden: tuple[int, ...] = GateConfig.hidden,
-                 feature_scale: np.ndarray | None = None, cost_feature: bool = True):
+                 feature_scale: np.ndarray | None = None, cost_feature: bool = True,
+                 device: str | torch.device | None = None):
         super().__init__()
+        with torch.device("cpu"):
+            self._build(system, hidden, feature_scale, cost_feature)
+        if device is not None:
+            self.to(device)
+
+    def _build(self, system: System, hidden: tuple[int, ...], feature_scale, cost_feature: bool) -> None:
+        """The buffers and layers of :meth:`__init__` (made on the CPU)."""
         self.system_name = system.name
         self.gate_on = system.gate.on  # the hand-over threshold of the system's hysteresis (gate_metrics)
         scale = system.gate.spread("warm_far") if feature_scale is None else np.asarray(feature_scale, float)
@@ -151,9 +163,11 @@ class GateNet(torch.nn.Module):
             if any(not isinstance(m, (torch.nn.Linear, torch.nn.ReLU)) for m in self.net):
                 raise TypeError("GateNet.numpy_forward needs the net built by GateNet (Linear and ReLU layers)")
             tensors = [*self.parameters(), *self.buffers()]
-            layers = [(m.weight.detach().numpy().T.copy(), m.bias.detach().numpy().copy())
+            # host copies of a gate on any device (the Drake blocks run on the CPU)
+            layers = [(m.weight.detach().cpu().numpy().T.copy(), m.bias.detach().cpu().numpy().copy())
                       for m in self.net if isinstance(m, torch.nn.Linear)]
-            buffers = [getattr(self, name).detach().numpy().copy() for name in ("goal", "feature_scale", "S_scaled")]
+            buffers = [getattr(self, name).detach().cpu().numpy().copy()
+                       for name in ("goal", "feature_scale", "S_scaled")]
             idx = list(self.angle_indices)
             contiguous = bool(idx) and idx == list(range(idx[0], idx[-1] + 1))
             self._angle_columns = slice(idx[0], idx[-1] + 1) if contiguous else idx
@@ -181,11 +195,13 @@ def label_horizon(system: System, config: GateConfig) -> float:
     return system.gate.label_horizon
 
 
-def label_states(system: System, states: np.ndarray, config: GateConfig, K=None) -> np.ndarray:
+def label_states(system: System, states, config: GateConfig, K=None,
+                 device: str | torch.device | None = None) -> np.ndarray:
     """Labels 1 where the saturated LQR from that state balances (config's eps and lookback,
-    :func:`label_horizon` seconds)."""
+    :func:`label_horizon` seconds). The rollouts run on ``device`` (None: a torch ``states``'
+    device, else the CPU); the labels come back as a numpy bool array."""
     return lqr_rollouts_balanced(system, states, label_horizon(system, config), eps=config.label_eps,
-                                 lookback=config.label_lookback, K=K)
+                                 lookback=config.label_lookback, K=K, device=device)
 
 
 def positive_class_weight(labels, positive_weight: float) -> float:
@@ -196,7 +212,8 @@ def positive_class_weight(labels, positive_weight: float) -> float:
 
 def gate_loss(gate: GateNet, states: torch.Tensor, labels: torch.Tensor, c_w: float) -> torch.Tensor:
     """Thesis eq. 3.3: BCE on the gate's logits with the positive class weighted by ``c_w``."""
-    return _weighted_bce(gate.logits(states), labels, torch.tensor(c_w))
+    logits = gate.logits(states)
+    return _weighted_bce(logits, labels, torch.tensor(c_w, device=logits.device))
 
 
 def _weighted_bce(logits: torch.Tensor, labels: torch.Tensor, c_w: torch.Tensor) -> torch.Tensor:
@@ -214,9 +231,15 @@ def fit_gate(gate: GateNet, states, labels, steps: int, lr: float = 1e-3, positi
     set's class balance. ``compiled``: each step's loss and gradient is one ``torch.compile``-d
     graph (the same numbers up to float32 rounding; the minibatches are the same draws), with
     a fused Adam step; SSAC refits this way when it trains compiled. Returns the losses.
+
+    The fit runs on the gate's device: ``states`` and ``labels`` (numpy or torch, on any device)
+    are copied there once, and the minibatch rows are drawn there, from ``generator`` (which must
+    be on that device; None: torch's default generator of the device). Each step reads its loss
+    back once (the NaN guard and the returned losses).
     """
-    x = torch.as_tensor(np.asarray(states), dtype=torch.float32)
-    y = torch.as_tensor(np.asarray(labels), dtype=torch.bool)
+    device = _module_device(gate)
+    x = _as_device_tensor(states, torch.float32, device)
+    y = _as_device_tensor(labels, torch.bool, device)
     if x.shape[0] != y.shape[0] or x.shape[0] == 0:
         raise ValueError(f"states and labels must be non-empty and of equal length, got {x.shape[0]} and {y.shape[0]}")
     c_w = positive_class_weight(y, positive_weight) if class_weight is None else class_weight
@@ -225,19 +248,36 @@ def fit_gate(gate: GateNet, states, labels, steps: int, lr: float = 1e-3, positi
     losses = []
     gate.train()
     for i in range(steps):
-        rows = torch.randint(len(y), (min(batch_size, len(y)),), generator=generator)
+        rows = torch.randint(len(y), (min(batch_size, len(y)),), generator=generator, device=device)
         xb, yb = x.index_select(0, rows), y.index_select(0, rows)  # = x[rows], y[rows], 2.5x faster
         if step is not None:
             loss = step(xb, yb)
         else:
             loss = gate_loss(gate, xb, yb, c_w)
-            check_finite("gate loss", loss, f"at fit step {i}")
+            value = loss.item()  # the step's one read-back: checked here, returned below
+            check_finite("gate loss", value, f"at fit step {i}")
             optimizer.zero_grad()
             loss.backward()
             optimizer.step()
-        losses.append(loss.item())
+            loss = value
+        losses.append(loss)
     gate.eval()
     return losses
+
+
+def _module_device(module) -> torch.device:
+    """The device of a module's first parameter or buffer (the CPU for one without tensors, or a
+    plain callable)."""
+    tensors = [*getattr(module, "parameters", lambda: [])(), *getattr(module, "buffers", lambda: [])()]
+    return tensors[0].device if tensors else torch.device("cpu")
+
+
+def _as_device_tensor(values, dtype: torch.dtype | None, device: torch.device) -> torch.Tensor:
+    """``values`` (numpy, a sequence or a torch tensor on any device) as a ``dtype`` tensor on ``device``
+    (None: the values' own dtype)."""
+    if isinstance(values, torch.Tensor):
+        return values.detach().to(device=device, dtype=dtype)
+    return torch.as_tensor(np.asarray(values), dtype=dtype, device=device)
 
 
 def _gate_grads(params: dict, gate: GateNet, x: torch.Tensor, y: torch.Tensor, c_w: torch.Tensor):
@@ -264,16 +304,18 @@ class _CompiledGateStep:
         self.gate = gate
         self.params = list(gate.parameters())
         self.detached = {k: v.detach() for k, v in gate.named_parameters()}
-        self.c_w = torch.tensor(float(c_w), dtype=torch.float32)
+        self.c_w = torch.tensor(float(c_w), dtype=torch.float32, device=self.params[0].device)
         self.grads = COMPILED_GATE_GRADS
         self.adam_step = FusedAdamStep(optimizer)
 
-    def __call__(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    def __call__(self, x: torch.Tensor, y: torch.Tensor) -> float:
+        """One step on the minibatch ``x``, ``y``; returns its loss (read back once, for the NaN guard)."""
         grads, loss = self.grads(self.detached, self.gate, x, y, self.c_w)
-        check_finite("gate loss", loss, "in a compiled fit step")
+        value = loss.item()
+        check_finite("gate loss", value, "in a compiled fit step")
         set_grads(self.params, [grads[k] for k in self.detached])
         self.adam_step()
-        return loss
+        return value
 
 
 def gate_metrics(gate: torch.nn.Module, states, labels, on: float | None = None) -> dict:
@@ -292,8 +334,10 @@ def gate_metrics(gate: torch.nn.Module, states, labels, on: float | None = None)
             on = gate.system.gate.on
         if on is None:
             raise ValueError(f"gate_metrics needs on= for a {type(gate).__name__} (no system to read gate.on from)")
-    with torch.no_grad():
-        p = gate(torch.as_tensor(np.asarray(states))).reshape(-1).numpy()
+    with torch.no_grad():  # on the gate's device; one host copy of the probabilities
+        x = _as_device_tensor(states, None, _module_device(gate))  # the states' own dtype, as before
+        p = gate(x).reshape(-1).cpu().numpy()
+    labels = labels.cpu() if isinstance(labels, torch.Tensor) else labels
     y = np.asarray(labels, dtype=bool)
     handover = p > on
     return {
@@ -305,21 +349,26 @@ def gate_metrics(gate: torch.nn.Module, states, labels, on: float | None = None)
     }
 
 
-def warm_start_gate(system: System, config: GateConfig | None = None, progress: bool = False):
+def warm_start_gate(system: System, config: GateConfig | None = None, progress: bool = False,
+                    device: str | torch.device = "cpu"):
     """Thesis Algorithm 2: sample states, label them by LQR rollouts, fit a GateNet.
 
-    Returns (gate, states, labels, info) so SSAC keeps the data for later refits.
+    The rollouts, the gate and its fit run on ``device`` (the gate's initial weights come from
+    the seed on the CPU, as on every device, and are moved there; the minibatches are drawn by a
+    generator on ``device``). Returns (gate on ``device``, states and labels as numpy, info) so
+    SSAC keeps the data for later refits.
     """
     config = config or GateConfig()
     config.validate()
     rng = np.random.default_rng(config.seed)
     states = warm_start_states(system, config.warm_samples, rng)
-    labels = label_states(system, states, config)
+    labels = label_states(system, states, config, device=device)
     if labels.sum() == 0:
         raise RuntimeError(f"no warm-start state of {system.name} was balanced by the LQR; widen gate.warm_near")
     with seeded(config.seed):  # initial weights from the seed; the caller's global torch RNG is left alone
         gate = GateNet(system, tuple(config.hidden), cost_feature=config.cost_feature)
-    generator = torch.Generator().manual_seed(config.seed)
+    gate.to(device)
+    generator = torch.Generator(device=device).manual_seed(config.seed)
     losses = fit_gate(gate, states, labels, config.warm_fit_steps, config.lr, config.positive_weight,
                       config.batch_size, generator)
     info = {"positive_fraction": float(labels.mean()), "final_loss": losses[-1],

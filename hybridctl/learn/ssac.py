@@ -163,39 +163,102 @@ class SSACConfig(SACConfig):
 
 
 class GateDataset:
-    """D_g: gate states (float32) and labels (bool), warm-start rows first, capped FIFO after them."""
+    """D_g: gate states (float32) and labels (bool), warm-start rows first, capped FIFO after them.
+
+    Kept on the host (CPU tensors) whatever the learner's device: rows arrive once per ended
+    episode and per refit, and a refit copies the whole set to the gate's device once
+    (:func:`~hybridctl.learn.gate.fit_gate`), so a GPU holds no second, growing copy."""
 
     def __init__(self, n_states: int, capacity: int):
         self.n_states, self.capacity = int(n_states), int(capacity)
-        self.states = torch.zeros((0, self.n_states), dtype=torch.float32)
-        self.labels = torch.zeros(0, dtype=torch.bool)
+        self.states = torch.zeros((0, self.n_states), dtype=torch.float32, device="cpu")
+        self.labels = torch.zeros(0, dtype=torch.bool, device="cpu")
         self.n_warm = 0
 
     def __len__(self) -> int:
         return int(self.labels.numel())
 
     def add(self, states, labels, warm: bool = False) -> None:
-        """Append rows; episode rows beyond ``capacity`` push out the oldest episode rows."""
-        states = torch.as_tensor(np.asarray(states) if not isinstance(states, torch.Tensor) else states,
-                                 dtype=torch.float32).reshape(-1, self.n_states).cpu()
-        labels = torch.as_tensor(labels, dtype=torch.bool).reshape(-1).cpu()
+        """Append rows (numpy, or torch on any device: copied to the host); episode rows beyond
+        ``capacity`` push out the oldest episode rows."""
+        states = _host_tensor(states, torch.float32).reshape(-1, self.n_states)
+        labels = _host_tensor(labels, torch.bool).reshape(-1)
         self.states = torch.cat([self.states, states])
         self.labels = torch.cat([self.labels, labels])
         if warm:
             self.n_warm += len(labels)
         excess = len(self) - max(self.capacity, self.n_warm)
         if excess > 0:  # keep the warm-start rows, drop the oldest episode rows
-            keep = torch.ones(len(self), dtype=torch.bool)
+            keep = torch.ones(len(self), dtype=torch.bool, device="cpu")
             keep[self.n_warm:self.n_warm + excess] = False
             self.states, self.labels = self.states[keep], self.labels[keep]
 
     def state_dict(self) -> dict[str, Any]:
+        """The rows and the number of warm-start rows (gate_data.pt)."""
         return {"states": self.states, "labels": self.labels, "n_warm": self.n_warm}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Take the rows of :meth:`state_dict` (loaded on any device) back to the host."""
         self.states = state["states"].to(torch.float32).cpu()
         self.labels = state["labels"].to(torch.bool).cpu()
         self.n_warm = int(state["n_warm"])
+
+
+def _host_tensor(values, dtype: torch.dtype) -> torch.Tensor:
+    """``values`` (numpy, a sequence, or a tensor on any device) as a ``dtype`` CPU tensor."""
+    if isinstance(values, torch.Tensor):
+        return values.detach().to(device="cpu", dtype=dtype)
+    return torch.as_tensor(np.asarray(values), dtype=dtype, device="cpu")
+
+
+class RelabelPool:
+    """The newest ``capacity`` states waiting for LQR-rollout labels, in a ring buffer on ``device``.
+
+    SSAC queues the swing-up decision states near the goal at every env step: :meth:`add` takes
+    the rows under a mask with no read-back to the host (no sync per step on a GPU). A refit reads
+    :meth:`states` (oldest first) once, as the earlier list of rows trimmed to its newest
+    ``capacity`` held them.
+    """
+
+    def __init__(self, n_states: int, capacity: int, device: str | torch.device):
+        self.n_states, self.capacity = int(n_states), int(capacity)
+        # one row more than the capacity: masked-out rows are written there and never read
+        self._rows = torch.zeros((self.capacity + 1, self.n_states), dtype=torch.float32, device=device)
+        self._added = torch.zeros((), dtype=torch.int64, device=device)  # rows ever added, on the device
+
+    def add(self, states: torch.Tensor, keep: torch.Tensor | None = None) -> None:
+        """Queue the rows of ``states`` (B, n) where ``keep`` (B,) bool is set (None: all of them)."""
+        states = states.detach().to(device=self._rows.device, dtype=torch.float32).reshape(-1, self.n_states)
+        if states.shape[0] == 0:
+            return
+        if keep is None:
+            keep = torch.ones(states.shape[0], dtype=torch.bool, device=states.device)
+        rank = torch.cumsum(keep, 0)  # 1, 2, ... over the kept rows
+        n_kept = rank[-1]
+        keep = keep & (rank > n_kept - self.capacity)  # of more kept rows than fit, the newest
+        slot = torch.where(keep, (self._added + rank - 1) % self.capacity, self.capacity)
+        self._rows.index_copy_(0, slot, states)
+        self._added += n_kept
+
+    def __len__(self) -> int:
+        return min(int(self._added), self.capacity)
+
+    def states(self) -> torch.Tensor:
+        """The queued states (len, n), oldest first (one read-back of the count)."""
+        added = int(self._added)
+        if added <= self.capacity:
+            return self._rows[:added]
+        start = added % self.capacity
+        return torch.cat([self._rows[start:self.capacity], self._rows[:start]])
+
+    def clear(self) -> None:
+        """Empty the pool."""
+        self._added.zero_()
+
+    def replace(self, states: torch.Tensor) -> None:
+        """Hold exactly ``states`` (the newest ``capacity`` of them), e.g. from a checkpoint."""
+        self.clear()
+        self.add(states)
 
 
 class SSAC(SAC):
@@ -214,7 +277,13 @@ class SSAC(SAC):
         **overrides: config fields, e.g. ``SSAC("acrobot", seed=1, needle_prob=0.2)``.
 
     Attributes beyond SAC's: ``gate`` (GateNet), ``gate_data`` (:class:`GateDataset`),
-    ``gate_info`` (warm-start and latest refit metrics), ``num_gate_refits``.
+    ``relabel_pool`` (:class:`RelabelPool`), ``gate_info`` (warm-start and latest refit metrics),
+    ``num_gate_refits``.
+
+    Device: the gate, its optimizer and generator, the relabel pool, the warm start's and the
+    relabelling's LQR rollouts and every refit run on ``config.device`` (a given gate is moved
+    there; a given SwitchedVectorEnv must be there); D_g stays on the host and is copied to the
+    device once per refit.
     """
 
     config_class = SSACConfig
@@ -247,7 +316,7 @@ class SSAC(SAC):
             self.config = dataclasses.replace(self.config, reward=self.system.reward_kind)
         self.gate = self.env.gate
         self.gate_opt = adam(self.gate.parameters(), cfg.gate_lr)
-        self.gate_generator = torch.Generator().manual_seed(cfg.seed + 7919)
+        self.gate_generator = torch.Generator(device=self.device).manual_seed(cfg.seed + 7919)
         self.gate_data = GateDataset(self.obs_dim, cfg.gate_data_max)
         if self._init_gate_data is not None:
             self.gate_data.add(*self._init_gate_data, warm=True)
@@ -263,23 +332,41 @@ class SSAC(SAC):
         S = self.system.lqr()[1] / self.system.gate.cost_scale
         self._cost_matrix = torch.as_tensor(S, dtype=torch.float32, device=self.device)
         self._goal = torch.as_tensor(self.system.goal, dtype=torch.float32, device=self.device)
-        self._relabel_pool = torch.zeros((0, self.obs_dim), dtype=torch.float32)
-        self._lqr_share_sum, self._lqr_share_n = 0.0, 0
+        self.relabel_pool = RelabelPool(self.obs_dim, max(50_000, cfg.gate_relabel_per_refit), self.device)
+        # the LQR's share of control periods, summed on the device (read once per log row)
+        self._lqr_share_sum = torch.zeros((), dtype=torch.float64, device=self.device)
+        self._lqr_share_n = 0
+
+    @property
+    def _relabel_pool(self) -> torch.Tensor:
+        """The states waiting in :attr:`relabel_pool`, oldest first (the checkpoint's ``relabel_pool``)."""
+        return self.relabel_pool.states()
+
+    @_relabel_pool.setter
+    def _relabel_pool(self, states: torch.Tensor) -> None:
+        self.relabel_pool.replace(states)
 
     # ------------------------------------------------------------------ construction
     def _make_env(self, env_or_system, cfg: SSACConfig):
+        # the gate lives on the learner's device: the env's decisions, the refits and their
+        # generator all run there (a given gate is moved there in place, as it is refitted in place)
+        device = torch.device(cfg.device)
         if isinstance(env_or_system, SwitchedVectorEnv):
             _check_reward(env_or_system.system, cfg)
+            if not _same_device(env_or_system.device, device):
+                raise ValueError(f"SSAC with device={cfg.device!r} needs its SwitchedVectorEnv on that device "
+                                 f"(the gate runs in the env's decisions and is refitted on the learner's), "
+                                 f"got an env on {str(env_or_system.device)!r}")
             if self._init_gate is not None:
                 env_or_system.set_gate(self._init_gate)
             return env_or_system
         system = _system_with_reward(env_or_system, cfg)
         gate = self._init_gate
         if gate is None:
-            gate, states, labels, info = warm_start_gate(system, cfg.gate_config())
+            gate, states, labels, info = warm_start_gate(system, cfg.gate_config(), device=device)
             self._init_gate_data = (states, labels)
             self.gate_info = {"warm_start": info}
-        return SwitchedVectorEnv(system, cfg.num_envs, gate=gate, device=cfg.device, seed=cfg.seed)
+        return SwitchedVectorEnv(system, cfg.num_envs, gate=gate, device=device, seed=cfg.seed)
 
     @classmethod
     def _construct_for_load(cls, env, config: SSACConfig, found: Path) -> "SSAC":
@@ -287,16 +374,18 @@ class SSAC(SAC):
         if isinstance(env, SwitchedVectorEnv):
             return cls(env, config=config)
         system = _system_with_reward(env, config)
-        return cls(system, config=config, gate=GateNet(system, cost_feature=config.gate_cost_feature))
+        return cls(system, config=config, gate=GateNet(system, cost_feature=config.gate_cost_feature,
+                                                       device=config.device))
 
     # ====================================================== SSAC additions to SAC
     def store_transitions(self, obs, actions, rewards, next_obs, dones, infos) -> None:
         """SAC's replay + staging, and which decisions began under the LQR (gate data)."""
         t = self.staging.length.clamp(max=self.staging.horizon - 1)
         lqr = infos.get("lqr_at_start")
-        if "lqr_fraction" in infos:
-            self._lqr_share_sum += float(infos["lqr_fraction"].sum())
-            self._lqr_share_n += int(infos["lqr_fraction"].numel())
+        if "lqr_fraction" in infos:  # summed on the device: no read-back per step
+            fraction = torch.as_tensor(infos["lqr_fraction"], device=self.device)
+            self._lqr_share_sum += fraction.sum().double()
+            self._lqr_share_n += int(fraction.numel())
         if lqr is not None:
             self._lqr_at_start[torch.arange(len(t), device=self.device), t] = torch.as_tensor(
                 lqr, device=self.device).bool()
@@ -306,13 +395,7 @@ class SSAC(SAC):
             err = self.system.state_error(obs.double()).float()
             cost = cost_to_go(err, self._cost_matrix)
             keep = swingup & (cost < self.config.gate_relabel_cost)
-            if bool(keep.any()):
-                self._pool_for_relabel(obs[keep])
-
-    def _pool_for_relabel(self, states: torch.Tensor) -> None:
-        """Queue decision states for LQR-rollout labels at the next refit (the newest are kept)."""
-        pool = torch.cat([self._relabel_pool, states.float().cpu()])
-        self._relabel_pool = pool[-max(50_000, self.config.gate_relabel_per_refit):]
+            self.relabel_pool.add(obs, keep)  # queued under the mask, on the device
 
     def on_episodes_end(self, ended: torch.Tensor, infos: dict) -> None:
         """Alg. 4 line 8: LQR-active decision states of the ended episodes, labelled T(s), go to D_g."""
@@ -325,7 +408,7 @@ class SSAC(SAC):
         if self.config.gate_lqr_labels == "rollout":  # labelled by LQR rollouts at the next refit
             states = self.staging.data["obs"][rows][mask]
             if states.numel():
-                self._pool_for_relabel(states)
+                self.relabel_pool.add(states)
                 self.num_gate_episodes += int(mask.any(-1).sum())
             self._lqr_at_start[ended] = False
             return
@@ -404,13 +487,14 @@ class SSAC(SAC):
 
     def _relabel_visited_states(self) -> dict:
         """Label up to ``gate_relabel_per_refit`` pooled swing-up states by LQR rollouts, add them to D_g."""
-        n_pool, n = len(self._relabel_pool), self.config.gate_relabel_per_refit
-        if n == 0 or n_pool == 0:
+        n = self.config.gate_relabel_per_refit
+        n_pool = len(self.relabel_pool) if n else 0
+        if n_pool == 0:
             return {}
-        rows = torch.randperm(n_pool, generator=self.gate_generator)[:n]
-        states = self._relabel_pool[rows].double().numpy()
-        self._relabel_pool = self._relabel_pool[:0]
-        labels = label_states(self.system, states, self.config.gate_config())
+        rows = torch.randperm(n_pool, generator=self.gate_generator, device=self.device)[:n]
+        states = self.relabel_pool.states()[rows].double()
+        self.relabel_pool.clear()
+        labels = label_states(self.system, states, self.config.gate_config())  # LQR rollouts on the device
         self.gate_data.add(states, labels)
         self.num_gate_relabelled += len(labels)
         return {"relabelled": int(len(labels)), "relabelled_positive": int(labels.sum())}
@@ -424,28 +508,34 @@ class SSAC(SAC):
         :class:`~hybridctl.envs.SwitchedVectorEnv` or the Drake diagram for rollouts.
         """
         is_torch = isinstance(states, torch.Tensor)
-        x = states if is_torch else torch.as_tensor(np.asarray(states, dtype=np.float64))
+        # on the agent's device (numpy: float64, as before); torch out on the input's device
+        x = states.to(self.device) if is_torch else torch.as_tensor(np.asarray(states, dtype=np.float64),
+                                                                   device=self.device)
         swingup = self.predict(x, deterministic=deterministic)
         xb = x.reshape(-1, self.obs_dim)
         with torch.no_grad():
             p = self.gate(xb.to(torch.float32)).reshape(-1)
-            lqr = self.env.lqr(xb.to(self.env.dtype)).to(swingup.dtype if is_torch else torch.float64)
-        sw = swingup if is_torch else torch.as_tensor(swingup, dtype=torch.float64)
+            lqr = self.env.lqr(xb.to(self.env.dtype)).to(swingup.dtype)
         # a fresh mode is swing-up (False): the hysteresis hands over only above gate_on
         lqr_on = hysteresis(p, torch.zeros_like(p, dtype=torch.bool), self.env.gate_on, self.env.gate_off)
-        out = torch.where(lqr_on[:, None], lqr, sw.reshape(-1, self.action_dim))
-        out = saturate(out, float(self.action_scale.max())).reshape(sw.shape)
-        return out if is_torch else out.numpy()
+        out = torch.where(lqr_on[:, None], lqr, swingup.reshape(-1, self.action_dim))
+        out = saturate(out, float(self.action_scale.max())).reshape(swingup.shape)
+        return out.to(states.device) if is_torch else out.cpu().numpy()
 
     def make_eval_env(self, num_envs: int, seed: int):
-        """A SwitchedVectorEnv with a frozen copy of the current gate and the same LQR."""
-        return SwitchedVectorEnv(self.system, num_envs, gate=self.gate_module(), K=self.env._K.cpu().numpy(),
+        """A SwitchedVectorEnv with a frozen copy of the current gate (on the agent's device) and the same LQR."""
+        return SwitchedVectorEnv(self.system, num_envs, gate=self._frozen_gate(self.device),
+                                 K=self.env._K.cpu().numpy(),
                                  gate_on=self.env.gate_on, gate_off=self.env.gate_off,
                                  decision_period=self.env.decision_period, device=self.device, seed=seed)
 
     def gate_module(self) -> GateNet:
-        """A frozen copy of the current gate (for a Drake ``Gate`` block)."""
-        gate = copy.deepcopy(self.gate).to("cpu").eval()
+        """A frozen copy of the current gate on the CPU (for a Drake ``Gate`` block)."""
+        return self._frozen_gate("cpu")
+
+    def _frozen_gate(self, device) -> GateNet:
+        """A copy of the current gate on ``device``, in eval mode, without gradients."""
+        gate = copy.deepcopy(self.gate).to(device).eval()
         for p in gate.parameters():
             p.requires_grad_(False)
         return gate
@@ -471,8 +561,9 @@ class SSAC(SAC):
         row = super()._log_row(steps_per_s)
         row["gate_data"] = len(self.gate_data)
         row["gate_refits"] = self.num_gate_refits
-        row["lqr_share"] = self._lqr_share_sum / max(self._lqr_share_n, 1)
-        self._lqr_share_sum, self._lqr_share_n = 0.0, 0
+        row["lqr_share"] = float(self._lqr_share_sum) / max(self._lqr_share_n, 1)  # one read-back a row
+        self._lqr_share_sum.zero_()
+        self._lqr_share_n = 0
         return row
 
 
@@ -505,6 +596,17 @@ class _Background:
         if self._error is not None:
             raise self._error
         return self._value
+
+
+def _same_device(a: torch.device, b: torch.device) -> bool:
+    """Whether two devices are the same (a CUDA device without index is the current one)."""
+    a, b = torch.device(a), torch.device(b)
+    if a.type != b.type:
+        return False
+    if a.type == "cuda" and (a.index is None) != (b.index is None):
+        current = torch.cuda.current_device()
+        return (current if a.index is None else a.index) == (current if b.index is None else b.index)
+    return a.index == b.index
 
 
 def _check_reward(system: System, config: SSACConfig) -> None:

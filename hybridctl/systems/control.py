@@ -133,22 +133,30 @@ class CostToGoGate(torch.nn.Module):
 
 def lqr_rollouts_balanced(system: "System", x0, horizon: float, eps: float | None = None,
                           lookback: int | None = None, K: np.ndarray | None = None,
-                          chunk: int = 65536) -> np.ndarray:
+                          chunk: int = 65536, device: str | torch.device | None = None) -> np.ndarray:
     """Run the saturated LQR (acting every ``dt``) from each row of ``x0`` in batched torch.
 
     Returns a bool array (N,): every one of the last ``lookback`` integration steps
     ends within ``eps`` (L2 of the wrapped state error) of the goal and the state
     stayed finite. Defaults: the spec's success eps and lookback. Thesis Algorithm 2
     labels its gate warm-start data this way (implementation notes: 2.5 s, eps 0.2).
+
+    ``x0``: numpy or torch (N, n). The rollouts run in float64 on ``device``; None: a torch
+    ``x0``'s device, else the CPU. The labels come back to the host once per ``chunk`` rows.
     """
     eps = system.success.eps if eps is None else float(eps)
     lookback = system.success.lookback if lookback is None else int(lookback)
     steps = int(round(horizon / system.dt))
     if steps < lookback:
         raise ValueError(f"horizon must be >= lookback * dt = {lookback * system.dt}, got {horizon}")
+    if device is None:
+        device = x0.device if isinstance(x0, torch.Tensor) else "cpu"
     K = system.lqr()[0] if K is None else np.atleast_2d(K)
-    Kt = torch.as_tensor(K, dtype=torch.float64)
-    x_all = torch.as_tensor(np.asarray(x0, dtype=float))
+    Kt = torch.as_tensor(K, dtype=torch.float64, device=device)
+    if isinstance(x0, torch.Tensor):
+        x_all = x0.detach().to(device=device, dtype=torch.float64)
+    else:
+        x_all = torch.as_tensor(np.asarray(x0, dtype=float), device=device)
     if x_all.ndim != 2 or x_all.shape[1] != system.n_states:
         raise ValueError(f"x0 must have shape (N, {system.n_states}), got {tuple(x_all.shape)}")
     limit = system.action_limit
@@ -156,20 +164,20 @@ def lqr_rollouts_balanced(system: "System", x0, horizon: float, eps: float | Non
     out = []
     with torch.no_grad():
         for x in torch.split(x_all, chunk):
-            close = torch.ones(x.shape[0], dtype=torch.bool)
+            close = torch.ones(x.shape[0], dtype=torch.bool, device=x.device)
             for step in range(steps):
                 u = saturate(lqr_command(system.state_error(x), Kt), limit)
                 x = system.step_unchecked(x, u)
                 x = torch.nan_to_num(x, nan=bound, posinf=bound, neginf=-bound)
                 if step >= steps - lookback:
                     close &= torch.linalg.norm(system.state_error(x), dim=-1) < eps
-            out.append(close.numpy())
+            out.append(close.cpu().numpy())  # one host copy per chunk, after its rollouts
     return np.concatenate(out)
 
 
 def lqr_basin_level(system: "System", n_samples: int = 20000, horizon: float | None = None,
                     spread: np.ndarray | None = None, seed: int = 0, K: np.ndarray | None = None,
-                    S: np.ndarray | None = None) -> dict:
+                    S: np.ndarray | None = None, device: str | torch.device | None = None) -> dict:
     """Estimate the cost-to-go level V* below which the saturated LQR balances.
 
     Samples states goal + U(-spread, spread), runs the LQR (acting every ``dt``,
@@ -179,6 +187,7 @@ def lqr_basin_level(system: "System", n_samples: int = 20000, horizon: float | N
     (x - goal)' S (x - goal) among failing samples, with the success rate below V*, 2 V*
     and 4 V*. A gate that switches on below V* (``CostToGoGate`` with scale
     V* / ln(1/gate.on)) only hands over states from which every sampled LQR rollout balanced.
+    The rollouts run on ``device`` (None: the CPU), as :func:`lqr_rollouts_balanced`.
     """
     if n_samples < 10:
         raise ValueError(f"n_samples must be >= 10, got {n_samples}")
@@ -189,7 +198,7 @@ def lqr_basin_level(system: "System", n_samples: int = 20000, horizon: float | N
     rng = np.random.default_rng(seed)
     x0 = system.goal + rng.uniform(-1, 1, size=(n_samples, system.n_states)) * spread
     V = cost_to_go(system.state_error(x0), S)
-    ok = lqr_rollouts_balanced(system, x0, horizon, K=K)
+    ok = lqr_rollouts_balanced(system, x0, horizon, K=K, device=device)
     failing = V[~ok]
     level = float(failing.min()) if failing.size else float(V.max())
     rates = {f"success_below_{k}x": float(ok[V < k * level].mean()) if np.any(V < k * level) else None
