@@ -110,3 +110,25 @@ def test_cli_device_flag(tmp_path, capsys):
     text = err.out + err.err
     assert "--device cpu applies to --engine torch only" in text and "Traceback" not in text
     assert len(text.strip().splitlines()) == 1 and not (tmp_path / "drake").exists()
+
+
+def test_cli_ray_task_flags_reach_the_balance_map(tmp_path, monkeypatch):
+    """``--task-cpus`` (and the other Ray task flags of the shared backend flags) are in force while the map
+    runs (``parallel.ray_options``), so every Ray task of the map asks for them; before, they were checked
+    and then ignored."""
+    import importlib
+
+    from hybridctl import parallel
+    from hybridctl.cli import main
+
+    cli = importlib.import_module("hybridctl.cli.balance_map")
+    real, seen = cli.balance_map, {}
+
+    def spy(*args, **kwargs):
+        seen.update(parallel._RAY_OPTIONS.get())
+        return real(*args, **{**kwargs, "backend": "serial", "address": None})   # no Ray instance needed
+
+    monkeypatch.setattr(cli, "balance_map", spy)
+    assert main(["balance-map", "pendulum", "--grid", "2", "--engine", "torch", "--backend", "ray", "--task-cpus",
+                 "1", "--quiet", "--out", str(tmp_path / "map")]) == 0
+    assert seen == {"task_resources": {"num_cpus": 1.0}}

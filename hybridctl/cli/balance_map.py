@@ -9,7 +9,7 @@ from ..experiments import balance_map
 from ..experiments.balance_map import ENGINES, check_balance_map
 from ..systems import load
 from ._common import (add_backend_flags, add_debug_flag, add_force_flag, add_quiet_flag, add_system_argument,
-                      check_backend_flags, cli_errors, limits_epilog, positive)
+                      check_backend_flags, cli_errors, limits_epilog, positive, ray_options_for)
 from .simulate import controller_help
 
 
@@ -47,9 +47,10 @@ def run_balance_map(args: argparse.Namespace) -> int:
     check_balance_map(system, args.grid, args.duration, args.engine, args.workers if args.backend != "ray" else None,
                       args.force, args.device)  # before --out is made
     io.output_folder(args.out)  # a file at --out fails here, not after the simulations
-    result = balance_map(system, args.controller, grid=args.grid, duration=args.duration,
-                         workers=args.workers, progress=not args.quiet, engine=args.engine, force=args.force,
-                         backend=args.backend, address=args.address, device=args.device)
+    with ray_options_for(args):   # --task-cpus/--task-gpus/--task-memory/--runtime-env for the Ray tasks
+        result = balance_map(system, args.controller, grid=args.grid, duration=args.duration,
+                             workers=args.workers, progress=not args.quiet, engine=args.engine, force=args.force,
+                             backend=args.backend, address=args.address, device=args.device)
     result.meta["command"] = args.command_line
     summary = result.save(args.out)
     print(f"balanced_fraction: {summary['balanced_fraction']:.4f} "

@@ -7,10 +7,12 @@ the maps' folders (``results/ch3/cartpole``, ``results/ch3/double_cartpole``), t
     python -m hybridctl.reproduce.cartpole_record                       # the cart-pole, ~7 min shared
     python -m hybridctl.reproduce.cartpole_record --system double_cartpole \\
         --policy models/policies/ssac-double-cartpole --out results/ch3/double_cartpole
+
+The three maps run on ``--backend``/``--workers``/``--address`` (default: each engine's, Drake in local
+processes on every core, torch as one batch in this process); the maps do not depend on them.
 """
 import argparse
 import json
-import os
 import time
 from pathlib import Path
 
@@ -19,7 +21,8 @@ import torch
 
 from hybridctl import drake, experiments, systems
 from hybridctl.experiments import balance_map
-from hybridctl.reproduce.common import RESULTS, command_line, machine_info, recorded_path, shipped_policy
+from hybridctl.reproduce.common import (RESULTS, add_backend_flags, backend_options, check_backend_flags, command_line,
+                                       machine_info, recorded_path, shipped_policy)
 
 
 def main(argv: list[str] | None = None):
@@ -30,7 +33,11 @@ def main(argv: list[str] | None = None):
                         help="a checkpoint folder; models/policies/NAME is also found in the installed package")
     parser.add_argument("--out", default=str(RESULTS / "ch3" / "cartpole"))
     parser.add_argument("--grid", type=int, default=21)
+    add_backend_flags(parser, "processes for the drake maps, serial for the torch map", "each balance map")
+    parser.set_defaults(backend=None)     # None: each engine's default (the text above is the help's)
     args = parser.parse_args(argv)
+    check_backend_flags(args, parser)
+    parallel = {**backend_options(args), "force": args.force}
     torch.set_num_threads(1)
     out = Path(args.out)
     policy = Path(args.policy)
@@ -43,14 +50,14 @@ def main(argv: list[str] | None = None):
                           duration=system.episode_duration)
     summary = traj.save(Path("runs") / f"ssac-{args.system}-drake")
     start = time.perf_counter()
-    drake_map = balance_map(system, controller, grid=args.grid, workers=os.cpu_count(), progress=False)
+    drake_map = balance_map(system, controller, grid=args.grid, progress=False, **parallel)
     drake_wall = time.perf_counter() - start
     drake_map.save(out / f"balance_map_{args.grid}")
-    torch_map = balance_map(system, controller, grid=args.grid, engine="torch", progress=False)
+    torch_map = balance_map(system, controller, grid=args.grid, engine="torch", progress=False, **parallel)
     # the whole circle of the first pole angle and +-1 m of cart
     start = time.perf_counter()
     wide_map = balance_map(system, controller, grid=args.grid, ranges=((-1.0, 1.0), (-np.pi, np.pi)),
-                           workers=os.cpu_count(), progress=False)
+                           progress=False, **parallel)
     wide_wall = time.perf_counter() - start
     wide_map.save(out / f"balance_map_{args.grid}_wide")
     low, high = system.initial_state.low, system.initial_state.high

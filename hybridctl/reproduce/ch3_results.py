@@ -10,7 +10,8 @@ the command, algorithm, system, seed, env steps, training wall time, the
 deterministic evaluation and the training curve (from ``progress.csv``). With
 ``--balance-map RUN ...`` it also simulates those runs' final checkpoints in the
 Drake diagram over a ``--grid`` x ``--grid`` grid of rest states (thesis Fig. 3.6)
-and stores ``balance_map_RUN.json`` / ``.png`` next to the record; ``--import-balance-map
+and stores ``balance_map_RUN.json`` / ``.png`` next to the record (on ``--backend``/``--workers``/
+``--address``, default local processes on every core); ``--import-balance-map
 NAME=FOLDER`` takes one that ``hybridctl balance-map`` already wrote.
 
 Runs already in the record whose folders are gone (trained in an earlier session) are
@@ -29,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hybridctl.reproduce.common import RESULTS, recorded_path
+from hybridctl.reproduce.common import RESULTS, add_backend_flags, backend_options, check_backend_flags, recorded_path
 
 
 def machine() -> dict:
@@ -107,13 +108,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default=str(RESULTS / "ch3"))
     parser.add_argument("--balance-map", nargs="*", default=[], metavar="RUN")
     parser.add_argument("--grid", type=int, default=41)
-    parser.add_argument("--workers", type=int)
+    add_backend_flags(parser, "processes", "the balance maps' Drake runs")
     parser.add_argument("--evaluate-stopped", nargs="*", default=[], metavar="RUN",
                         help="evaluate the newest checkpoint of runs stopped before their budget")
     parser.add_argument("--stopped-reason", default="stopped before its budget (machine time)")
     parser.add_argument("--import-balance-map", nargs="*", default=[], metavar="NAME=FOLDER",
                         help="record a balance map written by `hybridctl balance-map --out FOLDER`")
     args = parser.parse_args(argv)
+    check_backend_flags(args, parser)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     for name in args.evaluate_stopped:
@@ -148,7 +150,7 @@ def main(argv: list[str] | None = None) -> int:
         run = next(r for r in runs if r["run"] == name)
         kind = "ssac" if run["algorithm"] == "SSAC" else "sac"
         result = balance_map(run["system"], f"{kind}:{Path(args.runs) / name / 'final'}", grid=args.grid,
-                             workers=args.workers)
+                             force=args.force, **backend_options(args))
         summary = result.save(out / f"balance_map_{name}")
         record["balance_maps"][name] = {"grid": args.grid, "balanced_fraction": summary["balanced_fraction"],
                                         "balanced_count": summary["balanced_count"],

@@ -7,6 +7,8 @@ train the same agents on with their own algorithm for comparison, collect the re
     python -m hybridctl.reproduce.ch6_finetune ours ssac-acrobot --updates 50            # our SSAC checkpoint
     python -m hybridctl.reproduce.ch6_finetune collect                                   # -> results/ch6/results.json
 
+``finetune`` and ``ours`` run each update's rollouts on ``--backend``/``--workers``/``--address``
+(default 2 local processes, as recorded; the numbers do not depend on them).
 A finished run (its record.json) is skipped; an interrupted fine-tune resumes from its newest
 checkpoint. Agents are read from runs/finetune-agents/AGENT/model.zip (+ vecnormalize.npz), never
 unpickled by the fine-tuning; ``continue`` trains on with SB3 itself, which loads the zip with
@@ -26,7 +28,7 @@ import torch
 from hybridctl import io
 from hybridctl.experiments.finetune import finetune_and_report, machine
 from hybridctl.learn.finetune import FineTuneConfig, wilson_interval
-from hybridctl.reproduce.common import RESULTS, command_line
+from hybridctl.reproduce.common import RESULTS, add_backend_flags, backend_options, check_backend_flags, command_line
 
 AGENTS = Path("runs/finetune-agents")
 OUT = Path("runs/ch6")
@@ -49,15 +51,17 @@ def eval_seeds(n: int) -> list[int]:
     return [int(s) for s in np.random.default_rng(EVAL_SEED).integers(0, 2 ** 31 - 1, size=n)]
 
 
-def run_finetune(agent: str, updates: int, reward: str, command: str) -> dict:
-    """Fine-tune one agent (resumable) and write runs/ch6/REWARD/AGENT/record.json."""
+def run_finetune(agent: str, updates: int, reward: str, command: str, parallel: dict | None = None) -> dict:
+    """Fine-tune one agent (resumable) and write runs/ch6/REWARD/AGENT/record.json; ``parallel``: the
+    rollouts' ``backend``/``workers``/``address`` (default 2 local processes)."""
     rec = agent_record(agent)
     env = rec["env"]
     out = OUT / reward / agent
     if (out / "record.json").exists():
         return io.read_json(out / "record.json")
     episodes = 300 if env in FAILURE_ENVS else 100
-    config = FineTuneConfig(updates=updates, reward=reward, eval_episodes=episodes, backend="processes", workers=2)
+    config = FineTuneConfig(updates=updates, reward=reward, eval_episodes=episodes,
+                            **(parallel or {"backend": "processes", "workers": 2}))
     resume = (out / "checkpoint").exists() or (out / "before.json").exists()
     report = finetune_and_report(env, f"sb3:{AGENTS / agent / 'model.zip'}", out, config, resume=resume,
                                  overwrite=not resume and out.exists(), progress=False, command=command)
@@ -134,14 +138,15 @@ def run_continue(agent: str, steps: int | None, cap_scale: float, command: str) 
     return record
 
 
-def run_ours(name: str, updates: int, command: str) -> dict:
-    """Fine-tune one of our own checkpoints (SSAC acrobot) and record the success rate before and after."""
+def run_ours(name: str, updates: int, command: str, parallel: dict | None = None) -> dict:
+    """Fine-tune one of our own checkpoints (SSAC acrobot) and record the success rate before and after;
+    ``parallel`` as for :func:`run_finetune`."""
     env, source = SOURCES[name]
     out = OUT / "ours" / name
     if (out / "record.json").exists():
         return io.read_json(out / "record.json")
     resume = (out / "checkpoint").exists() or (out / "before.json").exists()
-    config = FineTuneConfig(updates=updates, backend="processes", workers=2, eval_episodes=100)
+    config = FineTuneConfig(updates=updates, eval_episodes=100, **(parallel or {"backend": "processes", "workers": 2}))
     report = finetune_and_report(env, source, out, config, resume=resume, overwrite=not resume and out.exists(),
                                  progress=False, command=command)
     record = {"kind": "ours", "agent": name, "env": env, "source": source,
@@ -178,6 +183,7 @@ def main(argv: list[str] | None = None) -> int:
     ft.add_argument("agents", nargs="+")
     ft.add_argument("--updates", type=int, default=200)
     ft.add_argument("--reward", default="identity")
+    add_backend_flags(ft, "processes", "the fine-tuning's rollouts", workers=2)
     co = sub.add_parser("continue")
     co.add_argument("agents", nargs="+")
     co.add_argument("--steps", type=int)
@@ -185,14 +191,17 @@ def main(argv: list[str] | None = None) -> int:
     ours = sub.add_parser("ours")
     ours.add_argument("names", nargs="+", choices=sorted(SOURCES))
     ours.add_argument("--updates", type=int, default=200)
+    add_backend_flags(ours, "processes", "the fine-tuning's rollouts", workers=2)
     co = sub.add_parser("collect")
     co.add_argument("--record", type=Path, default=RECORD, help=f"the record to update (default {RECORD})")
     args = parser.parse_args(argv)
+    if args.cmd in ("finetune", "ours"):
+        check_backend_flags(args, ft if args.cmd == "finetune" else ours)
     command = command_line("hybridctl.reproduce.ch6_finetune", argv)
     torch.set_num_threads(1)
     if args.cmd == "finetune":
         for agent in args.agents:
-            r = run_finetune(agent, args.updates, args.reward, command)
+            r = run_finetune(agent, args.updates, args.reward, command, backend_options(args))
             print(agent, f"{r['before']['mean_return']:.1f} -> {r['after']['mean_return']:.1f}", flush=True)
     elif args.cmd == "continue":
         for agent in args.agents:
@@ -200,7 +209,7 @@ def main(argv: list[str] | None = None) -> int:
             print(agent, f"continued {r['env_steps']} steps -> {r['after']['mean_return']:.1f}", flush=True)
     elif args.cmd == "ours":
         for name in args.names:
-            r = run_ours(name, args.updates, command)
+            r = run_ours(name, args.updates, command, backend_options(args))
             print(name, f"success {r['before']['success_rate']} -> {r['after']['success_rate']}", flush=True)
     else:
         collect(args.record)

@@ -1,4 +1,5 @@
-"""What the drivers share: the machine record, the command line as recorded, paths as recorded.
+"""What the drivers share: the machine record, the command line as recorded, paths as recorded, and
+the parallel-work flags (``--backend``/``--workers``/``--address``) of the drivers that run parallel work.
 
 Records hold paths relative to the working directory the driver ran in (the repository root, for
 the commands the docs give), never the absolute path of the machine that made them:
@@ -8,6 +9,7 @@ the commands the docs give), never the absolute path of the machine that made th
 
 from __future__ import annotations
 
+import argparse
 import importlib.metadata
 import json
 import os
@@ -19,9 +21,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from hybridctl.limits import check_at_most, cpu_count
+from hybridctl.parallel import BACKENDS
 from hybridctl.systems.spec import DATA_DIR
 
-__all__ = ["RESULTS", "machine_info", "emit", "shipped_policy", "recorded_path", "command_line"]
+__all__ = ["RESULTS", "machine_info", "emit", "shipped_policy", "recorded_path", "command_line",
+           "add_backend_flags", "check_backend_flags", "backend_options", "backend_cli_args"]
 
 # The records tree, one folder per chapter, relative to the working directory (the repository root).
 RESULTS = Path("results")
@@ -92,3 +97,81 @@ def command_line(module: str, argv: list[str] | None = None) -> str:
     args = sys.argv[1:] if argv is None else list(argv)
     args = [recorded_path(a) if os.path.isabs(str(a)) else str(a) for a in args]
     return shlex.join(["python", "-m", module, *args])
+
+
+# ---------------------------------------------------------------- parallel work: --backend/--workers/--address
+#
+# The flags of hybridctl's commands (hybridctl.cli._common.add_backend_flags / check_backend_flags), with
+# the same names, choices, types and meaning. They are written here rather than imported: reproduce and
+# cli are rooms on one line of ARCHITECTURE.md, which never import each other (tests/test_architecture.py);
+# tests/test_reproduce_backends.py checks that the two stay alike.
+
+
+def _positive_int(text: str) -> int:
+    """argparse type: an integer >= 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}")
+    return value
+
+
+def add_backend_flags(parser: argparse.ArgumentParser, default: str, what: str, workers: int | None = None) -> None:
+    """``--backend``, ``--workers``, ``--address`` and ``--force``: where ``what`` runs, as on every
+    hybridctl command that runs parallel work; :func:`backend_options` passes them to the workload.
+
+    ``default``: the driver's backend, ``workers``: its worker count (None: all cores, or the Ray
+    cluster's CPUs), so that a driver run without the flags runs as before. ``--address`` defaults
+    to ``RAY_ADDRESS``; with ``--backend ray`` and no address a new local Ray instance is started.
+    """
+    parser.add_argument("--backend", choices=BACKENDS, default=default,
+                        help=f"where {what} runs: this process, local worker processes or Ray (default {default})")
+    parser.add_argument("--workers", type=_positive_int, default=workers,
+                        help=f"worker processes, or Ray tasks in flight (default: "
+                             f"{workers if workers is not None else 'all cores, or the cluster CPUs'}; local "
+                             f"workers above the cores are refused without --force)")
+    parser.add_argument("--address", default=None,
+                        help="Ray cluster to join with --backend ray (host:6379, ray://host:10001, auto; "
+                             "default: $RAY_ADDRESS, else a new local instance)")
+    parser.add_argument("--force", action="store_true",
+                        help="allow local --workers above the cores this process may use")
+
+
+def check_backend_flags(args: argparse.Namespace, parser: argparse.ArgumentParser | None = None) -> None:
+    """Refuse ``--address`` without ``--backend ray`` and local ``--workers`` above the cores unless
+    ``--force`` (a driver's own default count is taken as it is). ValueError, or with ``parser`` its
+    usage error (one line, exit status 2)."""
+    try:
+        if args.address is not None and args.backend != "ray":
+            raise ValueError(f"--address {args.address} applies to --backend ray only, not "
+                             f"{args.backend or 'the default backend'!r}")
+        given = args.workers is not None and (parser is None or args.workers != parser.get_default("workers"))
+        if given and args.backend != "ray":      # Ray workers are not bound by local cores
+            check_at_most("--workers", args.workers, cpu_count(), args.force, why="cores this process may use")
+    except ValueError as exc:
+        if parser is None:
+            raise
+        parser.error(str(exc))
+
+
+def backend_options(args: argparse.Namespace, default: str | None = None) -> dict:
+    """``backend``, ``workers`` and ``address`` of :func:`add_backend_flags`' flags, as keyword
+    arguments of a workload (balance maps, meshes, Monte Carlo, failure rates, fine-tuning, APG).
+    ``default``: the backend where ``--backend`` was not given and the driver's default is None
+    (one driver, several workloads with their own defaults)."""
+    return {"backend": args.backend or default, "workers": args.workers, "address": args.address}
+
+
+def backend_cli_args(args: argparse.Namespace, default: str = "serial") -> list[str]:
+    """The same flags for a ``hybridctl`` command the driver starts (``hybridctl train ars``):
+    ``--backend`` always (``default`` where not given), ``--workers`` for a parallel backend,
+    ``--address`` when given."""
+    backend = args.backend or default
+    out = ["--backend", backend]
+    if args.workers is not None and backend != "serial":
+        out += ["--workers", str(args.workers)]
+    if args.address is not None:
+        out += ["--address", args.address]
+    return out

@@ -8,10 +8,12 @@ units of the policy's observation std (the author's normalisation), for each box
 per mesh: size, completeness, exact MFPT (Krylov solve) and the eigenvalue estimate
 1/(1 - lambda_2), both averaged over the seed apexes. Monte Carlo runs the true map
 from the same apexes with pushes drawn from the same set. Writes ``results/ch5/hopper.json``.
+The meshes and the Monte Carlo run on ``--backend``/``--workers``/``--address`` (default 2 local
+processes); neither depends on them.
 
 ```text
 usage: python -m hybridctl.reproduce.hopper [--magnitude 15] [--box-sizes 2 1.5 1]
-       [--max-states 3000] [--episodes 300] [--workers 2]
+       [--max-states 3000] [--episodes 300] [--backend processes] [--workers 2] [--address HOST:PORT]
 ```
 """
 
@@ -27,7 +29,8 @@ import numpy as np
 from hybridctl.analysis import build_mesh, monte_carlo_mfpt, reachable_dimension
 from hybridctl.envs.sections import HopperApexMap, x_pushes
 from hybridctl.learn.ars import ARS
-from hybridctl.reproduce.common import RESULTS, command_line, machine_info, recorded_path, shipped_policy
+from hybridctl.reproduce.common import (RESULTS, add_backend_flags, backend_options, check_backend_flags, command_line,
+                                       machine_info, recorded_path, shipped_policy)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -39,7 +42,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--max-states", type=int, default=3000)
     parser.add_argument("--episodes", type=int, default=300)
     parser.add_argument("--max-hops", type=int, default=2000)
-    parser.add_argument("--workers", type=int, default=2)
+    add_backend_flags(parser, "processes", "the meshes and the Monte Carlo", workers=2)
     parser.add_argument("--out", default=str(RESULTS / "ch5" / "hopper.json"))
     parser.add_argument("--checkpoints", default="runs/ch5/hopper")
     parser.add_argument("--dimension-max-box", type=float, default=1.0,
@@ -47,6 +50,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--reuse-monte-carlo", action="store_true",
                         help="keep the Monte Carlo result of an earlier record with the same pushes")
     args = parser.parse_args(argv)
+    check_backend_flags(args, parser)
     start = time.perf_counter()
     earlier = json.loads(Path(args.out).read_text()) if Path(args.out).is_file() else {}
     agent = ARS.load(args.policy, backend="serial")
@@ -61,7 +65,7 @@ def main(argv: list[str] | None = None) -> int:
     Path(args.checkpoints).mkdir(parents=True, exist_ok=True)
     for d in args.box_sizes:
         mesh = build_mesh(section, seeds, pushes, d, mean=mean, std=std, max_states=args.max_states,
-                          backend="processes", workers=args.workers, batch_size=16,
+                          batch_size=16, **backend_options(args),
                           checkpoint=Path(args.checkpoints) / f"mesh-d{d:g}.npz", resume=True)
         row = {"box_size": d, "states": mesh.size, "complete": mesh.complete, "wall_time_s": mesh.wall_time,
                "transitions_to_failure": int((mesh.successors == 0).sum())}
@@ -87,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     t0 = time.perf_counter()
     mc = monte_carlo_mfpt(section, seeds, pushes, episodes=args.episodes, max_steps=args.max_hops, seed=1,
-                          chunks=20, backend="processes", workers=args.workers, progress=True)
+                          chunks=20, progress=True, **backend_options(args))
     record["monte_carlo"] = {**mc.summary(), "wall_time_s": time.perf_counter() - t0}
     print(json.dumps(record["monte_carlo"]), flush=True)
     record["wall_time_s"] = time.perf_counter() - start

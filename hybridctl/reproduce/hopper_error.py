@@ -34,6 +34,7 @@ usage: python -m hybridctl.reproduce.hopper_error [--box-sizes 1 0.7 0.5 0.35 0.
 ``--keep-rows --box-sizes 0.18`` adds a finer row to the record and keeps the others.
 Checkpoints (meshes, recorded runs) go to ``--work`` (runs/ch5/error) and are reused.
 Writes ``results/ch5/hopper_error.json`` and ``.png`` (``--out``); reads ``hopper.json`` beside it.
+The meshes run on --backend/--workers/--address (default: serial, in this process).
 ```
 """
 
@@ -55,7 +56,8 @@ from hybridctl.analysis.reachable import ReachableMesh
 from hybridctl.envs.sections import HopperApexMap, x_pushes
 from hybridctl.io import atomic_write
 from hybridctl.learn.ars import ARS
-from hybridctl.reproduce.common import RESULTS, command_line, machine_info, recorded_path, shipped_policy
+from hybridctl.reproduce.common import (RESULTS, add_backend_flags, backend_options, check_backend_flags, command_line,
+                                       machine_info, recorded_path, shipped_policy)
 
 VZ_INDEX = 6     # section state: qpos[1:] (5 numbers) then qvel; qvel[1] (vertical) is index 6, ~0 at an apex
 
@@ -229,7 +231,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--keep-rows", action="store_true",
                         help="keep the rows of --out whose box size is not in --box-sizes (same policy and pushes), "
                              "so a finer mesh is added without rebuilding the coarser ones")
+    add_backend_flags(parser, "serial", "the meshes")
     args = parser.parse_args(argv)
+    check_backend_flags(args, parser)
     torch.set_num_threads(1)
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
@@ -256,7 +260,7 @@ def main(argv: list[str] | None = None) -> int:
     for d in args.box_sizes:
         t0 = time.perf_counter()
         mesh = build_mesh(section, seeds, pushes, d, mean=mean, std=std, max_states=args.max_states,
-                          backend="serial", batch_size=256, checkpoint=work / f"mesh-d{d:g}.npz", resume=True,
+                          batch_size=256, checkpoint=work / f"mesh-d{d:g}.npz", resume=True, **backend_options(args),
                           checkpoint_minutes=2)
         row = {"box_size": d, "mesh_states": mesh.size, "complete": mesh.complete,
                "mesh_wall_time_s": mesh.wall_time, "this_call_s": time.perf_counter() - t0}

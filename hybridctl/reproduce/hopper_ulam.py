@@ -16,7 +16,7 @@ hopper, 25 pushes in [-100, 100] N along x at the apex). Monte Carlo references:
 usage: python -m hybridctl.reproduce.hopper_ulam --runs 1:4 0.7:4 1:16 0.7:8 [--time-budget-s 3600]
 Runs are BOX:K pairs, done in order; mesh checkpoints go to ``--work`` (runs/ch5/ulam) and resume.
 Writes ``results/ch5/hopper_ulam.json`` and ``.png`` (``--out``) after each run; reads ``hopper.json`` and
-``hopper_error.json`` beside it.
+``hopper_error.json`` beside it. The meshes run on --backend/--workers/--address (default: serial).
 ```
 """
 
@@ -33,7 +33,8 @@ import torch
 from hybridctl.analysis import build_mesh
 from hybridctl.envs.sections import HopperApexMap, x_pushes
 from hybridctl.learn.ars import ARS
-from hybridctl.reproduce.common import RESULTS, command_line, machine_info, recorded_path, shipped_policy
+from hybridctl.reproduce.common import (RESULTS, add_backend_flags, backend_options, check_backend_flags, command_line,
+                                       machine_info, recorded_path, shipped_policy)
 
 
 
@@ -93,7 +94,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="start no new run after this many seconds (a run in progress checkpoints and resumes)")
     parser.add_argument("--work", default="runs/ch5/ulam")
     parser.add_argument("--out", default=str(RESULTS / "ch5" / "hopper_ulam.json"))
+    add_backend_flags(parser, "serial", "the meshes")
     args = parser.parse_args(argv)
+    check_backend_flags(args, parser)
     torch.set_num_threads(1)
     start = time.perf_counter()
     out, work = Path(args.out), Path(args.work)
@@ -112,7 +115,7 @@ def main(argv: list[str] | None = None) -> int:
             break
         t0 = time.perf_counter()
         mesh = build_mesh(section, seeds, pushes, d, mean=agent.stats.mean, std=agent.stats.std,
-                          max_states=args.max_states, backend="serial", batch_size=256, samples_per_box=k,
+                          max_states=args.max_states, batch_size=256, samples_per_box=k, **backend_options(args),
                           checkpoint=work / f"mesh-d{d:g}-k{k}.npz", resume=True, checkpoint_minutes=2)
         row = {"box_size": d, "samples_per_box": k, "states": mesh.size, "complete": mesh.complete,
                "samples": int(mesh.states.shape[0]), "transitions": int(mesh.successors.size),

@@ -7,6 +7,8 @@ and its 11 x 11 Drake balance map, into results/ch7/papg-takeover-cartpole.json 
         --clip 10 --lr-start 3e-3 --lr-end 1e-4 --apg-iterations 100 --epochs 40 --population 8 \\
         --elites 3 --compile --seed S --out runs/ch7/papg-takeover-cartpole-sS
     python -m hybridctl.reproduce.papg_takeover_seeds runs/explore/I2 runs/ch7/papg-takeover-cartpole-s1 ...
+
+The balance maps run on ``--backend``/``--workers``/``--address`` (default: serial, in this process).
 """
 
 import argparse
@@ -14,7 +16,7 @@ from pathlib import Path
 
 from hybridctl import io
 from hybridctl.experiments.balance_map import balance_map
-from hybridctl.reproduce.common import RESULTS, recorded_path
+from hybridctl.reproduce.common import RESULTS, add_backend_flags, backend_options, check_backend_flags, recorded_path
 from hybridctl.systems import load
 
 RECORD = RESULTS / "ch7" / "papg-takeover-cartpole.json"
@@ -24,11 +26,14 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("folders", nargs="+", help="hybridctl train papg run folders (eval.json, final/)")
     parser.add_argument("--out", type=Path, default=RECORD, help=f"the record (default {RECORD})")
+    add_backend_flags(parser, "serial", "the balance maps' Drake runs")
     args = parser.parse_args(argv)
+    check_backend_flags(args, parser)
     runs = []
     for folder in map(Path, args.folders):
         evaluation = io.read_json(folder / "eval.json")
-        result = balance_map(load("cartpole"), f"papg:{folder / 'final'}", grid=11, workers=1, progress=False)
+        result = balance_map(load("cartpole"), f"papg:{folder / 'final'}", grid=11, progress=False, force=args.force,
+                             **backend_options(args))
         runs.append({"run": recorded_path(folder), "seed": io.read_json(folder / "final" / "config.json")["config"]["seed"],
                      "command": evaluation.get("command"), "interactions": evaluation.get("env_steps"),
                      "train_wall_time_s": evaluation.get("train_wall_time_s"), "eval": evaluation,

@@ -6,18 +6,22 @@ thesis alpha 0.02 and sigma 0.025, but N = 8 directions and b = 4 kept (thesis 5
 2018 Table 9 use 8 / 4 for Hopper), reward shift 1 for Hopper (Mania et al.; on Walker2d it taught
 seed 0 to fall at once, so none there), ``P`` identity epochs, then ``C`` more epochs from that
 checkpoint with identity, mesh-lower and mesh-upper (thesis: 750 + 250). One process per lane,
-serial backend; a finished run (its eval.json) is skipped, an interrupted one resumes. Runs go to
+serial backend (``--backend``/``--workers``/``--address`` give the training runs another); a finished
+run (its eval.json) is skipped, an interrupted one resumes. Runs go to
 ``RUNS/ENV-sSEED/{pretrain,identity,mesh-lower,mesh-upper}``.
 
 Table 4.1 metrics (thesis Sec. 4.2.8): per seed, 5 deterministic rollouts of 10,000 steps
 for the lower/upper mesh dimension (after the first 200 steps) and 5 of the normal 1,000
 steps for the return. Table 4.4: failure rates (early termination) under the thesis'
-action noise, observation noise and push settings, identity vs lower mesh dimension.
+action noise, observation noise and push settings, identity vs lower mesh dimension. The evaluations
+and failure rates run on ``--backend``/``--workers``/``--address`` (default 2 local processes; the
+failure rates of the MuJoCo envs step together on the batched stepper's ``--workers`` threads).
 
 ```text
 usage: python -m hybridctl.reproduce.table41 --train ENV SEED [--epochs 100 40] [--runs runs/ch4]
        python -m hybridctl.reproduce.table41 [--runs runs/ch4] [--robust-episodes 20]
-       [--robust-steps 2000] [--workers 2] [--out results/ch4/results.json]
+       [--robust-steps 2000] [--backend processes] [--workers 2] [--address HOST:PORT]
+       [--out results/ch4/results.json]
 ```
 """
 
@@ -37,7 +41,8 @@ from hybridctl.analysis.postprocess import MIN_POINTS
 from hybridctl.learn import failure_rates
 from hybridctl.learn.ars import ARS
 from hybridctl.parallel import make_backend
-from hybridctl.reproduce.common import RESULTS, command_line, machine_info
+from hybridctl.reproduce.common import (RESULTS, add_backend_flags, backend_cli_args, backend_options,
+                                       check_backend_flags, command_line, machine_info)
 
 VARIANTS = ("pretrain", "identity", "mesh-lower", "mesh-upper")
 # thesis Table 4.4: (action std, observation std, (push rate, magnitude N)) per env
@@ -59,12 +64,13 @@ def evaluate_run(folder: Path, pool) -> dict:
             "mesh_curve_first_episode": curve and {k: curve[k] for k in ("box_sizes", "sizes", "lower", "upper")}}
 
 
-def train(env_id: str, seed: int, pretrain: int, more: int, runs: Path) -> Path:
+def train(env_id: str, seed: int, pretrain: int, more: int, runs: Path, backend: list[str] | None = None) -> Path:
     """Train (or resume) one seed's Table 4.1 runs under ``runs/ENV-sSEED``: the identity pretrain of
-    ``pretrain`` epochs, then identity, mesh-lower and mesh-upper continuations to ``pretrain + more``."""
+    ``pretrain`` epochs, then identity, mesh-lower and mesh-upper continuations to ``pretrain + more``.
+    ``backend``: the training runs' ``--backend``/``--workers``/``--address`` (default serial)."""
     root = runs / f"{env_id}-s{seed}"
     hc = [sys.executable, "-m", "hybridctl.cli"]
-    common = ["--seed", str(seed), "--backend", "serial", "--quiet", "--set", "n_directions=8",
+    common = ["--seed", str(seed), *(backend or ["--backend", "serial"]), "--quiet", "--set", "n_directions=8",
               "--set", "top_directions=4", "--set", f"reward_shift={1 if env_id == 'Hopper-v5' else 0}"]
     if not (root / "pretrain" / "eval.json").is_file():
         subprocess.run([*hc, "train", "ars", env_id, *common, "--epochs", str(pretrain), "--out",
@@ -89,7 +95,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--runs", default="runs/ch4")
     parser.add_argument("--robust-episodes", type=int, default=10)
     parser.add_argument("--robust-steps", type=int, default=2000)
-    parser.add_argument("--workers", type=int, default=2)
+    add_backend_flags(parser, "processes for the evaluations, serial for --train", "the work", workers=2)
+    parser.set_defaults(backend=None)     # None: each part's default (the text above is the help's)
     parser.add_argument("--reuse-evaluations", action="store_true",
                         help="keep the runs' evaluations (and their wall time) of the existing record; redo Table 4.4")
     parser.add_argument("--out", default=str(RESULTS / "ch4" / "results.json"))
@@ -98,9 +105,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--epochs", type=int, nargs=2, default=[100, 40], metavar=("P", "C"),
                         help="with --train: identity epochs, then more epochs per post-processor")
     args = parser.parse_args(argv)
+    check_backend_flags(args, parser)
     if args.train:
-        train(args.train[0], int(args.train[1]), *args.epochs, Path(args.runs))
+        train(args.train[0], int(args.train[1]), *args.epochs, Path(args.runs), backend_cli_args(args, "serial"))
         return 0
+    parallel = backend_options(args, "processes")
     start = time.perf_counter()
     runs = sorted(p for p in Path(args.runs).glob("*-s*") if p.is_dir())
     record = {"command": command_line("hybridctl.reproduce.table41", argv), "machine": machine_info(), "runs": {}, "table41": {},
@@ -118,7 +127,7 @@ def main(argv: list[str] | None = None) -> int:
         record["runs"], record["evaluation_wall_time_s"] = earlier["runs"], earlier.get("evaluation_wall_time_s",
                                                                                           earlier.get("wall_time_s"))
         runs = []
-    with make_backend("processes", args.workers) as pool:
+    with make_backend(parallel["backend"], parallel["workers"], parallel["address"]) as pool:
         for run in runs:
             env_id, seed = run.name.rsplit("-s", 1)
             for variant in VARIANTS:
@@ -149,7 +158,7 @@ def main(argv: list[str] | None = None) -> int:
                     continue
                 agent = ARS.load(Path(args.runs) / key / "final", backend="serial")
                 rep = failure_rates(agent, conditions=conditions, episodes=args.robust_episodes,
-                                    episode_steps=args.robust_steps, seed=r["seed"], workers=args.workers)
+                                    episode_steps=args.robust_steps, seed=r["seed"], **parallel)
                 for name, c in rep.items():
                     counts[name][0] += c["failures"]
                     counts[name][1] += c["episodes"]

@@ -36,9 +36,13 @@ where it stopped, and a run with more seeds reuses the cells it shares with an e
 reused only for the same policy weights (a hash of ``model.pt`` and ``normalization.json``).
 ``--fresh`` ignores the cache.
 
+The failure-rate episodes and the training runs run on ``--backend``/``--workers``/``--address``
+(default: serial, one thread; the MuJoCo envs' episodes of a condition step together on the batched
+stepper's ``--workers`` threads); the numbers do not depend on them.
+
 ```text
 usage: python -m hybridctl.reproduce.table44 --seeds 1 2 3 4 [--env Walker2d-v5] [--episodes 25]
-       [--grid-episodes 10] [--train-only] [--fresh]
+       [--grid-episodes 10] [--train-only] [--fresh] [--backend serial] [--workers 1] [--address HOST:PORT]
 ```
 """
 
@@ -58,7 +62,8 @@ from hybridctl.io import write_json
 from hybridctl.learn import failure_rates
 from hybridctl.learn.ars import ARS
 from hybridctl.learn.robustness import wilson_interval
-from hybridctl.reproduce.common import command_line, machine_info, recorded_path
+from hybridctl.reproduce.common import (add_backend_flags, backend_cli_args, check_backend_flags, command_line,
+                                       machine_info, recorded_path)
 from hybridctl.reproduce import table51
 
 # variant -> (folder in the Table 5.1 work folder, post-processor of the continuation)
@@ -132,18 +137,21 @@ class CellCache:
 
 
 def pooled(agents: dict, cond: dict, episodes: int, seed: int, workers: int, cache: CellCache,
-           fingerprints: dict) -> dict:
+           fingerprints: dict, backend: str = "serial", address: str | None = None) -> dict:
     """Failures of each seed's policy under one condition, and the pooled rate with its interval.
 
     ``agents`` maps a training seed to its policy and ``fingerprints`` to that policy's
-    ``policy_fingerprint``; a cell already in ``cache`` is read back instead of run again."""
+    ``policy_fingerprint``; a cell already in ``cache`` is read back instead of run again.
+    ``backend``, ``workers``, ``address``: where :func:`failure_rates` runs the episodes (a cell does
+    not depend on them)."""
     per_seed = {}
     for s, agent in agents.items():
         key = CellCache.key(fingerprints[s], cond, episodes, seed + 1000 * s)
         cell = cache.get(key)
         if cell is None:
+            cluster = {} if address is None else {"address": address}
             r = failure_rates(agent, conditions={"c": cond}, episodes=episodes, episode_steps=10_000,
-                              seed=seed + 1000 * s, backend="serial", workers=workers)["c"]
+                              seed=seed + 1000 * s, backend=backend, workers=workers, **cluster)["c"]
             cell = {"failures": r["failures"], "mean_steps": r["mean_steps"], "mean_return": r["mean_return"]}
             cache.put(key, cell)
         per_seed[str(s)] = cell
@@ -153,14 +161,16 @@ def pooled(agents: dict, cond: dict, episodes: int, seed: int, workers: int, cac
 
 
 def grid_search(agents: dict, kind: str, grid: list, episodes: int, seed: int, workers: int, log,
-                cache: CellCache, fingerprints: dict) -> dict:
-    """Coarse grid, then three geometric points inside the bracket of 20 %; keep the closest level."""
+                cache: CellCache, fingerprints: dict, backend: str = "serial", address: str | None = None) -> dict:
+    """Coarse grid, then three geometric points inside the bracket of 20 %; keep the closest level
+    (``backend``, ``workers``, ``address``: as for :func:`pooled`)."""
     tried = {}
 
     def run(level):
         if level not in tried:
             t = time.time()
-            tried[level] = pooled(agents, condition(kind, level), episodes, seed, workers, cache, fingerprints)
+            tried[level] = pooled(agents, condition(kind, level), episodes, seed, workers, cache, fingerprints,
+                                  backend, address)
             log(f"  grid {kind} {level:g}: {tried[level]['failures']}/{tried[level]['episodes']} "
                 f"({time.time() - t:.0f} s)")
         return tried[level]["failure_rate"]
@@ -228,7 +238,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--epochs", type=int, nargs=2, metavar=("P", "C"), help="default: the env's (ENVS)")
     parser.add_argument("--min-return", type=float, default=2000.0,
                         help="a seed counts if its identity policy's mean 1,000-step return reaches this")
-    parser.add_argument("--workers", type=int, default=1, help="MuJoCo threads of the batched stepper")
+    add_backend_flags(parser, "serial", "the failure-rate episodes (MuJoCo envs: on the batched stepper's --workers "
+                      "threads) and the training runs", workers=1)
     parser.add_argument("--train-only", action="store_true",
                         help="train (or resume) the seeds' variants and stop: no grid search, no record")
     parser.add_argument("--fresh", action="store_true",
@@ -236,6 +247,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--work", help="default: the env's (ENVS), relative to the working directory")
     parser.add_argument("--out", help="default: results/ch4/table44.json (hopper) or results/ch4/table44-walker2d.json")
     args = parser.parse_args(argv)
+    check_backend_flags(args, parser)
     if min(args.episodes, args.grid_episodes) < 1:
         parser.error("--episodes and --grid-episodes must be >= 1")
     profile = ENVS[args.env]
@@ -263,7 +275,8 @@ def main(argv: list[str] | None = None) -> int:
     for seed in args.seeds:
         pretrain = pretrain_epochs(work, seed, args.epochs[0])
         for variant, (folder, post) in VARIANTS.items():
-            final = table51.train_regime(hc, seed, work, folder, "plain", post, pretrain, args.epochs[1], env=args.env)
+            final = table51.train_regime(hc, seed, work, folder, "plain", post, pretrain, args.epochs[1], env=args.env,
+                                         backend=backend_cli_args(args))
             agent = ARS.load(final, backend="serial")
             evaluation = json.loads((final.parent / "eval.json").read_text())
             progress = json.loads((final / "progress.json").read_text())
@@ -280,7 +293,8 @@ def main(argv: list[str] | None = None) -> int:
     for s in args.seeds:
         if record["runs"][f"s{s}/identity"]["return"] >= args.min_return:
             record["undisturbed_identity"][str(s)] = pooled({s: agents["identity"][s]}, {}, args.grid_episodes, 1,
-                                                            args.workers, cache, prints["identity"])["failures"]
+                                                            args.workers, cache, prints["identity"], args.backend,
+                                                            args.address)["failures"]
     counted = [s for s in args.seeds if record["runs"][f"s{s}/identity"]["return"] >= args.min_return
                and record["undisturbed_identity"][str(s)] <= 0.1 * args.grid_episodes]
     record["seeds"] = counted
@@ -298,7 +312,7 @@ def main(argv: list[str] | None = None) -> int:
     for kind, grid in profile["grids"].items():
         log(f"grid search {kind}")
         record["grid"][kind] = grid_search(agents["identity"], kind, grid, args.grid_episodes, 1, args.workers, log,
-                                           cache, prints["identity"])
+                                           cache, prints["identity"], args.backend, args.address)
         write_json(out, record, indent=1)
     conditions = {"none": {}}
     for kind, g in record["grid"].items():
@@ -311,7 +325,8 @@ def main(argv: list[str] | None = None) -> int:
         for variant in VARIANTS:
             t = time.time()
             # eval env seeds (2) differ from the grid's (1)
-            r = pooled(agents[variant], cond, args.episodes, 2, args.workers, cache, prints[variant])
+            r = pooled(agents[variant], cond, args.episodes, 2, args.workers, cache, prints[variant], args.backend,
+                       args.address)
             record["evaluation"][cname][variant] = {"condition": cond, **r}
             log(f"{cname} {variant}: {r['failures']}/{r['episodes']} "
                 f"{[v['failures'] for v in r['per_seed'].values()]} ({time.time() - t:.0f} s)")

@@ -14,6 +14,8 @@ Each final policy gets reachable meshes (thesis Alg. 7) under the thesis' 25 pus
 one unpushed run, for each box size. A policy that does not hop (fewer than 4 apexes in 2000
 steps) is recorded as such and gets no mesh. Training and meshes resume from their
 checkpoints under ``--work``; the record (``results/ch5/table51.json``) is rewritten after each step.
+The training runs and the meshes run on ``--backend``/``--workers``/``--address`` (default: serial, one
+process per lane); neither depends on them.
 
 ```text
 usage: python -m hybridctl.reproduce.table51 --seeds 1 2 [--box-sizes 0.4 0.3 0.2]
@@ -38,7 +40,8 @@ import torch
 from hybridctl.analysis import build_mesh
 from hybridctl.envs.sections import HopperApexMap, x_pushes
 from hybridctl.learn.ars import ARS
-from hybridctl.reproduce.common import RESULTS, command_line, machine_info, recorded_path
+from hybridctl.reproduce.common import (RESULTS, add_backend_flags, backend_cli_args, backend_options,
+                                       check_backend_flags, command_line, machine_info, recorded_path)
 
 NOISE = ["--set", "train_action_noise=0.01", "--set", "train_obs_noise=0.001"]   # thesis Ch. 5 appendix
 REGIMES = {"standard": ("plain", "identity"), "fractal": ("plain", "mesh-upper"),
@@ -55,48 +58,55 @@ ARS_SETTINGS = {
 }
 
 
-def ars_command(hc: str, seed: int, env: str = "Hopper-v5") -> list[str]:
-    """The ``hybridctl train ars`` prefix every run of a seed shares (``ARS_SETTINGS[env]``)."""
-    return [hc, "train", "ars", env, "--seed", str(seed), "--backend", "serial", "--quiet",
+def ars_command(hc: str, seed: int, env: str = "Hopper-v5", backend: list[str] | None = None) -> list[str]:
+    """The ``hybridctl train ars`` prefix every run of a seed shares (``ARS_SETTINGS[env]``); ``backend``:
+    its ``--backend``/``--workers``/``--address`` (default ``--backend serial``)."""
+    return [hc, "train", "ars", env, "--seed", str(seed), *(backend or ["--backend", "serial"]), "--quiet",
             *[arg for setting in ARS_SETTINGS[env] for arg in ("--set", setting)]]
 
 
-def train_pretrain(hc: str, seed: int, work: Path, kind: str, epochs: int, env: str = "Hopper-v5") -> Path:
+def train_pretrain(hc: str, seed: int, work: Path, kind: str, epochs: int, env: str = "Hopper-v5",
+                   backend: list[str] | None = None) -> Path:
     """Train (or resume, or extend to more ``epochs``) the identity pretrain ``work/sSEED/pretrain-KIND``
-    (``plain``, or ``noise`` with the thesis' training noise); returns its folder."""
+    (``plain``, or ``noise`` with the thesis' training noise) on ``backend`` (:func:`ars_command`);
+    returns its folder."""
     extra = NOISE if kind == "noise" else []
     base = work / f"s{seed}" / f"pretrain-{kind}"
     progress = base / "final" / "progress.json"
     if not (progress.is_file() and (base / "eval.json").is_file()
             and json.loads(progress.read_text())["epoch"] >= epochs):
-        subprocess.run([*ars_command(hc, seed, env), *extra, "--epochs", str(epochs), "--out", str(base), "--resume"],
-                       check=True)
+        subprocess.run([*ars_command(hc, seed, env, backend), *extra, "--epochs", str(epochs), "--out", str(base),
+                        "--resume"], check=True)
     return base
 
 
 def train_regime(hc: str, seed: int, work: Path, folder: str, kind: str, post: str, pretrain: int,
-                 more: int, env: str = "Hopper-v5") -> Path:
+                 more: int, env: str = "Hopper-v5", backend: list[str] | None = None) -> Path:
     """Train (or resume) one continuation ``work/sSEED/FOLDER`` of the ``kind`` pretrain
-    (``plain`` or ``noise``) with post-processor ``post``; trains the pretrain first if missing.
-    Returns the final checkpoint dir. Also used by :mod:`hybridctl.reproduce.table44`."""
+    (``plain`` or ``noise``) with post-processor ``post`` on ``backend`` (:func:`ars_command`); trains
+    the pretrain first if missing. Returns the final checkpoint dir. Also used by
+    :mod:`hybridctl.reproduce.table44`."""
     extra = NOISE if kind == "noise" else []
-    base = train_pretrain(hc, seed, work, kind, pretrain, env)
+    base = train_pretrain(hc, seed, work, kind, pretrain, env, backend)
     out = work / f"s{seed}" / folder
     if not (out / "eval.json").is_file():
         start = ["--resume"] if any(out.glob("checkpoint*")) else ["--init", str(base / "final")]
-        subprocess.run([*ars_command(hc, seed, env), *extra, "--epochs", str(pretrain + more), "--postprocess", post,
-                        "--out", str(out), *start], check=True)
+        subprocess.run([*ars_command(hc, seed, env, backend), *extra, "--epochs", str(pretrain + more),
+                        "--postprocess", post, "--out", str(out), *start], check=True)
     return out / "final"
 
 
-def train(hc: str, seed: int, work: Path, pretrain: int, more: int) -> dict:
-    """Train (or resume) the four regimes of one seed; returns regime -> final checkpoint dir."""
-    return {regime: train_regime(hc, seed, work, regime.replace(" ", "-"), kind, post, pretrain, more)
+def train(hc: str, seed: int, work: Path, pretrain: int, more: int, backend: list[str] | None = None) -> dict:
+    """Train (or resume) the four regimes of one seed on ``backend`` (:func:`ars_command`); returns
+    regime -> final checkpoint dir."""
+    return {regime: train_regime(hc, seed, work, regime.replace(" ", "-"), kind, post, pretrain, more,
+                                 backend=backend)
             for regime, (kind, post) in REGIMES.items()}
 
 
-def meshes(policy_dir: Path, box_sizes, max_states: int, work: Path) -> dict:
-    """Mesh sizes of one policy at each box size (thesis Table 5.1's pushes)."""
+def meshes(policy_dir: Path, box_sizes, max_states: int, work: Path, parallel: dict | None = None) -> dict:
+    """Mesh sizes of one policy at each box size (thesis Table 5.1's pushes); ``parallel``: the meshes'
+    ``backend``/``workers``/``address`` (default serial)."""
     agent = ARS.load(policy_dir, backend="serial")
     section = HopperApexMap(agent.frozen_policy())
     evaluation = json.loads((policy_dir.parent / "eval.json").read_text())
@@ -111,7 +121,7 @@ def meshes(policy_dir: Path, box_sizes, max_states: int, work: Path) -> dict:
     row["hops"], row["seed_apexes"] = True, int(len(seeds))
     for d in box_sizes:
         mesh = build_mesh(section, seeds, x_pushes(15.0, 25), d, mean=agent.stats.mean, std=agent.stats.std,
-                          max_states=max_states, backend="serial", batch_size=256, progress=False,
+                          max_states=max_states, batch_size=256, progress=False, **(parallel or {"backend": "serial"}),
                           checkpoint=work / f"mesh-d{d:g}.npz", resume=True, checkpoint_minutes=2)
         row["meshes"].append({"box_size": d, "states": mesh.size, "complete": mesh.complete,
                               "transitions_to_failure": int((mesh.successors == 0).sum()),
@@ -131,7 +141,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default=str(RESULTS / "ch5" / "table51.json"))
     parser.add_argument("--merge", nargs="+", default=[], metavar="RECORD",
                         help="runs of other records (e.g. two processes' --out files) to copy into --out first")
+    add_backend_flags(parser, "serial", "the training runs and the meshes")
     args = parser.parse_args(argv)
+    check_backend_flags(args, parser)
     if not (args.seeds or args.merge):
         parser.error("give --seeds to run or --merge records to combine")
     torch.set_num_threads(1)
@@ -152,10 +164,11 @@ def main(argv: list[str] | None = None) -> int:
                    "ars": "8 directions, best 4, reward shift 1, step 0.02, noise 0.025 (Ch. 4 reduced scale)",
                    "training_noise": "actions 0.01, observations 0.001 (thesis Ch. 5 appendix)"})
     for seed in args.seeds:
-        finals = train(hc, seed, work, *args.epochs)
+        finals = train(hc, seed, work, *args.epochs, backend=backend_cli_args(args))
         for regime, final in finals.items():
             key = f"s{seed}/{regime}"
-            row = meshes(final, args.box_sizes, args.max_states, work / f"s{seed}" / regime.replace(" ", "-"))
+            row = meshes(final, args.box_sizes, args.max_states, work / f"s{seed}" / regime.replace(" ", "-"),
+                         backend_options(args))
             progress = json.loads((final / "progress.json").read_text())
             # cumulative over the pretrain and the continuation (the run's own clock, kept across resumes)
             row.update({"epochs": progress["epoch"], "env_steps": progress["env_steps"],

@@ -7,6 +7,8 @@ Runs go to runs/ch7/table71/SYSTEM/METHOD-sSEED/record.json; a finished run is s
 interrupted study continues. ``collect`` merges every record into results/ch7/table71.json
 (keeping the runs already recorded there) with the per-(system, method) summary. Not yet run: the
 double cart-pole except CE-APG seed 0 (``run double_cartpole``; ~25 min a run on this machine).
+``run`` takes ``--backend``/``--workers``/``--address`` for the APG family's population (each epoch's
+APG phase as chunks of members, one per worker; default serial): ``APGConfig.backend``.
 """
 
 import argparse
@@ -14,7 +16,7 @@ from pathlib import Path
 
 from hybridctl import io
 from hybridctl.experiments.apg_study import STUDY_METHODS, StudySettings, run_study, summarize, zero_policy_baseline
-from hybridctl.reproduce.common import RESULTS, command_line
+from hybridctl.reproduce.common import RESULTS, add_backend_flags, backend_options, check_backend_flags, command_line
 
 OUT = Path("runs/ch7/table71")
 RECORD = RESULTS / "ch7" / "table71.json"
@@ -27,13 +29,16 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument("systems", nargs="+")
     run.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3])
     run.add_argument("--methods", nargs="+", default=list(STUDY_METHODS))
+    add_backend_flags(run, "serial", "the APG family's population")
     co = sub.add_parser("collect")
     co.add_argument("--record", type=Path, default=RECORD, help=f"the record to update (default {RECORD})")
     args = parser.parse_args(argv)
     if args.cmd == "run":
+        check_backend_flags(args, run)
         command = command_line("hybridctl.reproduce.table71", argv)
-        run_study(OUT, systems=args.systems, methods=args.methods, seeds=args.seeds, settings=StudySettings(),
-                  command=command)
+        # APGConfig fields of every APG-family run (the runs do not depend on them; SAC runs in this process)
+        run_study(OUT, systems=args.systems, methods=args.methods, seeds=args.seeds,
+                  settings=StudySettings(extra=backend_options(args)), command=command)
     else:
         # the committed record's runs, replaced by any run folder here (runs/ is not committed: a fresh
         # clone keeps the recorded runs and adds what it ran)

@@ -11,11 +11,12 @@ run ``WORK/sSEED/pretrain-plain``, the pretrain ``hybridctl.reproduce.table44 --
 ``walker_seeds.json`` gets, per seed, the epochs, env steps and wall time of training (the run's own
 clock, kept across resumes) and the 5-episode evaluation of ``eval.json``. A seed **walks** if no
 evaluation episode ends early (1,000 steps) and the mean return reaches ``--min-return`` (2,000, the
-bar of ``table44``; standing still earns about 1,000).
+bar of ``table44``; standing still earns about 1,000). The training runs run on
+``--backend``/``--workers``/``--address`` (default: serial, one process per seed; the runs do not depend on it).
 
 ```text
 usage: python -m hybridctl.reproduce.walker_seeds [--train 150 --seeds 1 2 3]
-       [--work results/ch4/walker_runs] [--out results/ch4/walker_seeds.json]
+       [--work results/ch4/walker_runs] [--out results/ch4/walker_seeds.json] [--backend serial]
 ```
 """
 
@@ -26,7 +27,8 @@ import json
 import sys
 from pathlib import Path
 
-from hybridctl.reproduce.common import RESULTS, command_line, machine_info
+from hybridctl.reproduce.common import (RESULTS, add_backend_flags, backend_cli_args, check_backend_flags, command_line,
+                                       machine_info)
 from hybridctl.reproduce import table51
 
 ENV = "Walker2d-v5"
@@ -60,14 +62,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default=str(RESULTS / "ch4" / "walker_seeds.json"))
     parser.add_argument("--train", type=int, metavar="EPOCHS", help="train each of --seeds to this many epochs first")
     parser.add_argument("--seeds", type=int, nargs="+", default=[])
+    add_backend_flags(parser, "serial", "the training runs")
     args = parser.parse_args(argv)
+    check_backend_flags(args, parser)
     if (args.train is None) != (not args.seeds):
         parser.error("--train EPOCHS and --seeds go together")
     if args.train is not None and args.train < 1:
         parser.error(f"--train must be an integer >= 1, got {args.train}")
     hc = str(Path(sys.executable).with_name("hybridctl"))
     for seed in args.seeds:
-        table51.train_pretrain(hc, seed, Path(args.work), "plain", args.train, ENV)
+        table51.train_pretrain(hc, seed, Path(args.work), "plain", args.train, ENV, backend_cli_args(args))
     runs = sorted(Path(args.work).glob("s*/pretrain-plain/eval.json"), key=lambda p: int(p.parts[-3][1:]))
     if not runs:
         parser.error(f"no finished runs under {args.work}: train some first with --train 150 --seeds 1 2 3")
