@@ -27,6 +27,7 @@ from ..systems.control import CostToGoGate
 from ..viz.meshcat import add_meshcat
 from .blocks import Gate, HeldController, HeldLQR, ModeSwitch, RecurrentTorchPolicy, TorchPolicy
 from .controllers import LQRController, energy_swingup
+from .trajopt import TrajectoryTracker, trajopt_swingup
 
 
 class HybridDiagram(Diagram):
@@ -66,12 +67,14 @@ class HybridDiagram(Diagram):
 
 def _swingup_block(system: System, swingup, period: float | None):
     if swingup is None or isinstance(swingup, str):
-        if swingup not in (None, "energy"):
-            raise ValueError(f"swingup must be None/'energy', a torch module or a callable, got {swingup!r}")
+        if swingup not in (None, "energy", "trajopt"):
+            raise ValueError(f"swingup must be None/'energy'/'trajopt', a torch module or a callable, got {swingup!r}")
+        if swingup == "trajopt":   # collocation trajectory + TVLQR; reads the time from its Context
+            return trajopt_swingup(system, period or system.control_period)
         fn = energy_swingup(system)
         return HeldController(fn, system.n_states, system.n_actions, period or system.control_period,
                               limit=system.action_limit, name="swingup")
-    if isinstance(swingup, (HeldController, RecurrentTorchPolicy)):
+    if isinstance(swingup, (HeldController, RecurrentTorchPolicy, TrajectoryTracker)):
         return swingup
     if isinstance(swingup, torch.nn.Module) and hasattr(swingup, "initial_state"):   # recurrent (APG's GRU)
         return RecurrentTorchPolicy(swingup, system.n_states, system.n_actions, period or system.swingup_period,
@@ -107,8 +110,10 @@ def build_hybrid_diagram(system: System, swingup=None, gate=None, *, balance=Non
     Args:
         system: a ``hybridctl.systems.System``.
         swingup: None or "energy" (the spec's energy-shaping swing-up, updated every
-            ``control.period``), a torch module (a learned policy as ``TorchPolicy``
-            held for ``control.swingup_period``), a numpy callable, or a ready block.
+            ``control.period``), "trajopt" (a direct-collocation swing-up tracked by TVLQR,
+            :mod:`.trajopt`, updated every ``control.period``; cached per system), a torch
+            module (a learned policy as ``TorchPolicy`` held for ``control.swingup_period``), a
+            numpy callable, or a ready block.
         gate: None or "cost" (cost-to-go gate ``CostToGoGate``), a torch classifier
             returning a probability, a callable, or a ready ``Gate``.
         balance: the balancing controller, updated every ``control.period``: None (the

@@ -34,6 +34,8 @@ CONTROLLERS = {
     "lqr": "LQR only (gate always on)",
     "swingup": "energy-shaping swing-up only (gate always off)",
     "zero": "no input (passive dynamics)",
+    "trajopt": "direct-collocation swing-up from hanging down tracked by Drake's time-varying LQR + cost-to-go "
+               "gate (hysteresis) + LQR; any system, solved once and cached (Drake engine only)",
     "ssac:PATH": "learned swing-up + learned gate (hysteresis) + LQR from an SSAC checkpoint directory",
     "finetune:PATH": "a fine-tuned sac/ssac swing-up (hybridctl finetune's final/ checkpoint), with its gate and LQR",
     "sac:PATH": "learned swing-up only from a SAC checkpoint directory (gate always off)",
@@ -49,10 +51,11 @@ class ControllerParts:
     """What a named controller is made of, before it becomes Drake blocks (:func:`build_named_diagram`) or
     a batched torch rollout (:func:`hybridctl.experiments.balance_map.torch_rollouts`).
 
-    ``swingup``: None (the spec's energy swing-up), ``"zero"`` or a torch module (a recurrent one has
-    ``initial_state``); ``gate``: None (the spec's cost-to-go gate), ``"always"``, ``"never"`` or a
-    torch classifier; ``gate_on`` / ``gate_off`` (None: the spec's) and ``swingup_period`` (None: the
-    block's default) as for :func:`hybridctl.drake.build_hybrid_diagram`.
+    ``swingup``: None (the spec's energy swing-up), ``"zero"``, ``"trajopt"`` (the collocation swing-up
+    tracked by TVLQR, :mod:`hybridctl.drake.trajopt`: a Drake block that reads the time, so Drake only) or
+    a torch module (a recurrent one has ``initial_state``); ``gate``: None (the spec's cost-to-go gate),
+    ``"always"``, ``"never"`` or a torch classifier; ``gate_on`` / ``gate_off`` (None: the spec's) and
+    ``swingup_period`` (None: the block's default) as for :func:`hybridctl.drake.build_hybrid_diagram`.
     """
 
     swingup: Any = None
@@ -85,6 +88,8 @@ def controller_parts(system: System, controller: str = "energy") -> ControllerPa
         return ControllerParts(gate="never")
     if controller == "zero":
         return ControllerParts(swingup="zero", gate="never")
+    if controller == "trajopt":   # build_hybrid_diagram solves (or reads from the cache) the trajectory
+        return ControllerParts(swingup="trajopt")
     kind, sep, path = controller.partition(":")
     if sep and kind in ("ssac", "sac", "ssac-costgate"):
         if not path:

@@ -1,0 +1,183 @@
+"""The collocation swing-up tracked by TVLQR (hybridctl.drake.trajopt) and the ``trajopt`` controller.
+
+Every test caches into its own tmp folder (``cache_dir`` or ``$HYBRIDCTL_CACHE``), so none reads a cache
+another test or run wrote. The acrobot and the pendulum solve in well under a second each.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+from hybridctl import systems
+from hybridctl.drake import trajopt
+from hybridctl.drake.trajopt import TrajectoryTracker, TrajoptSettings, swingup_trajectory, tracking_gains
+
+
+@pytest.fixture(scope="module")
+def acrobot():
+    return systems.load("acrobot")
+
+
+@pytest.fixture(scope="module")
+def pendulum():
+    return systems.load("pendulum")
+
+
+@pytest.fixture(scope="module")
+def acrobot_swingup(acrobot, tmp_path_factory):
+    folder = tmp_path_factory.mktemp("trajopt-cache")
+    return swingup_trajectory(acrobot, cache_dir=folder), folder
+
+
+def test_trajectory_satisfies_drakes_collocation_constraints_and_goes_from_hanging_down_to_the_goal(
+        acrobot, acrobot_swingup):
+    from pydrake.planning import DirectCollocationConstraint
+
+    traj, _ = acrobot_swingup
+    assert traj.solver == "SNOPT" and traj.attempts[-1]["solved"]
+    # the acrobot's Drake plant measures th1 from hanging down: the spec's nominal and goal, converted
+    np.testing.assert_allclose(traj.states[0], acrobot.to_drake_state(acrobot.initial_state.nominal), atol=1e-9)
+    np.testing.assert_allclose(traj.states[-1], acrobot.to_drake_state(acrobot.goal), atol=1e-9)
+    assert np.abs(traj.inputs).max() <= traj.settings.input_margin * acrobot.action_limit + 1e-6
+    # Drake's own collocation constraint on every interval: variables (h, x_k, x_k+1, u_k, u_k+1)
+    diagram, context = trajopt._plant_diagram(acrobot)
+    constraint = DirectCollocationConstraint(diagram, context, input_port_index=diagram.get_input_port(0).get_index())
+
+    def defects(states):
+        return np.array([constraint.Eval(np.concatenate([[t1 - t0], x0, x1, u0, u1]))
+                         for t0, t1, x0, x1, u0, u1 in zip(traj.times[:-1], traj.times[1:], states[:-1], states[1:],
+                                                           traj.inputs[:-1], traj.inputs[1:])])
+
+    assert np.abs(defects(traj.states)).max() < 1e-5
+    moved = traj.states.copy()
+    moved[len(moved) // 2, 1] += 0.01        # the check can fail: one knot off the dynamics
+    assert np.abs(defects(moved)).max() > 1e-3
+
+
+def test_cache_round_trips_and_refuses_corrupt_or_pickled_files(acrobot, acrobot_swingup, tmp_path):
+    traj, folder = acrobot_swingup
+    again = swingup_trajectory(acrobot, cache_dir=folder)
+    assert again.cached and not traj.cached and again.path == traj.path
+    for name in ("times", "states", "derivatives", "inputs"):
+        np.testing.assert_array_equal(getattr(again, name), getattr(traj, name))
+    assert again.solve_time == traj.solve_time and again.attempts == traj.attempts
+    gains = tracking_gains(acrobot, traj, cache_dir=folder)
+    gains_again = tracking_gains(acrobot, again, cache_dir=folder)
+    assert gains_again.cached and not gains.cached
+    np.testing.assert_array_equal(gains_again.K, gains.K)
+    np.testing.assert_array_equal(gains_again.x0, gains.x0)
+
+    # another folder: a truncated file is refused (a warning), solved again and rewritten
+    copy = tmp_path / traj.path.name
+    copy.write_bytes(traj.path.read_bytes()[:200])
+    with pytest.warns(UserWarning, match="cannot be used"):
+        fresh = swingup_trajectory(acrobot, cache_dir=tmp_path)
+    assert not fresh.cached and fresh.path == copy
+    np.testing.assert_allclose(fresh.states, traj.states, atol=1e-6)
+    assert swingup_trajectory(acrobot, cache_dir=tmp_path).cached
+
+    # a file holding a pickled object under the right names is refused without unpickling it
+    marker = tmp_path / "unpickled"
+    arrays = dict(np.load(traj.path, allow_pickle=False))
+    arrays["states"] = np.array([_Unpickle(str(marker))], dtype=object)
+    with open(copy, "wb") as f:
+        np.savez(f, **arrays)
+    with pytest.warns(UserWarning, match="cannot be used"):
+        assert not swingup_trajectory(acrobot, cache_dir=tmp_path).cached
+    assert not marker.exists()
+
+    # a file under the right name whose key or shapes do not match is refused too
+    arrays = dict(np.load(traj.path, allow_pickle=False))
+    with open(copy, "wb") as f:
+        np.savez(f, **{**arrays, "inputs": arrays["inputs"][:-1]})
+    with pytest.warns(UserWarning, match="shape"):
+        assert not swingup_trajectory(acrobot, cache_dir=tmp_path).cached
+
+
+class _Unpickle:
+    """An object whose unpickling leaves a file behind: proof that a cache read unpickled."""
+
+    def __init__(self, path: str):
+        self.path = path
+
+    def __reduce__(self):
+        return (open, (self.path, "w"))
+
+
+def test_cache_key_follows_the_spec_and_the_settings(acrobot):
+    base = trajopt.cache_key(acrobot, {"knots": 41})
+    assert trajopt.cache_key(acrobot, {"knots": 31}) != base
+    assert trajopt.cache_key(systems.load("acrobot", action__limit=20.0), {"knots": 41}) != base
+    assert trajopt.cache_key(systems.load("acrobot"), {"knots": 41}) == base
+
+
+def test_tracker_reads_the_time_from_its_context(acrobot, acrobot_swingup):
+    traj, folder = acrobot_swingup
+    gains = tracking_gains(acrobot, traj, cache_dir=folder)
+    block = TrajectoryTracker(acrobot, traj, gains)
+    assert block.get_input_port(0).get_name() == "state" and block.get_output_port(0).get_name() == "command"
+    assert len(gains.x0) == round(traj.duration / acrobot.control_period) + 1
+    k = len(gains.x0) // 2
+    context = block.CreateDefaultContext()
+    x = gains.x0[k] + np.array([0.01, -0.02, 0.0, 0.05])
+    block.get_input_port(0).FixValue(context, x)
+    context.SetTime(k * block.period)
+    state = block.EvalUniquePeriodicDiscreteUpdate(context)
+    expected = np.clip(gains.u0[k] - gains.K[k] @ (x - gains.x0[k]) - gains.k0[k], -25, 25)
+    np.testing.assert_allclose(state.get_vector(0).CopyToVector(), expected, atol=1e-12)
+    assert not np.allclose(block.command(0.0, x), expected)       # another time, another row
+    # after the trajectory: the last row, the goal with the LQR's gain (TVLQR's final cost is the LQR's S)
+    np.testing.assert_allclose(gains.x0[-1], acrobot.goal, atol=1e-9)
+    np.testing.assert_allclose(gains.K[-1], acrobot.lqr()[0], rtol=1e-6, atol=1e-6)
+
+
+def test_the_trajopt_controller_swings_the_pendulum_up_and_balances_it_in_drake(pendulum, tmp_path, monkeypatch):
+    from hybridctl.drake import simulate
+    from hybridctl.experiments.controllers import CONTROLLERS, build_named_diagram
+
+    monkeypatch.setenv("HYBRIDCTL_CACHE", str(tmp_path))
+    assert "trajopt" in CONTROLLERS
+    diagram = build_named_diagram(pendulum, "trajopt")
+    assert isinstance(diagram.swingup, TrajectoryTracker)
+    assert list((tmp_path / "trajopt").glob("pendulum-trajectory-*.npz"))
+    traj = simulate(diagram, pendulum.initial_state.nominal)       # exactly hanging down, at rest
+    assert traj.balanced and not traj.diverged
+    on = np.flatnonzero(traj.gate > 0.5)
+    assert len(on) and traj.gate[-1] == 1          # handed over to the LQR, and stayed there
+    assert np.abs(traj.x[: on[0], 0]).max() > 2.5   # swung up by the tracker, not started at the top
+    # the zero-order hold of the swing-up block keeps the command within the pendulum's 2 N m
+    assert np.abs(traj.u).max() <= pendulum.action_limit + 1e-12
+
+
+def test_the_torch_engine_refuses_trajopt_by_name(pendulum):
+    from hybridctl.experiments.balance_map import torch_rollouts
+
+    with pytest.raises(ValueError, match="trajopt"):
+        torch_rollouts(pendulum, "trajopt", pendulum.initial_state.nominal[None])
+
+
+@pytest.mark.parametrize("call, name", [
+    (lambda s: swingup_trajectory(s, knots=2), "knots"),
+    (lambda s: swingup_trajectory(s, durations=(2.0, -1.0)), "durations"),
+    (lambda s: swingup_trajectory(s, input_margin=0.0), "input_margin"),
+    (lambda s: swingup_trajectory(s, knot=41), "knot"),
+    (lambda s: swingup_trajectory(s, settings={"knots": 41}), "settings"),
+    (lambda s: swingup_trajectory("pendulum"), "system"),
+    (lambda s: TrajoptSettings(Q=[[1.0, 2.0]]), "Q"),
+])
+def test_bad_arguments_are_value_errors_naming_them(pendulum, call, name):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ValueError, match=name):
+            call(pendulum)
+
+
+def test_a_bad_period_or_a_foreign_trajectory_is_refused(acrobot, pendulum, acrobot_swingup):
+    traj, folder = acrobot_swingup
+    with pytest.raises(ValueError, match="period"):
+        tracking_gains(acrobot, traj, period=-0.01, cache_dir=folder)
+    with pytest.raises(ValueError, match="trajectory"):
+        tracking_gains(pendulum, traj, cache_dir=folder)
