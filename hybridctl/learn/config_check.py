@@ -112,10 +112,9 @@ def check_limits(config) -> None:
         weights = int(values["hidden_layers"]) * int(values["hidden_size"]) ** 2
         check_fits_memory(f"{field_name(config, 'hidden_size')} x {field_name(config, 'hidden_layers')}",
                           weights * NETWORK_BYTES_PER_PARAMETER, "the networks in training")
-    for name in ("address", "ray_address"):
-        backend = values.get("backend")
-        if values.get(name) is not None and isinstance(backend, str) and backend != "ray":
-            raise ValueError(f"{field_name(config, name)} applies to backend 'ray' only, not {backend!r}")
+    backend = values.get("backend")
+    if values.get("address") is not None and isinstance(backend, str) and backend != "ray":
+        raise ValueError(f"{field_name(config, 'address')} applies to backend 'ray' only, not {backend!r}")
 
 
 def check_fields(config, integers_from_1: Iterable[str] = (), integers_from_0: Iterable[str] = (),
