@@ -164,3 +164,23 @@ def test_train_cli_gives_ray_task_flags_to_the_learners_backends(monkeypatch, tm
     assert seen == {"task_resources": {"num_cpus": 2.0, "num_gpus": 0.25}, "runtime_env": {"env_vars": {"A": "1"}}}
     with pytest.raises(SystemExit, match="--task-gpus applies to --backend ray only, not 'processes'"):
         main(["train", "ars", "Pendulum-v1", "--task-gpus", "1", "--out", str(tmp_path / "r2")])
+
+
+def test_finetune_cli_takes_the_shared_backend_flags_and_a_device(monkeypatch, tmp_path):
+    """``hybridctl finetune`` has the same --backend/--workers/--address/--task-* flags as the other commands
+    and --device; the config and the Ray options reach the driver (seen from a stand-in)."""
+    from hybridctl import parallel
+    from hybridctl.cli import finetune as finetune_cli, main
+    seen = {}
+
+    def fake(env, policy, out, config, **kwargs):
+        seen.update(options=parallel._RAY_OPTIONS.get(), config=config)
+        raise ValueError("stop here")
+    monkeypatch.setattr(finetune_cli, "finetune_and_report", fake)
+    with pytest.raises(SystemExit, match="stop here"):
+        main(["finetune", "pendulum", "--policy", "ssac:x", "--backend", "ray", "--address", "auto",
+              "--task-gpus", "0.5", "--device", "cpu", "--out", str(tmp_path / "f")])
+    assert seen["options"] == {"task_resources": {"num_gpus": 0.5}}
+    assert seen["config"].device == "cpu" and seen["config"].address == "auto" and seen["config"].chunk_size is None
+    with pytest.raises(SystemExit, match="--address auto applies to --backend ray only"):
+        main(["finetune", "pendulum", "--policy", "ssac:x", "--address", "auto", "--out", str(tmp_path / "g")])

@@ -7,8 +7,8 @@ import argparse
 from ..analysis.postprocess import FORMS, KINDS
 from ..experiments.finetune import finetune_and_report
 from ..learn.finetune import DIMENSION_SETTINGS, SELECTIONS, FineTuneConfig
-from ..parallel import BACKENDS
-from ._common import add_debug_flag, add_quiet_flag, cli_errors, positive
+from ._common import (add_backend_flags, add_debug_flag, add_force_flag, add_quiet_flag, check_backend_flags,
+                      cli_errors, positive, ray_options_for)
 
 DEFAULTS = FineTuneConfig()
 
@@ -34,11 +34,12 @@ def add_parser(sub) -> None:
                    help="parameters perturbed: the action path (default), all (the author's code), last layer")
     p.add_argument("--episode-steps", type=positive(int), help="cap on episode length (default: the env's)")
     p.add_argument("--seed", type=int, default=DEFAULTS.seed, help="seed of directions and env seeds (default 0)")
-    p.add_argument("--backend", choices=BACKENDS, default=DEFAULTS.backend, help="where rollouts run")
-    p.add_argument("--workers", type=positive(int), help="worker processes (default: all cores)")
-    p.add_argument("--address", help="Ray cluster address (--backend ray)")
+    add_backend_flags(p, DEFAULTS.backend, "the rollouts")
     p.add_argument("--chunk-size", type=positive(int), default=DEFAULTS.chunk_size,
-                   help="perturbed policies per batched rollout task (default 64; 2n / this many tasks per update)")
+                   help="perturbed policies per batched rollout task (default: from the workers, at least 2 tasks "
+                        "each; a fixed size gives the same numbers on any worker count)")
+    p.add_argument("--device", default=DEFAULTS.device,
+                   help="torch device of a sac/ssac source's batched rollouts (cpu, cuda, cuda:1; default cpu)")
     p.add_argument("--eval-episodes", type=positive(int), default=DEFAULTS.eval_episodes,
                    help="deterministic episodes before and after (thesis: 100)")
     p.add_argument("--normalizer", metavar="NPZ", help="observation statistics of an sb3 agent (.npz)")
@@ -48,6 +49,7 @@ def add_parser(sub) -> None:
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its newest checkpoint")
     p.add_argument("--overwrite", action="store_true", help="replace the run the --out folder holds")
     p.add_argument("--out", help="output folder (default runs/finetune/ENV-KIND)")
+    add_force_flag(p)
     add_quiet_flag(p)
     add_debug_flag(p)
     p.set_defaults(func=run_finetune)
@@ -56,17 +58,19 @@ def add_parser(sub) -> None:
 @cli_errors
 def run_finetune(args: argparse.Namespace) -> int:
     """Fine-tune, then print before / after and where the outputs are."""
+    check_backend_flags(args)
     config = FineTuneConfig(updates=args.updates, n_directions=args.directions, select=args.select,
                             reward=args.reward, reward_form=args.reward_form,
                             dimension_settings=args.dimension_settings, episode_steps=args.episode_steps,
                             seed=args.seed, backend=args.backend, workers=args.workers, address=args.address,
-                            chunk_size=args.chunk_size, eval_episodes=args.eval_episodes,
+                            chunk_size=args.chunk_size, eval_episodes=args.eval_episodes, device=args.device,
                             checkpoint_every=args.checkpoint_every)
     # an empty --out is refused by finetune_and_report, not replaced by the default
     out = args.out if args.out is not None else f"runs/finetune/{args.env}-{args.policy.partition(':')[0]}"
-    report = finetune_and_report(args.env, args.policy, out, config, resume=args.resume, overwrite=args.overwrite,
-                                 trust=args.trust, normalizer=args.normalizer, progress=not args.quiet,
-                                 command=args.command_line)
+    with ray_options_for(args):   # --task-cpus/--task-gpus/--task-memory/--runtime-env for the Ray tasks
+        report = finetune_and_report(args.env, args.policy, out, config, resume=args.resume,
+                                     overwrite=args.overwrite, trust=args.trust, normalizer=args.normalizer,
+                                     progress=not args.quiet, command=args.command_line)
     for name in ("before", "after"):
         r = report[name]
         lo, hi = r["failure_interval"]

@@ -105,7 +105,7 @@ def controller_parts(system: System, controller: str = "energy") -> ControllerPa
     if sep and kind == "finetune":   # thesis Ch. 6: a fine-tuned sac/ssac swing-up (FineTune checkpoint)
         if not path:
             raise ValueError(f"controller {controller!r} needs a checkpoint path after 'finetune:'")
-        tuner = FineTune.load(path)
+        tuner = FineTune.load(path, device="cpu")   # Drake runs on the CPU, whatever device it trained on
         if tuner.tunable.system != system.name:
             raise ValueError(f"{path} fine-tunes {tuner.tunable.source} on {tuner.env_name}; a Drake diagram of "
                              f"{system.name} needs a sac:/ssac: source of that system")
@@ -115,7 +115,7 @@ def controller_parts(system: System, controller: str = "energy") -> ControllerPa
     if sep and kind in APG_METHODS:   # thesis Ch. 7: the trained GRU with its hidden state in the Context
         if not path:
             raise ValueError(f"controller {controller!r} needs a checkpoint path after '{kind}:'")
-        agent = APG.load(path)
+        agent = APG.load(path, device="cpu")   # Drake runs on the CPU, whatever device it trained on
         if agent.system.name != system.name:
             raise ValueError(f"{path} was trained on {agent.system.name}, not {system.name}")
         return ControllerParts(agent.closed_loop_policy(), swingup_period=agent.period)

@@ -235,6 +235,10 @@ def config_from_meta(config_class: type, meta: dict, overrides: dict | None = No
     if dropped:
         warnings.warn(f"{where}: {config_class.__name__} no longer has the recorded field(s) {dropped}: "
                       f"loaded without them", UserWarning, stacklevel=2)
+    if overrides and "device" in overrides and "device" in recorded:
+        # a run trained on a GPU loads on a machine without one when the caller names another device:
+        # the recorded device is not checked against this machine's
+        recorded = {**recorded, "device": overrides["device"]}
     try:
         config = config_class(**{k: v for k, v in recorded.items() if k in names})
         if hasattr(config, "validate"):
