@@ -12,6 +12,9 @@ GPU: every tensor is on the CPU either way. :func:`device_trap` makes the differ
   ``.cpu()``, ``bool``/``float``/``int`` of a tensor) so a test can check a hot loop makes
   O(1) of them rather than one per step.
 
+The default device is per thread: work a learner hands to another thread (SSAC's overlapped
+gate refit) escapes the trap, so tests turn such overlap off.
+
 Code passes the trap by naming the device (``torch.zeros(n, device=self.device)``), by
 following an input's (``device=x.device``), or by building modules inside
 ``with torch.device(device):``.

@@ -29,3 +29,15 @@ def test_the_trap_catches_a_tensor_made_without_a_device():
         real + torch.ones(2)
     with device_trap(), pytest.raises(RuntimeError, match="without a device"):
         torch.Generator()
+
+
+def test_predict_and_the_exported_policy_put_numpy_states_on_the_agents_device():
+    """numpy states go straight to the agent's device (before: a tensor made without a device)."""
+    import numpy as np
+    from hybridctl.learn.networks import DeterministicPolicy
+    agent = SAC("pendulum", **TINY)
+    states = np.zeros((3, agent.obs_dim), dtype=np.float32)
+    with device_trap():
+        actions = agent.predict(states)
+        exported = DeterministicPolicy(agent.actor)(states)
+    assert actions.shape == (3, agent.action_dim) and exported.shape == (3, agent.action_dim)

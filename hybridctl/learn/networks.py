@@ -154,8 +154,8 @@ class DeterministicPolicy(nn.Module):
 
     def forward(self, states: torch.Tensor) -> torch.Tensor:
         """Deterministic actions for states (B, n) or (n,), in the input's floating dtype."""
-        states = torch.as_tensor(states)
-        dtype = states.dtype if states.is_floating_point() else torch.float32
         param = next(self.actor.parameters())
+        states = torch.as_tensor(states, device=None if isinstance(states, torch.Tensor) else param.device)
+        dtype = states.dtype if states.is_floating_point() else torch.float32
         return self.actor.deterministic(states.to(device=param.device, dtype=param.dtype)).to(dtype)
 

@@ -149,7 +149,7 @@ class VectorEnvAgent(Learner):
         The output has the input's floating dtype (float32 for integer input).
         """
         is_torch = isinstance(obs, torch.Tensor)
-        x = obs if is_torch else torch.as_tensor(np.asarray(obs))
+        x = obs if is_torch else torch.as_tensor(np.asarray(obs), device=self.device)   # one copy, to the agent's device
         dtype = x.dtype if x.is_floating_point() else torch.float32
         single = x.ndim == 1
         x = x.to(device=self.device, dtype=torch.float32).reshape(-1, self.obs_dim)
