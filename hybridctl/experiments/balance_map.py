@@ -33,7 +33,7 @@ from ..drake import energy_swingup, simulate
 from ..drake.simulate import check_duration
 from ..envs import SwitchedVectorEnv
 from ..envs.switched import switched_decision
-from ..learn.sac import check_device_available
+from ..learn.config_check import check_device_available
 from ..limits import MAX_GRID, MAX_TOTAL_STEPS, check_at_most, check_fits_memory, cpu_count
 from ..parallel import BACKENDS, make_backend
 from ..systems import System, control, load
@@ -156,7 +156,7 @@ def check_device(engine: str, device: str | torch.device | None) -> torch.device
 
     Refuses (ValueError, one line naming ``--device``): a device with the drake engine (Drake
     simulates on the CPU), a name torch does not know, and a CUDA device this machine lacks
-    (:func:`hybridctl.learn.sac.check_device_available`).
+    (:func:`hybridctl.learn.config_check.check_device_available`).
     """
     if device is None:
         return None

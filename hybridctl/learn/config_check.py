@@ -18,6 +18,7 @@ import types
 import typing
 
 import numpy as np
+import torch
 
 from ..limits import MAX_HIDDEN_UNITS, MAX_NUM_ENVS, check_at_most, check_fits_memory, cpu_count
 
@@ -151,3 +152,28 @@ def checkpoint_minutes(config) -> float:
         raise ValueError(f"{type(config).__name__}.checkpoint_minutes must be a finite number >= 0 "
                          f"(0: no checkpoints by time), got {minutes!r}")
     return float(minutes)
+
+
+def check_device_available(name: str, device: torch.device) -> None:
+    """Raise ValueError naming ``name`` when ``device`` is a CUDA device this machine does not have."""
+    if device.type != "cuda":
+        return
+    if not torch.cuda.is_available():
+        raise ValueError(f"{name} is {str(device)!r}, but CUDA is not available here (torch {torch.__version__}, "
+                         f"{'built without CUDA' if torch.version.cuda is None else 'no GPU found'}); use 'cpu'")
+    if device.index is not None and device.index >= torch.cuda.device_count():
+        raise ValueError(f"{name} is {str(device)!r}, but this machine has {torch.cuda.device_count()} CUDA "
+                         f"device(s): use 'cuda:0' to 'cuda:{torch.cuda.device_count() - 1}'")
+
+
+def check_device_field(config, available: bool = True) -> torch.device:
+    """``config.device`` as a torch device; ValueError naming ``Config.device`` for a name torch does
+    not know, and (``available``) for a CUDA device this machine lacks (:func:`check_device_available`)."""
+    name = f"{type(config).__name__}.device"
+    try:
+        device = torch.device(config.device)
+    except (RuntimeError, TypeError):
+        raise ValueError(f"{name} must be a torch device such as 'cpu' or 'cuda:0', got {config.device!r}") from None
+    if available:
+        check_device_available(name, device)
+    return device

@@ -62,7 +62,7 @@ from .rollouts import (AUTO_CHUNK_MAX, AUTO_CHUNK_MAX_ACCELERATOR, ChunkInputs, 
                        Shipped, batched_actions, chunk_slices, evaluation_seeds, make_env, normalise,
                        recorded_env_id, recorded_env_kwargs, rollouts, run_chunk, unflatten)
 from .run import EvalResult
-from .sac import check_device_available
+from .config_check import check_device_field
 
 SELECTIONS = ("action", "all", "last")
 DIMENSION_SETTINGS = ("author", "ch4")
@@ -113,13 +113,8 @@ class FineTuneConfig:
         if self.chunk_size is not None and self.chunk_size < 1:
             raise ValueError(f"FineTuneConfig.chunk_size must be None (auto: from the backend's workers) or an "
                              f"integer >= 1, got {self.chunk_size!r}")
-        try:
-            device = torch.device(self.device)
-        except (RuntimeError, TypeError):
-            raise ValueError(f"FineTuneConfig.device must be a torch device such as 'cpu' or 'cuda:0', "
-                             f"got {self.device!r}") from None
-        if self.backend != "ray":   # a Ray cluster's workers may have a GPU this machine lacks: checked there
-            check_device_available(f"{type(self).__name__}.device", device)
+        # a Ray cluster's workers may have a GPU this machine lacks: checked there
+        check_device_field(self, available=self.backend != "ray")
         for name, allowed in (("select", SELECTIONS), ("reward", POSTPROCESS_KINDS), ("reward_form", POSTPROCESS_FORMS),
                               ("dimension_settings", DIMENSION_SETTINGS), ("backend", BACKENDS)):
             if getattr(self, name) not in allowed:

@@ -689,7 +689,7 @@ def _run_system_chunk(task: ChunkTask) -> list[dict]:
     from ..systems.success import is_balanced
     device = torch.device(task.device)
     if device.type == "cuda":
-        from .sac import check_device_available
+        from .config_check import check_device_available
         check_device_available("the rollout device", device)
     system = load_system(task.system)
     n = len(task.seeds)

@@ -82,7 +82,7 @@ from .replay import REPLAY_FIELDS, EpisodeStaging, ReplayBuffer, sample_mixed
 from .config_check import check_types
 from .optim import FusedAdamStep, adam as _adam, set_grads as _set_grads
 from .checkpoint import Saved
-from .config_check import check_fields
+from .config_check import check_device_available, check_device_field, check_fields  # noqa: F401 (re-exported)
 from .run import check_finite, seeded
 from .vector_agent import VectorEnvAgent, progress_entry
 
@@ -171,12 +171,7 @@ class SACConfig:
             raise ValueError(f"SACConfig.compile must be one of {COMPILE_MODES}, got {self.compile!r}")
         if self.obs_transform not in OBS_TRANSFORMS:
             raise ValueError(f"SACConfig.obs_transform must be one of {OBS_TRANSFORMS}, got {self.obs_transform!r}")
-        try:
-            device = torch.device(self.device)
-        except (RuntimeError, TypeError):
-            raise ValueError(f"SACConfig.device must be a torch device such as 'cpu' or 'cuda:0', "
-                             f"got {self.device!r}") from None
-        check_device_available(f"{type(self).__name__}.device", device)
+        check_device_field(self)
         name = type(self).__name__
         for key in ("buffer_size", "needle_buffer_size"):
             check_at_most(f"{name}.{key}", getattr(self, key), MAX_BUFFER_SIZE, why="transitions held in memory",
@@ -212,18 +207,6 @@ class SACConfig:
 MAX_BUFFER_SIZE = 100_000_000
 """Transitions of one replay (or needle) buffer (``buffer_size``, ``needle_buffer_size``): 1e8 rows of
 the acrobot's transitions are about 4.4 GB; 100x the default 1e6, which holds half a thesis run."""
-
-
-def check_device_available(name: str, device: torch.device) -> None:
-    """Raise ValueError naming ``name`` when ``device`` is a CUDA device this machine does not have."""
-    if device.type != "cuda":
-        return
-    if not torch.cuda.is_available():
-        raise ValueError(f"{name} is {str(device)!r}, but CUDA is not available here (torch {torch.__version__}, "
-                         f"{'built without CUDA' if torch.version.cuda is None else 'no GPU found'}); use 'cpu'")
-    if device.index is not None and device.index >= torch.cuda.device_count():
-        raise ValueError(f"{name} is {str(device)!r}, but this machine has {torch.cuda.device_count()} CUDA "
-                         f"device(s): use 'cuda:0' to 'cuda:{torch.cuda.device_count() - 1}'")
 
 
 def set_lr(optimizer: torch.optim.Optimizer, lr: float) -> None:

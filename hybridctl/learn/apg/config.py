@@ -7,13 +7,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import torch
 
 from ... import systems as systems_mod
 from ...parallel import BACKENDS
 from ..config_check import check_fields, check_types
 from ..policies import KINDS as POLICY_KINDS
-from ..sac import check_device_available
+from ..config_check import check_device_field
 
 __all__ = ["APGConfig", "METHODS", "PRESETS", "OBSERVATIONS", "TAKEOVERS", "METHOD_CLASSES", "parse_policy",
            "lr_schedule"]
@@ -142,12 +141,7 @@ class APGConfig:
         if self.address is not None and (self.backend != "ray" or not self.address.strip()):
             raise ValueError(f"APGConfig.address must be None or a non-empty address with backend 'ray', "
                              f"got {self.address!r} with backend {self.backend!r}")
-        try:
-            device = torch.device(self.device)
-        except (RuntimeError, TypeError):
-            raise ValueError(f"APGConfig.device must be a torch device such as 'cpu' or 'cuda:0', "
-                             f"got {self.device!r}") from None
-        check_device_available("APGConfig.device", device)
+        check_device_field(self)
         if self.elites > self.population:
             raise ValueError(f"APGConfig.elites ({self.elites}) must be <= population ({self.population})")
         for name in ("beta1", "beta2"):
