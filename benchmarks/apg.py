@@ -4,7 +4,7 @@ loop over the 24 members and (b) a zeroth-order (ES) estimate of the same cost, 
 Prints one JSON document.
 
     .venv/bin/python benchmarks/apg.py [--quick] [--horizon T] [--system NAME] [--dtype float32|float64] [--period S] [--compile]
-                                       [--repeats R] [--out FILE] [--threads N]
+                                       [--compile-steps S] [--repeats R] [--out FILE] [--threads N]
 
 One APG iteration = the batched rollout of K members x N starts (the GRU policy of the thesis,
 one action held over the spec's swing-up period, i.e. ``substeps`` integrator steps) and one
@@ -33,7 +33,8 @@ import torch  # noqa: E402
 
 from common import emit, machine_info  # noqa: E402
 from hybridctl import systems  # noqa: E402
-from hybridctl.learn.apg import compiled_policy_step, member_gradients, observation_size, population_returns  # noqa: E402,E501
+from hybridctl.learn.apg import (compiled_policy_step, compiled_policy_steps, member_gradients,  # noqa: E402
+                                 observation_size, population_returns)
 from hybridctl.learn.policies import PolicyPopulation  # noqa: E402
 
 POPULATION, BATCH, HORIZON = 24, 4, 500
@@ -53,7 +54,8 @@ def _time(fn, repeats: int, warm_up: bool = True) -> dict:
 
 
 def run(system_name: str = "acrobot", horizon: int = HORIZON, dtype: str = "float32", repeats: int = 3,
-        threads: int = 1, quick: bool = False, period: float = PERIOD, compile: bool = False) -> dict:
+        threads: int = 1, quick: bool = False, period: float = PERIOD, compile: bool = False,
+        compile_steps: int = 10) -> dict:
     """Time the batched APG iteration, the member loop and the ES peer; the report as a dict."""
     torch.set_num_threads(threads)
     system = systems.load(system_name, reward__kind="angle_squared")
@@ -72,6 +74,11 @@ def run(system_name: str = "acrobot", horizon: int = HORIZON, dtype: str = "floa
 
     def fused():   # the same iteration with the per-step work through torch.compile
         returns, *_ = population_returns(system, pop, x0, horizon, substeps, step=compiled_policy_step())
+        return member_gradients(pop, -returns.mean(1))
+
+    def chunked():   # ``compile_steps`` policy steps per compiled call (APGConfig.compile_steps)
+        returns, *_ = population_returns(system, pop, x0, horizon, substeps, steps=compiled_policy_steps(),
+                                         steps_per_call=compile_steps)
         return member_gradients(pop, -returns.mean(1))
 
     def loop():
@@ -100,7 +107,13 @@ def run(system_name: str = "acrobot", horizon: int = HORIZON, dtype: str = "floa
         checks["compile_s"] = time.perf_counter() - start
         checks["max_relative_difference_compiled_vs_eager"] = float((compiled - reference).abs().max()
                                                                     / reference.abs().max())
+        start = time.perf_counter()
+        several = chunked()
+        checks["compile_steps_s"] = time.perf_counter() - start
+        checks["max_relative_difference_compile_steps_vs_eager"] = float((several - reference).abs().max()
+                                                                         / reference.abs().max())
         runs.insert(1, ("batched_population_compiled", fused))
+        runs.insert(2, ("batched_population_compile_steps", chunked))
     for name, fn in runs:
         t = _time(fn, repeats, warm_up=name != "member_loop")   # the check above warmed the loop up
         t.update(iterations_per_s=1.0 / t["median_s"], state_steps_per_s=steps_per_iteration / t["median_s"],
@@ -112,8 +125,11 @@ def run(system_name: str = "acrobot", horizon: int = HORIZON, dtype: str = "floa
     projection = {"ce_apg_epoch_s": 100 * b, "ce_apg_200_epochs_h": 200 * 100 * b / 3600}
     if compile:
         c = results["batched_population_compiled"]["median_s"]
-        ratios.update(compiled_vs_eager=b / c, compiled_vs_member_loop=l / c, apg_compiled_over_es_iteration=c / e)
-        projection.update(ce_apg_epoch_s_compiled=100 * c, ce_apg_200_epochs_h_compiled=200 * 100 * c / 3600)
+        f = results["batched_population_compile_steps"]["median_s"]
+        ratios.update(compiled_vs_eager=b / c, compiled_vs_member_loop=l / c, apg_compiled_over_es_iteration=c / e,
+                      compile_steps_vs_compiled=c / f, compile_steps_vs_eager=b / f)
+        projection.update(ce_apg_epoch_s_compiled=100 * c, ce_apg_200_epochs_h_compiled=200 * 100 * c / 3600,
+                          ce_apg_epoch_s_compile_steps=100 * f, ce_apg_200_epochs_h_compile_steps=200 * 100 * f / 3600)
     return {
         "benchmark": "apg",
         "timestamp": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
@@ -123,6 +139,7 @@ def run(system_name: str = "acrobot", horizon: int = HORIZON, dtype: str = "floa
         "setting": {"system": system.name, "population": POPULATION, "batch": BATCH, "horizon": horizon,
                     "period_s": period, "substeps_per_policy_step": substeps, "integrator": system.integrator, "dt": system.dt,
                     "dtype": dtype, "policy": pop.describe(), "reward": "angle_squared",
+                    "compile_steps": compile_steps if compile else None,
                     "state_steps_per_iteration": steps_per_iteration,
                     "unit": "state-steps = policy steps (K x N x T); physics steps = x substeps"},
         "results": results,
@@ -142,7 +159,10 @@ def main(argv=None) -> int:
     parser.add_argument("--period", type=float, default=PERIOD,
                         help=f"seconds per policy step (default {PERIOD}: the author's acrobot)")
     parser.add_argument("--compile", action="store_true",
-                        help="also time the iteration with the per-step work through torch.compile")
+                        help="also time the iteration with the per-step work through torch.compile, one call "
+                             "per policy step and --compile-steps steps per call")
+    parser.add_argument("--compile-steps", type=int, default=10,
+                        help="policy steps per compiled call for the second compiled timing (default 10)")
     parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     parser.add_argument("--repeats", type=int, default=None, help="timed calls per measurement (default 3)")
     parser.add_argument("--out", type=Path, help="also write the JSON to this file")
@@ -150,10 +170,10 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     horizon = args.horizon if args.horizon is not None else (20 if args.quick else HORIZON)
     repeats = args.repeats if args.repeats is not None else (2 if args.quick else 3)
-    if horizon < 1 or repeats < 1 or args.threads < 1 or not args.period > 0:
-        parser.error("--horizon, --repeats and --threads must be >= 1, --period > 0")
+    if horizon < 1 or repeats < 1 or args.threads < 1 or args.compile_steps < 1 or not args.period > 0:
+        parser.error("--horizon, --repeats, --threads and --compile-steps must be >= 1, --period > 0")
     emit(run(args.system, horizon, args.dtype, repeats, args.threads, args.quick, args.period,
-             args.compile), args.out)
+             args.compile, args.compile_steps), args.out)
     return 0
 
 

@@ -366,6 +366,54 @@ def test_compiled_step_gives_the_eager_gradients():
     assert torch.allclose(eager, fused, rtol=1e-9, atol=1e-9 * float(eager.abs().max()))
 
 
+@pytest.mark.parametrize("takeover", [False, True])
+def test_several_policy_steps_per_call_give_the_step_by_step_rollout(takeover):
+    """The fused path's bookkeeping (chunks of policy steps, cut where truncation detaches): the same
+    returns, gradients, final states and observation sums as one step per call, with and without the
+    LQR takeover (eager ``policy_steps``, so this runs without compiling)."""
+    from hybridctl.learn.apg import LQRTakeover, policy_steps
+
+    system, pop, x0 = gru_case(members=3, seed=5)
+    hand = LQRTakeover(system) if takeover else None
+    for truncation in (None, 3):
+        one = population_returns(system, pop, x0, 10, 5, truncation=truncation, takeover=hand)
+        calls = []
+
+        def counted(*args):
+            calls.append(args[-1])
+            return policy_steps(*args)
+
+        many = population_returns(system, pop, x0, 10, 5, truncation=truncation, takeover=hand, steps=counted,
+                                  steps_per_call=4)
+        assert calls == ([4, 4, 2] if truncation is None else [3, 3, 3, 1])
+        assert torch.equal(one[0], many[0]) and torch.equal(one[1], many[1])
+        for a, b in zip(one[3], many[3]):
+            assert torch.equal(torch.as_tensor(a), torch.as_tensor(b))
+        g_one = member_gradients(pop, -one[0].mean(1))
+        g_many = member_gradients(pop, -many[0].mean(1))
+        assert torch.equal(g_one, g_many)
+
+
+@pytest.mark.slow
+def test_compiled_policy_steps_give_the_eager_gradients():
+    """Several policy steps per compiled call (``APGConfig.compile_steps``): the eager gradients."""
+    from hybridctl.learn.apg import compiled_policy_steps
+
+    system, pop, x0 = gru_case(members=3, seed=5)
+    eager = member_gradients(pop, -population_returns(system, pop, x0, 6, 5)[0].mean(1))
+    fused = member_gradients(pop, -population_returns(system, pop, x0, 6, 5, steps=compiled_policy_steps(),
+                                                      steps_per_call=3)[0].mean(1))
+    assert torch.allclose(eager, fused, rtol=1e-9, atol=1e-9 * float(eager.abs().max()))
+
+
+def test_records_before_compile_steps_resume_one_compiled_call_per_step():
+    assert APGConfig.upgrade_recorded({"compile": True})["compile_steps"] == 1
+    assert APGConfig.upgrade_recorded({"compile_steps": 10})["compile_steps"] == 10
+    assert APGConfig().compile_steps == 10
+    with pytest.raises(ValueError, match="compile_steps"):
+        APGConfig(compile_steps=0).validate()
+
+
 def test_fig_7_1_diagnostics_gradient_norm_grows_with_horizon_and_landscape_probe():
     from hybridctl.learn.apg import gradient_norms_by_horizon, returns_along_direction
 

@@ -69,3 +69,20 @@ def test_fig_7_1_and_comparison_plots_write_pngs_and_reject_empty_input(tmp_path
         plot_return_landscape([-1, 0, 1], {"x": [1, 2]}, tmp_path / "d.png")
     with pytest.raises(ValueError, match="at least one"):
         plot_gradient_norms([], tmp_path / "e.png")
+
+
+def test_the_thesis_budget_gives_every_method_the_same_interactions():
+    """StudySettings.thesis: K 24 x N 4 x T 500 x 100 x 200 = 9.6e8 interactions for CE-APG and PAPG, and
+    APG (one policy) on 96 starts per iteration so it sees as many."""
+    from hybridctl.experiments.apg_study import apg_config
+    from hybridctl.learn.apg import METHOD_CLASSES
+
+    settings = StudySettings.thesis()
+    budgets = {}
+    for method in ("ce-apg", "papg", "apg"):
+        c = apg_config(method, "acrobot", 0, settings)
+        c.validate()
+        budgets[method] = (METHOD_CLASSES[method].member_count(c) * c.batch * c.horizon * c.apg_iterations * c.epochs)
+        assert (c.horizon, c.apg_iterations, c.epochs, c.lr_end, c.checkpoint_every) == (500, 100, 200, 1e-6, 5)
+    assert set(budgets.values()) == {24 * 4 * 500 * 100 * 200}
+    assert apg_config("apg", "acrobot", 0, StudySettings()).batch == 4    # the reduced study: the thesis' APG

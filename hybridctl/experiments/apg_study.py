@@ -80,7 +80,21 @@ class StudySettings:
     sac_steps: int = 200_000          # a tenth of the APG family's interactions (8 x 4 x 100 x 600 = 1.92e6): ~2-4 min here
     eval_episodes: int = 16
     eval_seed: int = EVAL_SEED
+    horizon: int | None = None        # policy steps per episode; None: the task's (TASKS); thesis 500
+    checkpoint_every: int | None = None   # epochs between checkpoints; None: a quarter of the epochs
+    equal_interactions: bool = False  # APG as one policy on population x batch starts per iteration (the
+    #                                   others' interactions; thesis APG: one policy, batch 4, a 24th of them)
     extra: dict = field(default_factory=dict)   # more APGConfig fields for every APG run
+
+    @classmethod
+    def thesis(cls, **changes) -> "StudySettings":
+        """The thesis' own budget (Sec. 7.3.7): K 24, K_e 8, N 4, T 500, 100 APG iterations per epoch,
+        200 epochs, lr 1e-3 -> 1e-6 (9.6e8 interactions a run), APG at the same interactions, a
+        checkpoint every 5 epochs (a run is ~1 h here: it resumes across sessions)."""
+        values = dict(population=24, elites=8, batch=4, apg_iterations=100, epochs=200, lr_start=1e-3, lr_end=1e-6,
+                      horizon=500, checkpoint_every=5, equal_interactions=True)
+        values.update(changes)
+        return cls(**values)
 
     @property
     def iterations(self) -> int:
@@ -103,12 +117,14 @@ def apg_config(method: str, system_name: str, seed: int, settings: StudySettings
                   alive_bonus=float(reward.get("alive_bonus", 0.0)),
                   velocity_penalty=float(reward.get("velocity_penalty", 0.0)),
                   position_weight=float(reward.get("position_weight", 0.0)),
-                  horizon=task.horizon, start_noise=None, policy=settings.policy, batch=settings.batch,
+                  horizon=settings.horizon or task.horizon, start_noise=None, policy=settings.policy, batch=settings.batch,
                   population=settings.population, elites=settings.elites, apg_iterations=settings.apg_iterations,
                   epochs=settings.epochs, lr_start=settings.lr_start, lr_end=settings.lr_end,
                   compile=settings.compile, seed=seed, eval_episodes=settings.eval_episodes,
-                  checkpoint_every=max(1, settings.epochs // 4))
+                  checkpoint_every=settings.checkpoint_every or max(1, settings.epochs // 4))
     values.update(METHOD_CLASSES[method].preset_settings["thesis"])   # apg: one member; shapg: clip, betas
+    if method == "apg" and settings.equal_interactions:   # one policy, the population's starts
+        values.update(batch=settings.population * settings.batch)
     if method == "cem":      # as many population evaluations as the others' APG iterations
         values.update(epochs=settings.iterations, apg_iterations=1)
     values.update(settings.extra)
@@ -231,7 +247,8 @@ def zero_policy_baseline(system_name: str, settings: StudySettings | None = None
     system = task_system(system_name)
     x0 = held_out_starts(system, settings.eval_episodes, settings.eval_seed)
     zero = torch.zeros((len(x0), system.n_actions), dtype=torch.float64)
-    return rollout_metrics(system, lambda x, h: (zero, None), x0, TASKS[system_name].horizon, system.swingup_period)
+    return rollout_metrics(system, lambda x, h: (zero, None), x0, settings.horizon or TASKS[system_name].horizon,
+                           system.swingup_period)
 
 
 def summarize(records: list[dict]) -> list[dict]:

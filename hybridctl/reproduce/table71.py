@@ -4,7 +4,10 @@
     python -m hybridctl.reproduce.table71 collect                           # -> results/ch7/table71.json
 
 Runs go to runs/ch7/table71/SYSTEM/METHOD-sSEED/record.json; a finished run is skipped, so an
-interrupted study continues. ``collect`` merges every record into results/ch7/table71.json
+interrupted study continues. ``--budget thesis`` runs the thesis' own budget (StudySettings.thesis:
+K 24, N 4, T 500, 100 x 200 APG iterations, 9.6e8 interactions, ~1 h a run here) into the committed
+tree, results/ch7/table71_thesis/SYSTEM/METHOD-sSEED/ (checkpoints every 5 epochs, so a run killed
+at a session's end resumes from the same command), collected into results/ch7/table71_thesis.json. ``collect`` merges every record into results/ch7/table71.json
 (keeping the runs already recorded there) with the per-(system, method) summary. Not yet run: the
 double cart-pole except CE-APG seed 0 (``run double_cartpole``; ~25 min a run on this machine).
 ``run`` takes ``--backend``/``--workers``/``--address`` for the APG family's population (each epoch's
@@ -20,6 +23,10 @@ from hybridctl.reproduce.common import RESULTS, add_backend_flags, backend_optio
 
 OUT = Path("runs/ch7/table71")
 RECORD = RESULTS / "ch7" / "table71.json"
+BUDGETS = {"reduced": (OUT, RECORD, StudySettings), "thesis": (RESULTS / "ch7" / "table71_thesis",
+                                                             RESULTS / "ch7" / "table71_thesis.json",
+                                                             StudySettings.thesis)}
+"""Per --budget: (run folder, record, settings)."""
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -31,26 +38,32 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument("--methods", nargs="+", default=list(STUDY_METHODS))
     add_backend_flags(run, "serial", "the APG family's population")
     co = sub.add_parser("collect")
-    co.add_argument("--record", type=Path, default=RECORD, help=f"the record to update (default {RECORD})")
+    co.add_argument("--record", type=Path, default=None, help=f"the record to update (default {RECORD}; "
+                                                             f"thesis: {BUDGETS['thesis'][1]})")
+    for p in (run, co):
+        p.add_argument("--budget", choices=tuple(BUDGETS), default="reduced",
+                       help="reduced: StudySettings (default); thesis: the thesis' own budget")
     args = parser.parse_args(argv)
+    out, record, make_settings = BUDGETS[args.budget]
     if args.cmd == "run":
         check_backend_flags(args, run)
         command = command_line("hybridctl.reproduce.table71", argv)
         # APGConfig fields of every APG-family run (the runs do not depend on them; SAC runs in this process)
-        run_study(OUT, systems=args.systems, methods=args.methods, seeds=args.seeds,
-                  settings=StudySettings(extra=backend_options(args)), command=command)
+        run_study(out, systems=args.systems, methods=args.methods, seeds=args.seeds,
+                  settings=make_settings(extra=backend_options(args)), command=command)
     else:
         # the committed record's runs, replaced by any run folder here (runs/ is not committed: a fresh
         # clone keeps the recorded runs and adds what it ran)
         key = lambda r: (r["system"], r["method"], r["seed"])   # noqa: E731
-        merged = {key(r): r for r in (io.read_json(args.record)["runs"] if args.record.exists() else [])}
-        merged.update({key(r): r for r in (io.read_json(p) for p in sorted(OUT.glob("*/*/record.json")))})
+        record = args.record or record
+        merged = {key(r): r for r in (io.read_json(record)["runs"] if record.exists() else [])}
+        merged.update({key(r): r for r in (io.read_json(p) for p in sorted(out.glob("*/*/record.json")))})
         records = list(merged.values())
         systems = sorted({r["system"] for r in records})
-        io.write_json(args.record, {"settings": StudySettings().__dict__, "summary": summarize(records),
-                               "zero_policy": {name: zero_policy_baseline(name) for name in systems},
+        io.write_json(record, {"settings": make_settings().__dict__, "summary": summarize(records),
+                               "zero_policy": {name: zero_policy_baseline(name, make_settings()) for name in systems},
                                "runs": records})
-        print(f"wrote {args.record}: {len(records)} runs")
+        print(f"wrote {record}: {len(records)} runs")
     return 0
 
 

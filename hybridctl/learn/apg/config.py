@@ -64,6 +64,9 @@ class APGConfig:
     dtype: str = "float32"             # "float32" (as JAX's default in the thesis' Brax) or "float64"
     compile: bool = False              # hybridctl: torch.compile the per-step work (policy, sub-steps, reward);
     #                                    measured 3.9x faster at 24 x 4 here, after ~30 s of compiling per shape
+    compile_steps: int = 10            # hybridctl: policy steps per compiled call (with compile); 1: one call per
+    #                                    step (the records before this field). Acrobot, T 500, 24 x 4: 0.35 s per
+    #                                    APG iteration at 1, 0.17 s at 10 (benchmarks/apg.py --compile-steps)
     # --- APG
     batch: int = 4                     # N starts per APG iteration, thesis Sec. 7.3.7
     apg_iterations: int = 100          # APG iterations per CE epoch, thesis Sec. 7.3.7 ("APG Epochs")
@@ -106,8 +109,10 @@ class APGConfig:
     @classmethod
     def upgrade_recorded(cls, recorded: dict) -> dict:
         """A checkpoint's recorded config in today's field names (``ray_address`` is ``address`` since
-        the flag became ``--address`` for every learner); today's name wins when both are present."""
+        the flag became ``--address`` for every learner); today's name wins when both are present. A
+        record from before ``compile_steps`` ran one compiled call per policy step: it resumes so."""
         out = dict(recorded)
+        out.setdefault("compile_steps", 1)
         for old, new in cls.RENAMED.items():
             if old in out:
                 value = out.pop(old)
@@ -124,7 +129,7 @@ class APGConfig:
         check_types(self)
         check_fields(self, integers_from_1=("horizon", "batch", "apg_iterations", "short_horizon", "population",
                                             "elites", "rank_window", "epochs", "checkpoint_every", "eval_episodes",
-                                            "torch_threads"),
+                                            "torch_threads", "compile_steps"),
                      integers_from_0=("seed",), positive=("lr_start", "lr_end", "grad_bound"))
         parse_policy(self.policy)
         for name, options in (("method", METHODS), ("observation", OBSERVATIONS), ("takeover", TAKEOVERS),
