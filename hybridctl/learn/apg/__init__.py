@@ -84,7 +84,8 @@ from __future__ import annotations
 from .config import (METHOD_CLASSES, METHODS, OBSERVATIONS, PRESETS, TAKEOVERS, APGConfig, lr_schedule,
                      parse_policy)
 from .core import (APGProblem, BatchedAdam, ClosedLoopPolicy, LQRTakeover, Phase, apg_episode, apg_iteration,
-                   apg_phase, cem_update, clip_gradients, compiled_policy_step, compiled_policy_steps, evaluate_members,
+                   apg_phase, cem_update, clip_gradients, compiled_policy_step, compiled_policy_steps,
+                   evaluate_members,
                    gradient_norms_by_horizon, member_gradients, observation_size, observe, policy_step, policy_steps,
                    population_returns, returns_along_direction, start_array, start_states)
 from .split import apg_chunk, split_apg_phase
@@ -93,8 +94,9 @@ from .methods import APG, CEAPG, CEM, PAPG, ShortHorizonAPG
 
 __all__ = ["APG", "ShortHorizonAPG", "PAPG", "CEM", "CEAPG", "APGFamily", "EpochStep", "APGConfig",
            "METHOD_CLASSES", "METHODS", "PRESETS", "OBSERVATIONS", "TAKEOVERS", "APGProblem", "Phase",
-           "BatchedAdam", "LQRTakeover", "ClosedLoopPolicy", "apg_chunk", "split_apg_phase", "policy_step", "policy_steps",
-           "compiled_policy_step", "compiled_policy_steps", "observe", "observation_size", "population_returns", "member_gradients",
+           "BatchedAdam", "LQRTakeover", "ClosedLoopPolicy", "apg_chunk", "split_apg_phase", "policy_step",
+           "policy_steps", "compiled_policy_step", "compiled_policy_steps", "observe", "observation_size",
+           "population_returns", "member_gradients",
            "clip_gradients", "lr_schedule", "parse_policy", "cem_update", "start_states", "start_array",
            "apg_iteration", "apg_episode", "apg_phase", "evaluate_members", "gradient_norms_by_horizon",
            "returns_along_direction"]
