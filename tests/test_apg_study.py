@@ -71,6 +71,16 @@ def test_fig_7_1_and_comparison_plots_write_pngs_and_reject_empty_input(tmp_path
         plot_gradient_norms([], tmp_path / "e.png")
 
 
+def test_return_curves_plot_runs_side_by_side_and_reject_no_rows(tmp_path):
+    from hybridctl.viz import plot_return_curves
+
+    rows = [{"env_steps": 96 * k, "mean_return": -10.0 + k, "best_return": -8.0 + k, "grad_norm": 10.0 ** k}
+            for k in range(1, 4)]
+    assert plot_return_curves({"ce-apg": rows, "apg": rows[:1]}, tmp_path / "f.png").stat().st_size > 0
+    with pytest.raises(ValueError, match="at least one run"):
+        plot_return_curves({"apg": []}, tmp_path / "g.png")
+
+
 def test_the_thesis_budget_gives_every_method_the_same_interactions():
     """StudySettings.thesis: K 24 x N 4 x T 500 x 100 x 200 = 9.6e8 interactions for CE-APG and PAPG, and
     APG (one policy) on 96 starts per iteration so it sees as many."""

@@ -16,7 +16,7 @@ _HOMES = {
     "meshcat": ("add_meshcat", "replay_html", "start_meshcat", "shared_meshcat", "ReplayPage"),
     "markov": ("plot_cumulative_mass", "plot_mesh_sizes", "plot_mesh_states", "plot_transition_sparsity"),
     "plots": ("plot_balance_map", "plot_trajectory", "wrap_about_goal"),
-    "training": ("plot_training_curves",),
-    "apg": ("plot_gradient_norms", "plot_method_comparison", "plot_return_landscape"),
+    "training": ("plot_training_curves", "read_progress_rows"),
+    "apg": ("plot_gradient_norms", "plot_method_comparison", "plot_return_landscape", "plot_return_curves"),
 }
 __getattr__, __dir__, __all__ = lazy_exports(__name__, _HOMES)

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["plot_return_landscape", "plot_gradient_norms", "plot_method_comparison"]
+__all__ = ["plot_return_landscape", "plot_gradient_norms", "plot_method_comparison", "plot_return_curves"]
 
 
 def _save(fig, path: str | os.PathLike) -> Path:
@@ -102,5 +102,32 @@ def plot_method_comparison(summary: list[dict], path: str | os.PathLike, title: 
         ax.set_ylabel("held-out return")
         ax.grid(alpha=0.3, axis="y")
     fig.suptitle(title or "Ch. 7 methods on the same task", fontsize=10)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def plot_return_curves(runs: dict, path: str | os.PathLike, title: str = "") -> Path:
+    """Training curves of APG-family runs side by side against interactions: the epoch's mean return
+    (CE-APG, CEM: of the CEM mean's population; APG, PAPG: of the members), the best member's
+    training return (the author's metric) and the median gradient norm (log scale). ``runs``: label
+    -> progress rows (dicts with env_steps, mean_return, best_return, grad_norm: an APG run's
+    progress.csv read by :func:`~hybridctl.viz.training.read_progress_rows`)."""
+    import matplotlib.pyplot as plt
+
+    runs = {label: rows for label, rows in runs.items() if rows}
+    if not runs:
+        raise ValueError("runs must hold at least one run with progress rows")
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
+    panels = (("mean_return", "mean training return", "linear"), ("best_return", "best member's return", "linear"),
+              ("grad_norm", "median gradient norm", "log"))
+    for ax, (key, label, scale) in zip(axes, panels):
+        for name, rows in runs.items():
+            ax.plot([r["env_steps"] for r in rows], [r.get(key, np.nan) for r in rows], label=name)
+        ax.set_yscale(scale)
+        ax.set_xlabel("interactions (K x N x T x iterations)")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
+    fig.suptitle(title or "APG-family runs", fontsize=10)
     fig.tight_layout()
     return _save(fig, path)
