@@ -50,8 +50,10 @@ def main(argv: list[str] | None = None) -> int:
         check_backend_flags(args, run)
         command = command_line("hybridctl.reproduce.table71", argv)
         # APGConfig fields of every APG-family run (the runs do not depend on them; SAC runs in this process)
-        run_study(out, systems=args.systems, methods=args.methods, seeds=args.seeds,
-                  settings=make_settings(extra={**make_settings().extra, **backend_options(args)}), command=command)
+        settings = make_settings()
+        settings.extra.update(backend_options(args))
+        run_study(out, systems=args.systems, methods=args.methods, seeds=args.seeds, settings=settings,
+                  command=command)
     else:
         # the committed record's runs, replaced by any run folder here (runs/ is not committed: a fresh
         # clone keeps the recorded runs and adds what it ran)

@@ -215,17 +215,17 @@ def population_returns(system: System, pop: PolicyPopulation, x0: torch.Tensor, 
         if truncation is not None and t > 0 and t % truncation == 0:
             x, h = x.detach(), h.detach()
         if fused:   # a chunk ends where the graph is cut
-            count = min(steps_per_call, horizon - t, truncation - t % truncation if truncation else horizon)
+            done = min(steps_per_call, horizon - t, truncation - t % truncation if truncation else horizon)
             x, h, mode, total, o_sum, o_sq = steps(system, pop, x, h, substeps, observation, takeover, mode,
-                                                   total, o_sum, o_sq, count)
+                                                   total, o_sum, o_sq, done)
         else:
-            count = 1
+            done = 1
             x, h, reward, obs, mode = step(system, pop, x, h, substeps, observation, takeover, mode)
             o_sum, o_sq = _add_observations(obs.detach(), pop.obs_dim, o_sum, o_sq)
             total = total + reward
             if keep_states:
                 kept.append(x.detach())
-        t += count
+        t += done
     count = K * N * horizon
     states = torch.stack(kept, dim=2) if keep_states else None
     return total, x, (h if takeover is None else (h, mode)), (o_sum, o_sq, count), states
@@ -340,8 +340,7 @@ class APGProblem:
     step: Callable
     takeover: "LQRTakeover | None"
     device: torch.device
-    steps: Callable | None = None    # the fused policy steps (config.compile and compile_steps > 1)
-    steps_per_call: int = 1
+    steps: Callable | None = None    # config.compile_steps policy steps per compiled call (compile, steps > 1)
 
     @classmethod
     def build(cls, system: System, config: APGConfig, members: int) -> "APGProblem":
@@ -364,8 +363,7 @@ class APGProblem:
         return cls(system, config, pop.to(device), dtype, float(period), int(round(ratio)),
                    compiled_policy_step() if config.compile else policy_step,
                    LQRTakeover(system, dtype, device) if config.takeover == "lqr" else None, device,
-                   compiled_policy_steps() if config.compile and config.compile_steps > 1 else None,
-                   config.compile_steps if config.compile else 1)
+                   compiled_policy_steps() if config.compile and config.compile_steps > 1 else None)
 
     def starts(self, n: int, seed_words) -> torch.Tensor:
         """:func:`start_states` of this problem, on its device."""
@@ -436,7 +434,7 @@ def apg_iteration(problem: APGProblem, theta: torch.Tensor, x0: torch.Tensor, lr
     pop.from_flat(theta.to(problem.dtype))
     returns, x, h, sums, _ = population_returns(problem.system, pop, x0, horizon or cfg.horizon, problem.substeps,
                                                 cfg.observation, cfg.truncation, state, step=problem.step,
-                                                steps=problem.steps, steps_per_call=problem.steps_per_call,
+                                                steps=problem.steps, steps_per_call=cfg.compile_steps,
                                                 takeover=problem.takeover)
     member_return = returns.mean(1)
     grad = member_gradients(pop, -member_return).double()
@@ -521,7 +519,7 @@ def evaluate_members(problem: APGProblem, theta: torch.Tensor, x0: torch.Tensor)
     with torch.no_grad():
         returns, _, _, sums, _ = population_returns(problem.system, problem.pop, x0, cfg.horizon, problem.substeps,
                                                     cfg.observation, step=problem.step, takeover=problem.takeover,
-                                                    steps=problem.steps, steps_per_call=problem.steps_per_call)
+                                                    steps=problem.steps, steps_per_call=cfg.compile_steps)
     r = returns.mean(1).double()
     return torch.where(torch.isfinite(r), r, torch.full_like(r, -math.inf)), list(sums)
 
