@@ -56,6 +56,17 @@ def test_balance_map_writes_png_and_json(tmp_path):
     assert "balanced_fraction" in proc.stdout
 
 
+def test_balance_map_near_hanging_down_spans_the_half_width_around_the_nominal_state(tmp_path, capsys):
+    """--near 0.3: the acrobot's th1, th2 within +-0.3 of hanging down (not its default every angle)."""
+    out = tmp_path / "near"
+    code, stdout, err = run_in_process(capsys, "balance-map", "acrobot", "--grid", "3", "--near", "0.3",
+                                       "--engine", "torch", "--duration", "1", "--quiet", "--out", str(out))
+    assert code == 0, err
+    result = json.loads((out / "balance_map.json").read_text())
+    assert result["values1"] == pytest.approx([-np.pi / 2 - 0.3, -np.pi / 2, -np.pi / 2 + 0.3])
+    assert result["values2"] == pytest.approx([-0.3, 0.0, 0.3])
+
+
 def test_demo_balances_the_acrobot_and_the_cartpole(tmp_path, capsys):
     code, stdout, err = run_in_process(capsys, "demo", "--grid", "2", "--quiet", "--out", str(tmp_path))
     assert code == 0, err
@@ -76,6 +87,7 @@ def test_demo_balances_the_acrobot_and_the_cartpole(tmp_path, capsys):
     (["simulate", "acrobot", "--controller", "nope"], "unknown controller 'nope'; known: energy"),
     (["simulate", "acrobot", "--duration", "-1"], "must be a finite number > 0"),
     (["balance-map", "acrobot", "--grid", "1", "--workers", "1"], "grid must be >= 2"),
+    (["balance-map", "acrobot", "--grid", "2", "--near", "4"], "--near must be in (0, pi]"),
 ])
 def test_bad_arguments_exit_nonzero_with_clear_message(args, message, tmp_path, capsys):
     code, out, err = run_in_process(capsys, *args, "--out", str(tmp_path))

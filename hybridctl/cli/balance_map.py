@@ -6,7 +6,7 @@ import argparse
 
 from .. import io
 from ..experiments import balance_map
-from ..experiments.balance_map import ENGINES, check_balance_map
+from ..experiments.balance_map import ENGINES, check_balance_map, near_hanging_down
 from ..systems import load
 from ._common import (add_backend_flags, add_debug_flag, add_force_flag, add_quiet_flag, add_system_argument,
                       check_backend_flags, cli_errors, limits_epilog, positive, ray_options_for)
@@ -21,6 +21,9 @@ def add_parser(sub) -> None:
     p.add_argument("--controller", default="energy", help=controller_help())
     p.add_argument("--grid", type=positive(int), default=41, help="grid points per axis (default 41, thesis)")
     p.add_argument("--duration", type=positive(float), help="seconds per run (default: the spec's episode)")
+    p.add_argument("--near", type=positive(float), metavar="HALF_WIDTH",
+                   help="starts near hanging down: the map's two axes within +-HALF_WIDTH of the spec's nominal "
+                        "state, in (0, pi] (default: the spec's start ranges; the acrobot's span every angle)")
     # the default backend depends on --engine: None here, chosen in run_balance_map (the text is the help's)
     add_backend_flags(p, "processes for --engine drake, serial for --engine torch", "the grid's simulation")
     p.set_defaults(backend=None)
@@ -46,10 +49,11 @@ def run_balance_map(args: argparse.Namespace) -> int:
     check_backend_flags(args)
     check_balance_map(system, args.grid, args.duration, args.engine, args.workers if args.backend != "ray" else None,
                       args.force, args.device)  # before --out is made
+    axes, ranges = near_hanging_down(system, args.near) if args.near is not None else (None, None)
     io.output_folder(args.out)  # a file at --out fails here, not after the simulations
     with ray_options_for(args):   # --task-cpus/--task-gpus/--task-memory/--runtime-env for the Ray tasks
-        result = balance_map(system, args.controller, grid=args.grid, duration=args.duration,
-                             workers=args.workers, progress=not args.quiet, engine=args.engine, force=args.force,
+        result = balance_map(system, args.controller, grid=args.grid, duration=args.duration, axes=axes,
+                             ranges=ranges, workers=args.workers, progress=not args.quiet, engine=args.engine, force=args.force,
                              backend=args.backend, address=args.address, device=args.device)
     result.meta["command"] = args.command_line
     summary = result.save(args.out)

@@ -120,6 +120,20 @@ def grid_axes(system: System, axes: tuple[int, int] | None = None,
     return tuple(axes), tuple(tuple(map(float, r)) for r in ranges)
 
 
+def near_hanging_down(system: System, half_width: float):
+    """``(axes, ranges)`` of a map of starts near hanging down: the default map's two coordinates
+    (:func:`grid_axes`), each within ``+-half_width`` of the spec's nominal (hanging-down) state.
+
+    The issue-33 matrix compares every learner on such a map (half-width 0.3, the cart-poles'
+    own start spread), since a map over every angle asks the acrobot for more than a swing-up.
+    """
+    if not (isinstance(half_width, (int, float, np.floating)) and 0 < half_width <= np.pi):
+        raise ValueError(f"--near must be in (0, pi] (a half-width in the axes' units), got {half_width!r}")
+    axes, _ = grid_axes(system)
+    nominal = system.initial_state.nominal
+    return axes, tuple((float(nominal[a] - half_width), float(nominal[a] + half_width)) for a in axes)
+
+
 _WORKER_DIAGRAMS: dict = {}
 
 
