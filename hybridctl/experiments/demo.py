@@ -24,9 +24,10 @@ from .simulation import simulate_and_write
 PRETRAINED_ACROBOT = MODELS_DIR / "policies" / "ssac-acrobot"
 """The SSAC acrobot checkpoint shipped with hybridctl (how it was trained: README.md there)."""
 
-PRETRAINED_CARTPOLE = MODELS_DIR / "policies" / "papg-cartpole"
-"""The cart-pole swing-up trained by PAPG through the switched controller (thesis Ch. 7 with the
-Ch. 3 switch), shipped with hybridctl (how it was trained: README.md there)."""
+PRETRAINED_CARTPOLE = MODELS_DIR / "policies" / "papg-gru-cartpole"
+"""The cart-pole swing-up trained by PAPG with the thesis' GRU policy through the switched controller
+(thesis Ch. 7 with the Ch. 3 switch), shipped with hybridctl (how it was trained: README.md there);
+the APG family's best cart-pole map (113/121 against the MLP's 112/121, results/matrix)."""
 
 DEMO_SYSTEM = "acrobot"
 DEMO_GRID = 11

@@ -1,0 +1,223 @@
+"""The learner x system matrix (issue 33): every shipped swing-up of every chain, each with its gate and
+Drake's LQR, on an 11 x 11 Drake balance map of starts near hanging down, with the interactions and
+wall time its training took. One record, ``results/matrix/matrix.json``, its maps
+(``results/matrix/maps/SYSTEM-ROW/balance_map.{json,png}``) and one figure of them
+(``results/matrix/matrix.png``); the README's matrix table is :func:`markdown_table` of the record.
+
+    python -m hybridctl.reproduce.matrix run               # every cell with a controller (~15 min)
+    python -m hybridctl.reproduce.matrix run --cells acrobot:trajopt cartpole:ssac
+    python -m hybridctl.reproduce.matrix table             # the README table, from the record
+
+Maps: the acrobot's two angles within +-0.3 rad of hanging down (its default map spans every angle:
+more than a swing-up from hanging down); the cart-poles' default maps, which are their start spreads
+near hanging down (cart +-0.5 m x first pole +-0.3 rad). Each start runs the spec's 10 s episode and
+passes the thesis' success test. A cell without a shipped controller is kept with what was tried.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from hybridctl import io
+from hybridctl.experiments.balance_map import balance_map, near_hanging_down
+from hybridctl.reproduce.common import RESULTS, add_backend_flags, backend_options, check_backend_flags, machine_info
+from hybridctl.systems import load
+from hybridctl.systems.spec import MODELS_DIR
+
+OUT = RESULTS / "matrix"
+GRID = 11
+NEAR = 0.3
+"""Half-width (rad) of the acrobot's map around hanging down: the cart-poles' own pole spread."""
+SYSTEMS = ("acrobot", "cartpole", "double_cartpole")
+ROWS = ("SSAC", "APG family", "trajopt", "energy")
+GOALS = {"acrobot": {"APG family": 0.9}, "double_cartpole": {"SSAC": 0.8, "APG family": 0.8}}
+"""The issue's aims (fraction of the map); the other cells have none."""
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One controller of the matrix: ``controller`` is a ``--controller`` string (None: nothing
+    shipped), ``policy`` the shipped checkpoint whose progress.json holds the training's
+    interactions and wall time, ``note`` what the cell is or what was tried."""
+
+    system: str
+    row: str
+    controller: str | None
+    policy: str | None = None
+    note: str = ""
+
+    @property
+    def key(self) -> str:
+        """``system:row`` as on the command line (row lower-case, spaces as dashes)."""
+        return f"{self.system}:{self.row.lower().replace(' ', '-')}"
+
+
+def _shipped(name: str) -> str:
+    """A shipped checkpoint as the record names it (relative to the repository root)."""
+    return f"models/policies/{name}"
+
+
+CELLS = (
+    Cell("acrobot", "SSAC", f"ssac:{_shipped('ssac-acrobot')}", _shipped("ssac-acrobot"),
+         "Switched SAC, thesis Ch. 3 (learned gate)"),
+    Cell("acrobot", "APG family", None, None,
+         "PAPG through the LQR takeover over the spec's every-angle starts: 8.3 % of the every-angle map "
+         "(results/ch7/acrobot-takeover-attempts.json); CE-APG and APG at the thesis' budget do not swing up "
+         "(results/ch7/table71_thesis.json)"),
+    Cell("acrobot", "trajopt", "trajopt", None, "direct collocation + Drake's time-varying LQR"),
+    Cell("acrobot", "energy", "energy", None, "energy-shaping swing-up (hand-tuned gains)"),
+    Cell("cartpole", "SSAC", f"ssac:{_shipped('ssac-cartpole')}", _shipped("ssac-cartpole"),
+         "Switched SAC, thesis Ch. 3 (learned gate)"),
+    Cell("cartpole", "APG family", f"papg:{_shipped('papg-gru-cartpole')}", _shipped("papg-gru-cartpole"),
+         "PAPG, GRU, through the LQR takeover (spec's cost-to-go gate)"),
+    Cell("cartpole", "trajopt", "trajopt", None, "direct collocation + Drake's time-varying LQR"),
+    Cell("cartpole", "energy", "energy", None, "energy-shaping swing-up (hand-tuned gains)"),
+    Cell("double_cartpole", "SSAC", None, None,
+         "SSAC at 2e6 steps: 64 % success, 58.5 % of a 21 x 21 map (results/ch3/double_cartpole), not shipped"),
+    Cell("double_cartpole", "APG family", None, None, "no APG-family run balances"),
+    Cell("double_cartpole", "trajopt", "trajopt", None, "direct collocation + Drake's time-varying LQR"),
+    Cell("double_cartpole", "energy", None, None, "no energy swing-up for two poles"),
+)
+
+
+def cell_by_key(key: str) -> Cell:
+    """The cell named ``system:row`` (e.g. ``acrobot:apg-family``); a clear error otherwise."""
+    for cell in CELLS:
+        if cell.key == key:
+            return cell
+    raise ValueError(f"--cells: unknown cell {key!r}; known: {', '.join(c.key for c in CELLS)}")
+
+
+def map_ranges(system_name: str):
+    """``(axes, ranges)`` of a system's matrix map (None, None: its default map)."""
+    if system_name == "acrobot":
+        return near_hanging_down(load(system_name), NEAR)
+    return None, None
+
+
+def training_record(policy: str | None) -> dict:
+    """The interactions (environment steps; APG family: K x N x T x iterations) and wall time of a
+    shipped checkpoint's training, from its progress.json; empty without a checkpoint."""
+    if policy is None:
+        return {}
+    progress = io.read_json(MODELS_DIR / "policies" / Path(policy).name / "progress.json")
+    return {"interactions": int(progress["env_steps"]), "train_wall_time_s": float(progress["wall_time"])}
+
+
+def measure(cell: Cell, **backend) -> dict:
+    """The cell's balance map (saved under ``results/matrix/maps``) and its record."""
+    record = {"system": cell.system, "row": cell.row, "controller": cell.controller, "policy": cell.policy,
+              "note": cell.note, "goal": GOALS.get(cell.system, {}).get(cell.row)}
+    if cell.controller is None:
+        return record
+    axes, ranges = map_ranges(cell.system)
+    start = time.perf_counter()
+    result = balance_map(load(cell.system), cell.controller, grid=GRID, axes=axes, ranges=ranges, progress=False,
+                         **backend)
+    folder = OUT / "maps" / cell.key.replace(":", "-")
+    summary = result.save(folder)
+    record.update(training_record(cell.policy))
+    record.update({"balanced_fraction": summary["balanced_fraction"], "balanced_count": summary["balanced_count"],
+                   "grid": GRID, "axes": summary["axes"],
+                   "ranges": [[float(v[0]), float(v[-1])] for v in (summary["values1"], summary["values2"])],
+                   "map_wall_time_s": time.perf_counter() - start, "map": f"{folder.as_posix()}/balance_map.json"})
+    return record
+
+
+def run(keys: list[str] | None, **backend) -> dict:
+    """Measure the named cells (default: all), merged into the record; returns the record."""
+    cells = [cell_by_key(k) for k in keys] if keys else list(CELLS)
+    path = OUT / "matrix.json"
+    record = io.read_json(path) if path.exists() else {"cells": {}}
+    for cell in cells:
+        entry = measure(cell, **backend)
+        entry["machine"] = machine_info()
+        record["cells"][cell.key] = entry
+        shown = f"{entry['balanced_count']}/{GRID * GRID}" if "balanced_count" in entry else "no controller"
+        print(f"{cell.key}: {shown}", flush=True)
+        io.write_json(path, record)           # after every cell: an interrupted run keeps what it measured
+    record["cells"] = {c.key: record["cells"][c.key] for c in CELLS if c.key in record["cells"]}
+    io.write_json(path, record)
+    plot(record, OUT / "matrix.png")
+    return record
+
+
+def _cell_text(entry: dict | None) -> str:
+    if entry is None or "balanced_fraction" not in entry:
+        return "-"
+    text = f"{entry['balanced_fraction']:.0%}"
+    if "interactions" in entry:
+        text += f" ({entry['interactions']:.1e} steps, {entry['train_wall_time_s'] / 60:.0f} min)"
+    goal = entry.get("goal")
+    return text + (f" (aim {goal:.0%})" if goal is not None and entry["balanced_fraction"] < goal else "")
+
+
+def markdown_table(record: dict) -> str:
+    """The matrix as a Markdown table: one row per learner, one column per system; each cell the
+    balanced fraction of its map, training interactions and wall time ('-': nothing shipped)."""
+    names = {"acrobot": "acrobot", "cartpole": "cart-pole", "double_cartpole": "double cart-pole"}
+    lines = ["| learner | " + " | ".join(names[s] for s in SYSTEMS) + " |", "|---" * (len(SYSTEMS) + 1) + "|"]
+    for row in ROWS:
+        entries = [record["cells"].get(f"{s}:{row.lower().replace(' ', '-')}") for s in SYSTEMS]
+        lines.append(f"| {row} | " + " | ".join(_cell_text(e) for e in entries) + " |")
+    return "\n".join(lines)
+
+
+def plot(record: dict, path: Path) -> None:
+    """Every measured map of the record in one figure: rows are learners, columns systems."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, grid = plt.subplots(len(ROWS), len(SYSTEMS), figsize=(3.2 * len(SYSTEMS), 2.9 * len(ROWS)), squeeze=False)
+    for i, row in enumerate(ROWS):
+        for j, system in enumerate(SYSTEMS):
+            ax = grid[i][j]
+            entry = record["cells"].get(f"{system}:{row.lower().replace(' ', '-')}")
+            if entry is None or "map" not in entry:
+                ax.axis("off")
+                ax.set_title(f"{system}, {row}: none", fontsize=8)
+                continue
+            data = io.read_json(entry["map"])
+            (lo1, hi1), (lo2, hi2) = entry["ranges"]
+            ax.imshow(np.asarray(data["balanced"], dtype=float).T, origin="lower", cmap="RdYlGn", vmin=0, vmax=1,
+                      extent=(lo1, hi1, lo2, hi2), aspect="auto")
+            ax.set_title(f"{system}, {row}: {entry['balanced_fraction']:.0%}", fontsize=8)
+            ax.set_xlabel(entry["axes"][0], fontsize=7)
+            ax.set_ylabel(entry["axes"][1], fontsize=7)
+            ax.tick_params(labelsize=6)
+    fig.suptitle("11 x 11 Drake balance maps near hanging down (green: balanced)", fontsize=10)
+    fig.tight_layout()
+    io.atomic_write(path, lambda f: fig.savefig(f, dpi=110, format="png"))
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``run`` (measure cells) or ``table`` (print the README table from the record)."""
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", required=True)
+    run_parser = sub.add_parser("run", help="measure cells into results/matrix/matrix.json")
+    run_parser.add_argument("--cells", nargs="+", metavar="SYSTEM:ROW",
+                            help=f"cells to measure (default all): {', '.join(c.key for c in CELLS)}")
+    add_backend_flags(run_parser, "serial", "each map's Drake runs")
+    sub.add_parser("table", help="print the README's matrix table from the record")
+    args = parser.parse_args(argv)
+    if args.command == "table":
+        print(markdown_table(io.read_json(OUT / "matrix.json")))
+        return 0
+    check_backend_flags(args, run_parser)
+    try:
+        keys = [cell_by_key(k).key for k in args.cells or []]
+    except ValueError as error:
+        run_parser.error(str(error))
+    run(keys, **backend_options(args))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,49 @@
+"""The learner x system matrix driver (hybridctl.reproduce.matrix): its cells, its table and its maps."""
+
+import numpy as np
+import pytest
+
+from hybridctl.reproduce import matrix
+
+
+def test_every_cell_key_round_trips_and_unknown_keys_are_refused():
+    assert [matrix.cell_by_key(c.key) for c in matrix.CELLS] == list(matrix.CELLS)
+    with pytest.raises(ValueError, match="unknown cell 'acrobot:ppo'; known: acrobot:ssac"):
+        matrix.cell_by_key("acrobot:ppo")
+
+
+def test_shipped_cells_name_checkpoints_that_exist_with_their_training_record():
+    for cell in matrix.CELLS:
+        if cell.policy is not None:
+            record = matrix.training_record(cell.policy)
+            assert record["interactions"] > 0 and record["train_wall_time_s"] > 0
+            assert cell.policy in cell.controller
+
+
+def test_the_acrobot_map_spans_every_angle_unless_near_hanging_down():
+    axes, ranges = matrix.map_ranges("acrobot")
+    assert axes == (0, 1)
+    assert ranges[0] == pytest.approx((-np.pi / 2 - 0.3, -np.pi / 2 + 0.3)) and ranges[1] == pytest.approx((-0.3, 0.3))
+    assert matrix.map_ranges("cartpole") == (None, None)
+
+
+def test_markdown_table_shows_fraction_interactions_wall_time_and_a_missed_aim():
+    record = {"cells": {
+        "acrobot:apg-family": {"balanced_fraction": 0.5, "interactions": 3.0e7, "train_wall_time_s": 600.0, "goal": 0.9},
+        "cartpole:trajopt": {"balanced_fraction": 1.0, "goal": None},
+        "acrobot:ssac": {"note": "nothing shipped"},
+    }}
+    table = matrix.markdown_table(record).splitlines()
+    assert table[0] == "| learner | acrobot | cart-pole | double cart-pole |"
+    assert len(table) == 2 + len(matrix.ROWS)
+    apg = next(line for line in table if line.startswith("| APG family"))
+    assert "50% (3.0e+07 steps, 10 min) (aim 90%)" in apg
+    trajopt = next(line for line in table if line.startswith("| trajopt"))
+    assert trajopt == "| trajopt | - | 100% | - |"
+    assert next(line for line in table if line.startswith("| SSAC")) == "| SSAC | - | - | - |"
+
+
+def test_a_cell_without_a_controller_keeps_its_note_and_maps_nothing():
+    cell = matrix.Cell("double_cartpole", "energy", None, None, "none for two poles")
+    record = matrix.measure(cell)
+    assert record["controller"] is None and "balanced_fraction" not in record and record["note"]
