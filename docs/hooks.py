@@ -85,3 +85,21 @@ def on_config(config):
     config.markdown_extensions.append(DoctestFences())
     config.markdown_extensions.append(SiteLinks())
     return config
+
+
+# Figures of the results tree that pages show (a page links them as ``results/...png``): added to the
+# site's files from the repository root, so the records stay in one place and the build fails on a
+# missing one (strict mode checks every link).
+RESULT_FIGURES = ("results/matrix/matrix.png",)
+
+
+def on_files(files, config):
+    """Add :data:`RESULT_FIGURES` to the site, at their repository paths."""
+    from pathlib import Path
+
+    from mkdocs.structure.files import File
+
+    root = Path(config.config_file_path).parent
+    for figure in RESULT_FIGURES:
+        files.append(File(figure, src_dir=str(root), dest_dir=config.site_dir, use_directory_urls=False))
+    return files

@@ -29,7 +29,7 @@ def test_the_acrobot_map_spans_every_angle_unless_near_hanging_down():
 
 def test_markdown_table_shows_fraction_interactions_wall_time_and_a_missed_aim():
     record = {"cells": {
-        "acrobot:apg-family": {"balanced_fraction": 0.5, "interactions": 3.0e7, "train_wall_time_s": 600.0, "goal": 0.9},
+        "acrobot:apg-family": {"balanced_fraction": 0.5, "balanced_count": 60, "grid": 11, "interactions": 3.0e7, "train_wall_time_s": 600.0, "goal": 0.9},
         "cartpole:trajopt": {"balanced_fraction": 1.0, "goal": None},
         "acrobot:ssac": {"note": "nothing shipped"},
     }}
@@ -37,13 +37,29 @@ def test_markdown_table_shows_fraction_interactions_wall_time_and_a_missed_aim()
     assert table[0] == "| learner | acrobot | cart-pole | double cart-pole |"
     assert len(table) == 2 + len(matrix.ROWS)
     apg = next(line for line in table if line.startswith("| APG family"))
-    assert "50% (3.0e+07 steps, 10 min) (aim 90%)" in apg
+    assert "60/121 (50%) (3.0e+07 steps, 10 min) (aim 90%)" in apg
     trajopt = next(line for line in table if line.startswith("| trajopt"))
     assert trajopt == "| trajopt | - | 100% | - |"
     assert next(line for line in table if line.startswith("| SSAC")) == "| SSAC | - | - | - |"
+
+
+def test_short_of_aim_lists_the_cells_that_miss_their_aim_with_their_notes():
+    record = {"cells": {"acrobot:apg-family": {"balanced_fraction": 0.95, "note": "met"},
+                        "double_cartpole:ssac": {"balanced_fraction": 0.5, "note": "tried A and B"}}}
+    text = matrix.short_of_aim(record)
+    assert "acrobot, APG family" not in text
+    assert "**double_cartpole, SSAC** (aim 80%): 50% of the map. tried A and B" in text
+    assert "**double_cartpole, APG family** (aim 80%): nothing shipped." in text
 
 
 def test_a_cell_without_a_controller_keeps_its_note_and_maps_nothing():
     cell = matrix.Cell("double_cartpole", "energy", None, None, "none for two poles")
     record = matrix.measure(cell)
     assert record["controller"] is None and "balanced_fraction" not in record and record["note"]
+
+
+def test_an_attempt_needs_a_finished_run_folder(tmp_path):
+    with pytest.raises(ValueError, match="no final/config.json"):
+        matrix.attempt("acrobot:apg-family", tmp_path)
+    with pytest.raises(ValueError, match="unknown cell"):
+        matrix.attempt("acrobot:nope", tmp_path)

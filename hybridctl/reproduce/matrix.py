@@ -6,7 +6,11 @@ wall time its training took. One record, ``results/matrix/matrix.json``, its map
 
     python -m hybridctl.reproduce.matrix run               # every cell with a controller (~15 min)
     python -m hybridctl.reproduce.matrix run --cells acrobot:trajopt cartpole:ssac
+    python -m hybridctl.reproduce.matrix attempt acrobot:apg-family runs/ch7/papg-gru-acrobot-near-s0
+                                                           # a training run tried for a cell: its map,
+                                                           # into results/matrix/attempts.json
     python -m hybridctl.reproduce.matrix table             # the README table, from the record
+                                                           # (also table.md, short.md: the docs page's)
 
 Maps: the acrobot's two angles within +-0.3 rad of hanging down (its default map spans every angle:
 more than a swing-up from hanging down); the cart-poles' default maps, which are their start spreads
@@ -25,7 +29,8 @@ import numpy as np
 
 from hybridctl import io
 from hybridctl.experiments.balance_map import balance_map, near_hanging_down
-from hybridctl.reproduce.common import RESULTS, add_backend_flags, backend_options, check_backend_flags, machine_info
+from hybridctl.reproduce.common import (RESULTS, add_backend_flags, backend_options, check_backend_flags, machine_info,
+                                       recorded_path)
 from hybridctl.systems import load
 from hybridctl.systems.spec import MODELS_DIR
 
@@ -144,13 +149,48 @@ def run(keys: list[str] | None, **backend) -> dict:
     record["cells"] = {c.key: record["cells"][c.key] for c in CELLS if c.key in record["cells"]}
     io.write_json(path, record)
     plot(record, OUT / "matrix.png")
+    write_pages(record)
     return record
+
+
+ATTEMPT_PREFIX = {"SSAC": "ssac", "APG family": None}
+"""The ``--controller`` prefix of a cell's training runs (None: the run's own method, from its config)."""
+
+
+def attempt(key: str, run_folder: str | Path, **backend) -> dict:
+    """Map a training run tried for a cell (its ``final/`` checkpoint) on the cell's map and add it to
+    ``results/matrix/attempts.json``: the command, interactions, wall time, eval.json and the map."""
+    cell = cell_by_key(key)
+    run_folder = Path(run_folder)
+    final = run_folder / "final"
+    if not (final / "config.json").exists():
+        raise ValueError(f"{run_folder}: no final/config.json (a finished hybridctl train run folder)")
+    config = io.read_json(final / "config.json")
+    prefix = ATTEMPT_PREFIX.get(cell.row) or config.get("method") or config.get("algorithm")
+    evaluation = io.read_json(run_folder / "eval.json")
+    axes, ranges = map_ranges(cell.system)
+    result = balance_map(load(cell.system), f"{prefix}:{final}", grid=GRID, axes=axes, ranges=ranges, progress=False,
+                         **backend)
+    entry = {"cell": cell.key, "run": recorded_path(run_folder), "controller": f"{prefix}:{recorded_path(final)}",
+             "command": evaluation.get("command"), "interactions": evaluation.get("env_steps"),
+             "train_wall_time_s": evaluation.get("train_wall_time_s"),
+             "eval": {k: v for k, v in evaluation.items() if isinstance(v, (int, float, str)) and k != "command"},
+             "balanced_fraction": result.fraction, "balanced_count": int(result.balanced.sum()), "grid": GRID,
+             "machine": machine_info()}
+    path = OUT / "attempts.json"
+    record = io.read_json(path) if path.exists() else {"attempts": []}
+    record["attempts"] = [a for a in record["attempts"] if a["run"] != entry["run"]] + [entry]
+    io.write_json(path, record)
+    print(f"{cell.key} <- {entry['run']}: {entry['balanced_count']}/{GRID * GRID}", flush=True)
+    return entry
 
 
 def _cell_text(entry: dict | None) -> str:
     if entry is None or "balanced_fraction" not in entry:
         return "-"
     text = f"{entry['balanced_fraction']:.0%}"
+    if "balanced_count" in entry:
+        text = f"{entry['balanced_count']}/{entry['grid'] ** 2} ({text})"
     if "interactions" in entry:
         text += f" ({entry['interactions']:.1e} steps, {entry['train_wall_time_s'] / 60:.0f} min)"
     goal = entry.get("goal")
@@ -166,6 +206,32 @@ def markdown_table(record: dict) -> str:
         entries = [record["cells"].get(f"{s}:{row.lower().replace(' ', '-')}") for s in SYSTEMS]
         lines.append(f"| {row} | " + " | ".join(_cell_text(e) for e in entries) + " |")
     return "\n".join(lines)
+
+
+def short_of_aim(record: dict, attempts: list[dict] = ()) -> str:
+    """A Markdown list of the cells that have an aim (:data:`GOALS`) and miss it, each with its note
+    and the training runs tried for it (``attempts``: entries of ``attempts.json``)."""
+    lines = []
+    for cell in CELLS:
+        goal = GOALS.get(cell.system, {}).get(cell.row)
+        entry = record["cells"].get(cell.key, {})
+        fraction = entry.get("balanced_fraction")
+        if goal is None or (fraction is not None and fraction >= goal):
+            continue
+        reached = f"{fraction:.0%} of the map" if fraction is not None else "nothing shipped"
+        lines.append(f"- **{cell.system}, {cell.row}** (aim {goal:.0%}): {reached}. {entry.get('note', cell.note)}")
+        for tried in (a for a in attempts if a["cell"] == cell.key):
+            lines.append(f"    - {tried['balanced_count']}/{tried['grid'] ** 2} of the map: `{tried['command']}` "
+                         f"({tried['interactions']:.2g} interactions, {tried['train_wall_time_s'] / 60:.0f} min)")
+    return "\n".join(lines) if lines else "Every cell with an aim reaches it."
+
+
+def write_pages(record: dict) -> None:
+    """``table.md`` and ``short.md`` beside the record (the docs page includes both, the README the table)."""
+    io.atomic_write_text(OUT / "table.md", markdown_table(record) + "\n")
+    attempts = OUT / "attempts.json"
+    tried = io.read_json(attempts)["attempts"] if attempts.exists() else []
+    io.atomic_write_text(OUT / "short.md", short_of_aim(record, tried) + "\n")
 
 
 def plot(record: dict, path: Path) -> None:
@@ -205,10 +271,27 @@ def main(argv: list[str] | None = None) -> int:
     run_parser.add_argument("--cells", nargs="+", metavar="SYSTEM:ROW",
                             help=f"cells to measure (default all): {', '.join(c.key for c in CELLS)}")
     add_backend_flags(run_parser, "serial", "each map's Drake runs")
-    sub.add_parser("table", help="print the README's matrix table from the record")
+    attempt_parser = sub.add_parser("attempt", help="map a training run tried for a cell into attempts.json")
+    attempt_parser.add_argument("cell", metavar="SYSTEM:ROW", help="the cell the run was trained for")
+    attempt_parser.add_argument("runs", nargs="+", type=Path, help="hybridctl train run folders (final/, eval.json)")
+    add_backend_flags(attempt_parser, "serial", "each map's Drake runs")
+    sub.add_parser("table", help="print the README's matrix table from the record (and rewrite table.md, "
+                                 "short.md, matrix.png)")
     args = parser.parse_args(argv)
     if args.command == "table":
-        print(markdown_table(io.read_json(OUT / "matrix.json")))
+        record = io.read_json(OUT / "matrix.json")
+        write_pages(record)
+        plot(record, OUT / "matrix.png")
+        print(markdown_table(record))
+        return 0
+    if args.command == "attempt":
+        check_backend_flags(args, attempt_parser)
+        try:
+            for folder in args.runs:
+                attempt(args.cell, folder, **backend_options(args))
+        except ValueError as error:
+            attempt_parser.error(str(error))
+        write_pages(io.read_json(OUT / "matrix.json"))
         return 0
     check_backend_flags(args, run_parser)
     try:
