@@ -63,3 +63,17 @@ def test_an_attempt_needs_a_finished_run_folder(tmp_path):
         matrix.attempt("acrobot:apg-family", tmp_path)
     with pytest.raises(ValueError, match="unknown cell"):
         matrix.attempt("acrobot:nope", tmp_path)
+
+
+def test_the_readme_and_the_docs_page_show_the_recorded_matrix():
+    """One source: the README's table is the record's (``matrix table`` rewrites table.md from it)."""
+    from pathlib import Path
+
+    from hybridctl import io
+
+    root = Path(__file__).resolve().parents[1]
+    record = io.read_json(root / "results" / "matrix" / "matrix.json")
+    table = matrix.markdown_table(record)
+    assert table in (root / "README.md").read_text()
+    assert (root / "results" / "matrix" / "table.md").read_text().strip() == table
+    assert '--8<-- "results/matrix/table.md"' in (root / "docs" / "matrix.md").read_text()
