@@ -48,6 +48,7 @@ EXPECTED_LINES = {
         "balanced: True",                 # the shipped PAPG cart-pole swing-up + gate + LQR in Drake
         "torch = Drake to 1e-9: True",    # the switched torch rollout it was trained on
         "Ch. 7 record: results/ch7/table71.json",
+        "| learner | acrobot | cart-pole | double cart-pole |",   # the matrix, from results/matrix
     ],
     "06_fine_tuning.ipynb": [
         "written back as an SB3 zip: True",   # the shipped SB3 PPO, read without unpickling, fine-tuned
