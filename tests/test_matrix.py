@@ -77,3 +77,11 @@ def test_the_readme_and_the_docs_page_show_the_recorded_matrix():
     assert table in (root / "README.md").read_text()
     assert (root / "results" / "matrix" / "table.md").read_text().strip() == table
     assert '--8<-- "results/matrix/table.md"' in (root / "docs" / "matrix.md").read_text()
+
+
+def test_update_readme_replaces_only_the_table_after_the_marker(tmp_path):
+    readme = tmp_path / "README.md"
+    readme.write_text(f"intro\n\n{matrix.README_MARKER}\n| old |\n|---|\n\n## Next\ntext\n")
+    assert matrix.update_readme("| new |\n|---|", readme)
+    assert readme.read_text() == f"intro\n\n{matrix.README_MARKER}\n| new |\n|---|\n\n## Next\ntext\n"
+    assert not matrix.update_readme("| x |", tmp_path / "missing.md")

@@ -39,7 +39,13 @@ GRID = 11
 NEAR = 0.3
 """Half-width (rad) of the acrobot's map around hanging down: the cart-poles' own pole spread."""
 SYSTEMS = ("acrobot", "cartpole", "double_cartpole")
-ROWS = ("SSAC", "APG family", "trajopt", "energy")
+ROWS = ("SSAC", "APG family", "SSAC fine-tuned", "APG fine-tuned", "trajopt", "energy")
+FINETUNED = RESULTS / "matrix" / "finetune"
+"""Fine-tuning runs of the shipped swing-ups (thesis Alg. 8 inside the switched controller), committed
+with their final/ checkpoints: ``hybridctl finetune SYSTEM --policy ssac:models/policies/ssac-SYSTEM
+--updates 100 --seed 0 --backend serial --out results/matrix/finetune/ssac-SYSTEM``."""
+NO_APG_FINETUNE = ("not run: hybridctl finetune (Alg. 8) takes feed-forward ars/sac/ssac/sb3 policies with "
+                   "their own gate; the APG checkpoints are recurrent (GRU) swing-ups under the cost-to-go gate")
 GOALS = {"acrobot": {"APG family": 0.9}, "double_cartpole": {"SSAC": 0.8, "APG family": 0.8}}
 """The issue's aims (fraction of the map); the other cells have none."""
 
@@ -55,6 +61,7 @@ class Cell:
     controller: str | None
     policy: str | None = None
     note: str = ""
+    finetune: str | None = None     # a fine-tuning run folder (report.json): its env steps and wall time
 
     @property
     def key(self) -> str:
@@ -74,17 +81,27 @@ CELLS = (
          "PAPG through the LQR takeover over the spec's every-angle starts: 8.3 % of the every-angle map "
          "(results/ch7/acrobot-takeover-attempts.json); CE-APG and APG at the thesis' budget do not swing up "
          "(results/ch7/table71_thesis.json)"),
+    Cell("acrobot", "SSAC fine-tuned", f"finetune:{FINETUNED.as_posix()}/ssac-acrobot/final", None,
+         "the shipped SSAC swing-up, 100 updates of Alg. 8 inside the switched controller",
+         finetune=f"{FINETUNED.as_posix()}/ssac-acrobot"),
+    Cell("acrobot", "APG fine-tuned", None, None, NO_APG_FINETUNE),
     Cell("acrobot", "trajopt", "trajopt", None, "direct collocation + Drake's time-varying LQR"),
     Cell("acrobot", "energy", "energy", None, "energy-shaping swing-up (hand-tuned gains)"),
     Cell("cartpole", "SSAC", f"ssac:{_shipped('ssac-cartpole')}", _shipped("ssac-cartpole"),
          "Switched SAC, thesis Ch. 3 (learned gate)"),
     Cell("cartpole", "APG family", f"papg:{_shipped('papg-gru-cartpole')}", _shipped("papg-gru-cartpole"),
          "PAPG, GRU, through the LQR takeover (spec's cost-to-go gate)"),
+    Cell("cartpole", "SSAC fine-tuned", f"finetune:{FINETUNED.as_posix()}/ssac-cartpole/final", None,
+         "the shipped SSAC swing-up, 100 updates of Alg. 8 inside the switched controller",
+         finetune=f"{FINETUNED.as_posix()}/ssac-cartpole"),
+    Cell("cartpole", "APG fine-tuned", None, None, NO_APG_FINETUNE),
     Cell("cartpole", "trajopt", "trajopt", None, "direct collocation + Drake's time-varying LQR"),
     Cell("cartpole", "energy", "energy", None, "energy-shaping swing-up (hand-tuned gains)"),
     Cell("double_cartpole", "SSAC", None, None,
          "SSAC at 2e6 steps: 64 % success, 58.5 % of a 21 x 21 map (results/ch3/double_cartpole), not shipped"),
     Cell("double_cartpole", "APG family", None, None, "no APG-family run balances"),
+    Cell("double_cartpole", "SSAC fine-tuned", None, None, "no shipped SSAC swing-up to fine-tune"),
+    Cell("double_cartpole", "APG fine-tuned", None, None, NO_APG_FINETUNE),
     Cell("double_cartpole", "trajopt", "trajopt", None, "direct collocation + Drake's time-varying LQR"),
     Cell("double_cartpole", "energy", None, None, "no energy swing-up for two poles"),
 )
@@ -114,6 +131,18 @@ def training_record(policy: str | None) -> dict:
     return {"interactions": int(progress["env_steps"]), "train_wall_time_s": float(progress["wall_time"])}
 
 
+def finetune_record(folder: str | None) -> dict:
+    """The fine-tuning's own interactions and wall time (its report.json; the source's training not
+    included) and the return and success before and after; empty without a run folder."""
+    if folder is None:
+        return {}
+    report = io.read_json(Path(folder) / "report.json")
+    keep = ("mean_return", "std_return", "success_rate", "episodes")
+    return {"interactions": int(report["env_steps"]), "train_wall_time_s": float(report["train_wall_time_s"]),
+            "finetune_command": report.get("command"),
+            "before": {k: report["before"].get(k) for k in keep}, "after": {k: report["after"].get(k) for k in keep}}
+
+
 def measure(cell: Cell, **backend) -> dict:
     """The cell's balance map (saved under ``results/matrix/maps``) and its record."""
     record = {"system": cell.system, "row": cell.row, "controller": cell.controller, "policy": cell.policy,
@@ -127,6 +156,7 @@ def measure(cell: Cell, **backend) -> dict:
     folder = OUT / "maps" / cell.key.replace(":", "-")
     summary = result.save(folder)
     record.update(training_record(cell.policy))
+    record.update(finetune_record(cell.finetune))
     record.update({"balanced_fraction": summary["balanced_fraction"], "balanced_count": summary["balanced_count"],
                    "grid": GRID, "axes": summary["axes"],
                    "ranges": [[float(v[0]), float(v[-1])] for v in (summary["values1"], summary["values2"])],
@@ -226,9 +256,24 @@ def short_of_aim(record: dict, attempts: list[dict] = ()) -> str:
     return "\n".join(lines) if lines else "Every cell with an aim reaches it."
 
 
+README_MARKER = "<!-- matrix table: results/matrix/table.md, written by `python -m hybridctl.reproduce.matrix table` -->"
+
+
+def update_readme(table: str, readme: Path = Path("README.md")) -> bool:
+    """Replace the table after :data:`README_MARKER` in ``readme`` (up to the next blank line) with
+    ``table``; False where there is no such README (a driver run outside the repository)."""
+    if not readme.exists() or README_MARKER not in (text := readme.read_text()):
+        return False
+    start = text.index(README_MARKER) + len(README_MARKER) + 1
+    end = text.find("\n\n", start)
+    io.atomic_write_text(readme, text[:start] + table + (text[end:] if end >= 0 else "\n"))
+    return True
+
+
 def write_pages(record: dict) -> None:
-    """``table.md`` and ``short.md`` beside the record (the docs page includes both, the README the table)."""
+    """``table.md`` and ``short.md`` beside the record (the docs page includes both) and the README's table."""
     io.atomic_write_text(OUT / "table.md", markdown_table(record) + "\n")
+    update_readme(markdown_table(record))
     attempts = OUT / "attempts.json"
     tried = io.read_json(attempts)["attempts"] if attempts.exists() else []
     io.atomic_write_text(OUT / "short.md", short_of_aim(record, tried) + "\n")
