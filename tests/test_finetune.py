@@ -148,6 +148,23 @@ def test_ssac_source_fine_tunes_the_swing_up_inside_the_switched_controller():
     assert t.update == 1 and t.env_steps == 4 * 50
 
 
+def test_a_system_checkpoint_is_tuned_on_the_reward_and_starts_it_was_trained_on():
+    """ssac-cartpole was trained with reward.kind=upright_centered and starts on the whole circle
+    (config.json's system overrides): fine-tuning rolls out that task, not the plain spec's
+    tip-height reward, which pays for a pole held up over a cart that drives away."""
+    from hybridctl.systems import load
+
+    t = FineTune("cartpole", "ssac:models/policies/ssac-cartpole", updates=1, n_directions=2, backend="serial")
+    assert t.tunable.system_overrides["reward.kind"] == "upright_centered"
+    trained = load("cartpole", **t.tunable.system_overrides)
+    plain = load("cartpole")
+    assert trained.spec.get("reward.kind") == "upright_centered" != plain.spec.get("reward.kind")
+    tuned = t.evaluate(8, theta=t.theta0)
+    plain_t = FineTune("cartpole", "ssac:models/policies/ssac-cartpole", updates=1, n_directions=2, backend="serial")
+    plain_t.tunable.system_overrides = {}
+    assert tuned["mean_return"] != pytest.approx(plain_t.evaluate(8, theta=plain_t.theta0)["mean_return"])
+
+
 def test_wilson_interval():
     lo, hi = wilson_interval(0, 300)
     assert lo == 0.0 and hi == pytest.approx(0.01264, abs=1e-4)

@@ -206,6 +206,7 @@ class TunablePolicy:
     system: str | None = None
     gate: torch.nn.Module | None = None
     meta: dict = field(default_factory=dict)
+    system_overrides: dict = field(default_factory=dict)   # the checkpoint's spec overrides (reward, starts)
 
     def parameter_names(self, select: str) -> list[str]:
         """Names of the parameters perturbed under ``select`` (see :data:`SELECTIONS`)."""
@@ -276,8 +277,12 @@ def load_policy(source: str, env: str, trust: bool = False, normalizer: str | No
     policy, gate, meta = load_controller(path, load_system(env))
     if kind == "ssac" and gate is None:
         raise ckpt.CheckpointError(f"{path} is a {meta.get('algorithm')} checkpoint without a gate; use sac:{path}")
+    # the task it was trained on: the spec overrides its config.json records (e.g. a reward kind or
+    # wider starts); the plain spec would tune it for another reward than it learned
+    overrides = dict((meta.get("system") or {}).get("overrides") or {})
     return TunablePolicy(policy, None, source, system=env, gate=gate if kind == "ssac" else None,
-                         meta={"algo": kind, "trained_algorithm": meta.get("algorithm"),
+                         system_overrides=overrides,
+                         meta={"algo": kind, "trained_algorithm": meta.get("algorithm"), "system_overrides": overrides,
                                "gate": {k: v for k, v in (meta.get("gate") or {}).items() if k in ("gate_on", "gate_off")}})
 
 
@@ -355,7 +360,7 @@ class FineTune(RandomSearchLearner):
     # -- parameters ------------------------------------------------------------------------
     def _obs_dim(self) -> int:
         if self.tunable.system is not None:
-            return load_system(self.tunable.system).n_states
+            return load_system(self.tunable.system, **self.tunable.system_overrides).n_states
         probe = make_env(self.env, self.env_kwargs)
         try:
             return int(np.prod(probe.observation_space.shape))
@@ -397,7 +402,8 @@ class FineTune(RandomSearchLearner):
         largest = AUTO_CHUNK_MAX if torch.device(device).type == "cpu" else AUTO_CHUNK_MAX_ACCELERATOR
         inputs = backend.put(ChunkInputs(module, self.names, self.tunable.normalizer, postprocessor, gate))
         tasks = [ChunkTask(self.env, self.env_kwargs, inputs, thetas[rows], seeds[rows],
-                           max_steps or self.config.episode_steps, self.tunable.system, keep_states, engine, device)
+                           max_steps or self.config.episode_steps, self.tunable.system, keep_states, engine, device,
+                           self.tunable.system_overrides)
                  for rows in chunk_slices(len(seeds), self.config.chunk_size, getattr(backend, "workers", 1), largest)]
         return rollouts(tasks, backend)
 

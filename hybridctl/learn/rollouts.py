@@ -273,6 +273,7 @@ class ChunkTask:
     keep_states: bool = False
     engine: str = "auto"          # "auto": the MuJoCo batch stepper where it applies; "backend": gymnasium envs
     device: str = "cpu"           # where a system's rollout runs (gymnasium and MuJoCo envs step on the host)
+    system_overrides: dict | None = None   # the system's spec overrides (a checkpoint's reward, starts)
 
     @property
     def shared(self) -> ChunkInputs:
@@ -691,7 +692,7 @@ def _run_system_chunk(task: ChunkTask) -> list[dict]:
     if device.type == "cuda":
         from .config_check import check_device_available
         check_device_available("the rollout device", device)
-    system = load_system(task.system)
+    system = load_system(task.system, **(task.system_overrides or {}))
     n = len(task.seeds)
     gate = task.shared.gate.get().to(device) if task.shared.gate is not None else None
     decide, _, decisions = _system_decision(system, gate, device)
