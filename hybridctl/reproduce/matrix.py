@@ -77,10 +77,8 @@ def _shipped(name: str) -> str:
 CELLS = (
     Cell("acrobot", "SSAC", f"ssac:{_shipped('ssac-acrobot')}", _shipped("ssac-acrobot"),
          "Switched SAC, thesis Ch. 3 (learned gate)"),
-    Cell("acrobot", "APG family", None, None,
-         "PAPG through the LQR takeover over the spec's every-angle starts: 8.3 % of the every-angle map "
-         "(results/ch7/acrobot-takeover-attempts.json); CE-APG and APG at the thesis' budget do not swing up "
-         "(results/ch7/table71_thesis.json)"),
+    Cell("acrobot", "APG family", f"ce-apg:{_shipped('ceapg-gru-acrobot')}", _shipped("ceapg-gru-acrobot"),
+         "CE-APG, GRU, through the LQR takeover (spec's cost-to-go gate), starts near hanging down"),
     Cell("acrobot", "SSAC fine-tuned", f"finetune:{FINETUNED.as_posix()}/ssac-acrobot/final", None,
          "the shipped SSAC swing-up, 100 updates of Alg. 8 inside the switched controller",
          finetune=f"{FINETUNED.as_posix()}/ssac-acrobot"),
