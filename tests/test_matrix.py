@@ -85,3 +85,28 @@ def test_update_readme_replaces_only_the_table_after_the_marker(tmp_path):
     assert matrix.update_readme("| new |\n|---|", readme)
     assert readme.read_text() == f"intro\n\n{matrix.README_MARKER}\n| new |\n|---|\n\n## Next\ntext\n"
     assert not matrix.update_readme("| x |", tmp_path / "missing.md")
+
+
+def test_a_second_driver_writing_the_matrix_is_refused_at_once(tmp_path, monkeypatch):
+    from hybridctl import io
+
+    monkeypatch.setattr(matrix, "OUT", tmp_path / "matrix")
+    monkeypatch.setattr(matrix, "README", tmp_path / "README.md")     # never the checkout's README
+    import multiprocessing
+    ready, release = multiprocessing.Event(), multiprocessing.Event()
+
+    def hold():
+        with io.locked_folder(tmp_path / "matrix", "results/matrix"):
+            ready.set()
+            release.wait(30)
+
+    holder = multiprocessing.get_context("fork").Process(target=hold)
+    holder.start()
+    try:
+        assert ready.wait(30)
+        with pytest.raises(io.RunFolderError, match="locked by pid"):
+            matrix.run(["double_cartpole:energy"])
+    finally:
+        release.set()
+        holder.join(30)
+    assert matrix.run(["double_cartpole:energy"])["cells"]["double_cartpole:energy"]["controller"] is None

@@ -163,8 +163,14 @@ def measure(cell: Cell, **backend) -> dict:
 
 
 def run(keys: list[str] | None, **backend) -> dict:
-    """Measure the named cells (default: all), merged into the record; returns the record."""
+    """Measure the named cells (default: all), merged into the record; returns the record. The
+    folder is locked meanwhile: a second driver writing it is refused at once."""
     cells = [cell_by_key(k) for k in keys] if keys else list(CELLS)
+    with io.locked_folder(OUT, "results/matrix"):
+        return _run(cells, **backend)
+
+
+def _run(cells: list[Cell], **backend) -> dict:
     path = OUT / "matrix.json"
     record = io.read_json(path) if path.exists() else {"cells": {}}
     for cell in cells:
@@ -189,7 +195,11 @@ def attempt(key: str, run_folder: str | Path, **backend) -> dict:
     """Map a training run tried for a cell (its ``final/`` checkpoint) on the cell's map and add it to
     ``results/matrix/attempts.json``: the command, interactions, wall time, eval.json and the map."""
     cell = cell_by_key(key)
-    run_folder = Path(run_folder)
+    with io.locked_folder(OUT, "results/matrix"):
+        return _attempt(cell, Path(run_folder), **backend)
+
+
+def _attempt(cell: Cell, run_folder: Path, **backend) -> dict:
     final = run_folder / "final"
     if not (final / "config.json").exists():
         raise ValueError(f"{run_folder}: no final/config.json (a finished hybridctl train run folder)")
@@ -257,9 +267,14 @@ def short_of_aim(record: dict, attempts: list[dict] = ()) -> str:
 README_MARKER = "<!-- matrix table: results/matrix/table.md, written by `python -m hybridctl.reproduce.matrix table` -->"
 
 
-def update_readme(table: str, readme: Path = Path("README.md")) -> bool:
+README = Path("README.md")
+"""The README whose table :func:`write_pages` rewrites (the repository root's, as the driver runs there)."""
+
+
+def update_readme(table: str, readme: Path | None = None) -> bool:
     """Replace the table after :data:`README_MARKER` in ``readme`` (up to the next blank line) with
     ``table``; False where there is no such README (a driver run outside the repository)."""
+    readme = README if readme is None else readme
     if not readme.exists() or README_MARKER not in (text := readme.read_text()):
         return False
     start = text.index(README_MARKER) + len(README_MARKER) + 1
@@ -332,7 +347,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             for folder in args.runs:
                 attempt(args.cell, folder, **backend_options(args))
-        except ValueError as error:
+        except (ValueError, io.RunFolderError) as error:
             attempt_parser.error(str(error))
         write_pages(io.read_json(OUT / "matrix.json"))
         return 0
@@ -341,7 +356,10 @@ def main(argv: list[str] | None = None) -> int:
         keys = [cell_by_key(k).key for k in args.cells or []]
     except ValueError as error:
         run_parser.error(str(error))
-    run(keys, **backend_options(args))
+    try:
+        run(keys, **backend_options(args))
+    except io.RunFolderError as error:
+        run_parser.error(str(error))
     return 0
 
 
