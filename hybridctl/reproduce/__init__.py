@@ -43,6 +43,9 @@ Ch. 7, analytic policy gradients:
 - :mod:`~hybridctl.reproduce.papg_takeover_seeds`: the shipped PAPG cart-pole recipe over seeds
   -> ``results/ch7/papg-takeover-cartpole.json``.
 
+Every chain: :mod:`~hybridctl.reproduce.matrix`, the learner x system matrix (every shipped swing-up
+and the classical baselines on Drake balance maps near hanging down) -> ``results/matrix/``.
+
 :mod:`~hybridctl.reproduce.common` holds what they share (the machine record, paths as recorded).
 This room sits at the top beside ``cli``: it may import every room below it; nothing imports it.
 """
