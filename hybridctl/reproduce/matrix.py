@@ -74,38 +74,54 @@ def _shipped(name: str) -> str:
     return f"models/policies/{name}"
 
 
+SSAC_NOTE = "Switched SAC, thesis Ch. 3 (learned gate)"
+FINETUNE_NOTE = "the shipped SSAC swing-up, 100 updates of Alg. 8 inside the switched controller"
+TRAJOPT_NOTE = "direct collocation + Drake's time-varying LQR"
+ENERGY_NOTE = "energy-shaping swing-up (hand-tuned gains)"
+
+
+def _learned(system: str, row: str, kind: str, name: str, note: str) -> Cell:
+    """A cell of a shipped checkpoint ``models/policies/NAME`` run as ``KIND:PATH``."""
+    return Cell(system, row, f"{kind}:{_shipped(name)}", _shipped(name), note)
+
+
+def _finetuned_ssac(system: str) -> Cell:
+    """The fine-tuned row's cell of a system's shipped SSAC swing-up (:data:`FINETUNED`)."""
+    folder = f"{FINETUNED.as_posix()}/ssac-{system}"
+    return Cell(system, "SSAC fine-tuned", f"finetune:{folder}/final", None, FINETUNE_NOTE, finetune=folder)
+
+
+def _empty(system: str, row: str, note: str) -> Cell:
+    """A cell without a shipped controller, and why."""
+    return Cell(system, row, None, None, note)
+
+
+def _shipped_row(system: str, ssac: str, apg: Cell) -> tuple[Cell, ...]:
+    """A system's cells where SSAC and the APG family have shipped checkpoints (``ssac``: the SSAC
+    checkpoint's name; ``apg``: the APG-family cell), with the fine-tuned rows and both baselines."""
+    return (_learned(system, "SSAC", "ssac", ssac, SSAC_NOTE), apg, _finetuned_ssac(system),
+            _empty(system, "APG fine-tuned", NO_APG_FINETUNE), Cell(system, "trajopt", "trajopt", None, TRAJOPT_NOTE),
+            Cell(system, "energy", "energy", None, ENERGY_NOTE))
+
+
 CELLS = (
-    Cell("acrobot", "SSAC", f"ssac:{_shipped('ssac-acrobot')}", _shipped("ssac-acrobot"),
-         "Switched SAC, thesis Ch. 3 (learned gate)"),
-    Cell("acrobot", "APG family", f"ce-apg:{_shipped('ceapg-gru-acrobot')}", _shipped("ceapg-gru-acrobot"),
-         "CE-APG, GRU, through the LQR takeover (spec's cost-to-go gate), starts near hanging down"),
-    Cell("acrobot", "SSAC fine-tuned", f"finetune:{FINETUNED.as_posix()}/ssac-acrobot/final", None,
-         "the shipped SSAC swing-up, 100 updates of Alg. 8 inside the switched controller",
-         finetune=f"{FINETUNED.as_posix()}/ssac-acrobot"),
-    Cell("acrobot", "APG fine-tuned", None, None, NO_APG_FINETUNE),
-    Cell("acrobot", "trajopt", "trajopt", None, "direct collocation + Drake's time-varying LQR"),
-    Cell("acrobot", "energy", "energy", None, "energy-shaping swing-up (hand-tuned gains)"),
-    Cell("cartpole", "SSAC", f"ssac:{_shipped('ssac-cartpole')}", _shipped("ssac-cartpole"),
-         "Switched SAC, thesis Ch. 3 (learned gate)"),
-    Cell("cartpole", "APG family", f"papg:{_shipped('papg-gru-cartpole')}", _shipped("papg-gru-cartpole"),
-         "PAPG, GRU, through the LQR takeover (spec's cost-to-go gate)"),
-    Cell("cartpole", "SSAC fine-tuned", f"finetune:{FINETUNED.as_posix()}/ssac-cartpole/final", None,
-         "the shipped SSAC swing-up, 100 updates of Alg. 8 inside the switched controller",
-         finetune=f"{FINETUNED.as_posix()}/ssac-cartpole"),
-    Cell("cartpole", "APG fine-tuned", None, None, NO_APG_FINETUNE),
-    Cell("cartpole", "trajopt", "trajopt", None, "direct collocation + Drake's time-varying LQR"),
-    Cell("cartpole", "energy", "energy", None, "energy-shaping swing-up (hand-tuned gains)"),
-    Cell("double_cartpole", "SSAC", None, None,
-         "Earlier, SSAC from starts on the whole circle at 2e6 steps: 64 % success, 58.5 % of a 21 x 21 map "
-         "(results/ch3/double_cartpole). From the spec's starts near hanging down (below), one seed:"),
-    Cell("double_cartpole", "APG family", None, None,
-         "Earlier, CE-APG in the reduced Table 7.1 (no takeover): -438 against u = 0's -616, no balance. "
-         "With the cart-pole's PAPG-GRU recipe, 10 policy steps per compiled call did not finish compiling in 20 "
-         "minutes (stopped); CE-APG-GRU with the takeover, one compiled call per step:"),
-    Cell("double_cartpole", "SSAC fine-tuned", None, None, "no shipped SSAC swing-up to fine-tune"),
-    Cell("double_cartpole", "APG fine-tuned", None, None, NO_APG_FINETUNE),
-    Cell("double_cartpole", "trajopt", "trajopt", None, "direct collocation + Drake's time-varying LQR"),
-    Cell("double_cartpole", "energy", None, None, "no energy swing-up for two poles"),
+    *_shipped_row("acrobot", "ssac-acrobot", _learned(
+        "acrobot", "APG family", "ce-apg", "ceapg-gru-acrobot",
+        "CE-APG, GRU, through the LQR takeover (spec's cost-to-go gate), starts near hanging down")),
+    *_shipped_row("cartpole", "ssac-cartpole", _learned(
+        "cartpole", "APG family", "papg", "papg-gru-cartpole",
+        "PAPG, GRU, through the LQR takeover (spec's cost-to-go gate)")),
+    _empty("double_cartpole", "SSAC",
+           "Earlier, SSAC from starts on the whole circle at 2e6 steps: 64 % success, 58.5 % of a 21 x 21 map "
+           "(results/ch3/double_cartpole). From the spec's starts near hanging down (below), one seed:"),
+    _empty("double_cartpole", "APG family",
+           "Earlier, CE-APG in the reduced Table 7.1 (no takeover): -438 against u = 0's -616, no balance. "
+           "With the cart-pole's PAPG-GRU recipe, 10 policy steps per compiled call did not finish compiling in "
+           "20 minutes (stopped); CE-APG-GRU with the takeover, one compiled call per step:"),
+    _empty("double_cartpole", "SSAC fine-tuned", "no shipped SSAC swing-up to fine-tune"),
+    _empty("double_cartpole", "APG fine-tuned", NO_APG_FINETUNE),
+    Cell("double_cartpole", "trajopt", "trajopt", None, TRAJOPT_NOTE),
+    _empty("double_cartpole", "energy", "no energy swing-up for two poles"),
 )
 
 
