@@ -111,14 +111,14 @@ CELLS = (
     *_shipped_row("cartpole", "ssac-cartpole", _learned(
         "cartpole", "APG family", "papg", "papg-gru-cartpole",
         "PAPG, GRU, through the LQR takeover (spec's cost-to-go gate)")),
-    _empty("double_cartpole", "SSAC",
-           "Earlier, SSAC from starts on the whole circle at 2e6 steps: 64 % success, 58.5 % of a 21 x 21 map "
-           "(results/ch3/double_cartpole). From the spec's starts near hanging down (below), one seed:"),
+    _learned("double_cartpole", "SSAC", "ssac", "ssac-double-cartpole",
+             "Switched SAC from the spec's starts near hanging down, 3e6 steps (earlier, from starts on the whole "
+             "circle at 2e6 steps: 64 % success, 58.5 % of a 21 x 21 map, results/ch3/double_cartpole)"),
     _empty("double_cartpole", "APG family",
            "Earlier, CE-APG in the reduced Table 7.1 (no takeover): -438 against u = 0's -616, no balance. "
            "With the cart-pole's PAPG-GRU recipe, 10 policy steps per compiled call did not finish compiling in "
            "20 minutes (stopped); CE-APG-GRU with the takeover, one compiled call per step:"),
-    _empty("double_cartpole", "SSAC fine-tuned", "no shipped SSAC swing-up to fine-tune"),
+    _finetuned_ssac("double_cartpole"),
     _empty("double_cartpole", "APG fine-tuned", NO_APG_FINETUNE),
     Cell("double_cartpole", "trajopt", "trajopt", None, TRAJOPT_NOTE),
     _empty("double_cartpole", "energy", "no energy swing-up for two poles"),
