@@ -4,7 +4,7 @@ wall time its training took. One record, ``results/matrix/matrix.json``, its map
 (``results/matrix/maps/SYSTEM-ROW/balance_map.{json,png}``) and one figure of them
 (``results/matrix/matrix.png``); the README's matrix table is :func:`markdown_table` of the record.
 
-    python -m hybridctl.reproduce.matrix run               # every cell with a controller (~15 min)
+    python -m hybridctl.reproduce.matrix run               # every cell with a controller (~8 min, serial)
     python -m hybridctl.reproduce.matrix run --cells acrobot:trajopt cartpole:ssac
     python -m hybridctl.reproduce.matrix attempt acrobot:apg-family runs/ch7/papg-gru-acrobot-near-s0
                                                            # a training run tried for a cell: its map,
