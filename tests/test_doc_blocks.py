@@ -148,14 +148,27 @@ def test_the_readme_is_short():
 _LINK = re.compile(r"\]\(([^)\s]+)\)")
 
 
+def _site_figures() -> set[str]:
+    """docs/hooks.py's RESULT_FIGURES (read as text: the hooks import MkDocs, a docs extra)."""
+    found = re.search(r"RESULT_FIGURES = \(([^)]*)\)", (DOCS / "hooks.py").read_text())
+    return set(re.findall(r'"([^"]+)"', found.group(1))) if found else set()
+
+
 @pytest.mark.parametrize("page", [README, *sorted(p for p in DOCS.glob("*.md"))], ids=_label)
 def test_relative_links_resolve(page):
     """Links to files resolve from the page's folder (the README's from the repository's root;
-    docs/hooks.py points them at the site's pages)."""
+    docs/hooks.py points them at the site's pages); a figure the hooks add to the site
+    (RESULT_FIGURES) resolves from the repository's root."""
     text = re.sub(r"```.*?```", "", page.read_text(), flags=re.S)
     broken = []
+    figures = _site_figures()
     for target in _LINK.findall(text):
         if re.match(r"[a-z]+:", target) or target.startswith("#"):
+            continue
+        if page.parent == DOCS and target in figures:
+            path = ROOT / target
+            if not path.exists():
+                broken.append(target)
             continue
         path = (page.parent / target.split("#")[0]).resolve()
         if not path.exists():

@@ -15,7 +15,8 @@ from hybridctl.reproduce import common
 
 # driver -> the arguments before --help (a sub-command where the flags live)
 PARALLEL = {"cartpole_record": [], "ch3_results": [], "ch6_finetune": ["finetune"], "hopper": [],
-            "hopper_error": [], "hopper_ulam": [], "papg_takeover_seeds": [], "table41": [], "table44": [],
+            "hopper_error": [], "hopper_ulam": [], "matrix": ["run"], "papg_takeover_seeds": [], "table41": [],
+            "table44": [],
             "table51": [], "table71": ["run"], "walker_seeds": []}
 # Stable-Baselines3 training and evaluation in this process (ch6_agents, ssac_baselines); Fig. 7.1's
 # landscape and gradient norms of one population in this process (fig71)

@@ -124,7 +124,7 @@ def near_hanging_down(system: System, half_width: float):
     """``(axes, ranges)`` of a map of starts near hanging down: the default map's two coordinates
     (:func:`grid_axes`), each within ``+-half_width`` of the spec's nominal (hanging-down) state.
 
-    The issue-33 matrix compares every learner on such a map (half-width 0.3, the cart-poles'
+    The learner x system matrix compares every learner on such a map (half-width 0.3, the cart-poles'
     own start spread), since a map over every angle asks the acrobot for more than a swing-up.
     """
     if not (isinstance(half_width, (int, float, np.floating)) and 0 < half_width <= np.pi):

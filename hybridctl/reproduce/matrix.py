@@ -1,4 +1,4 @@
-"""The learner x system matrix (issue 33): every shipped swing-up of every chain, each with its gate and
+"""The learner x system matrix: every shipped swing-up of every chain, each with its gate and
 Drake's LQR, on an 11 x 11 Drake balance map of starts near hanging down, with the interactions and
 wall time its training took. One record, ``results/matrix/matrix.json``, its maps
 (``results/matrix/maps/SYSTEM-ROW/balance_map.{json,png}``) and one figure of them
@@ -47,7 +47,7 @@ with their final/ checkpoints: ``hybridctl finetune SYSTEM --policy ssac:models/
 NO_APG_FINETUNE = ("not run: hybridctl finetune (Alg. 8) takes feed-forward ars/sac/ssac/sb3 policies with "
                    "their own gate; the APG checkpoints are recurrent (GRU) swing-ups under the cost-to-go gate")
 GOALS = {"acrobot": {"APG family": 0.9}, "double_cartpole": {"SSAC": 0.8, "APG family": 0.8}}
-"""The issue's aims (fraction of the map); the other cells have none."""
+"""The aims the project set (fraction of the map); the other cells have none."""
 
 
 @dataclass(frozen=True)
