@@ -50,6 +50,11 @@ GOALS = {"acrobot": {"APG family": 0.9}, "double_cartpole": {"SSAC": 0.8, "APG f
 """The aims the project set (fraction of the map); the other cells have none."""
 
 
+def cell_key(system: str, row: str) -> str:
+    """``system:row`` as the record and the command line name a cell (row lower-case, spaces as dashes)."""
+    return f"{system}:{row.lower().replace(' ', '-')}"
+
+
 @dataclass(frozen=True)
 class Cell:
     """One controller of the matrix: ``controller`` is a ``--controller`` string (None: nothing
@@ -66,7 +71,7 @@ class Cell:
     @property
     def key(self) -> str:
         """``system:row`` as on the command line (row lower-case, spaces as dashes)."""
-        return f"{self.system}:{self.row.lower().replace(' ', '-')}"
+        return cell_key(self.system, self.row)
 
 
 def _shipped(name: str) -> str:
@@ -261,7 +266,7 @@ def markdown_table(record: dict) -> str:
     names = {"acrobot": "acrobot", "cartpole": "cart-pole", "double_cartpole": "double cart-pole"}
     lines = ["| learner | " + " | ".join(names[s] for s in SYSTEMS) + " |", "|---" * (len(SYSTEMS) + 1) + "|"]
     for row in ROWS:
-        entries = [record["cells"].get(f"{s}:{row.lower().replace(' ', '-')}") for s in SYSTEMS]
+        entries = [record["cells"].get(cell_key(s, row)) for s in SYSTEMS]
         lines.append(f"| {row} | " + " | ".join(_cell_text(e) for e in entries) + " |")
     return "\n".join(lines)
 
@@ -322,7 +327,7 @@ def plot(record: dict, path: Path) -> None:
     for i, row in enumerate(ROWS):
         for j, system in enumerate(SYSTEMS):
             ax = grid[i][j]
-            entry = record["cells"].get(f"{system}:{row.lower().replace(' ', '-')}")
+            entry = record["cells"].get(cell_key(system, row))
             if entry is None or "map" not in entry:
                 ax.axis("off")
                 ax.set_title(f"{system}, {row}: none", fontsize=8)
