@@ -10,7 +10,7 @@ import torch
 from hybridctl.experiments.apg_study import (StudySettings, held_out_starts, rollout_metrics, run_one, summarize,
                                              task_system, zero_policy_baseline)
 
-TINY = StudySettings(apg_iterations=2, epochs=2, sac_steps=200, eval_episodes=3, compile=False)
+TINY = StudySettings(apg_iterations=2, epochs=2, sac_steps=200, sb3_steps=200, eval_episodes=3, compile=False)
 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")   # tests/conftest.py
@@ -47,6 +47,27 @@ def test_run_one_writes_a_record_and_resumes_by_skipping(tmp_path, method):
     assert again["wall_time_s"] == record["wall_time_s"]                         # read back, not retrained
     rows = summarize([record, again])
     assert rows[0]["seeds"] == 2 and rows[0]["method"] == method
+
+
+@pytest.mark.parametrize("method", ["sb3-ppo", "sb3-sac"])
+def test_sb3_learners_train_through_the_gym_wrapper_and_are_scored_by_the_same_code(tmp_path, method):
+    pytest.importorskip("stable_baselines3")
+    from hybridctl.learn import load_sb3
+
+    record = run_one(method, "acrobot", 0, tmp_path / method, TINY, command="test")
+    assert record["eval"]["episodes"] == 3 and record["config"]["hyperparameters"] == "SB3 defaults"
+    assert record["interactions"] >= 200          # PPO collects whole rollouts of n_steps (2048)
+    agent = load_sb3(tmp_path / method / "run" / "model.zip")      # our reader: no unpickling
+    system = task_system("acrobot")
+    x0 = held_out_starts(system, 3, TINY.eval_seed)
+    action, _ = agent.predict(x0)
+    assert action.shape == (3, 1) and np.all(np.abs(action) <= system.action_limit)
+
+
+def test_every_study_method_has_one_trainer():
+    from hybridctl.experiments.apg_study import STUDY_METHODS, TRAINERS
+
+    assert tuple(TRAINERS) == STUDY_METHODS
 
 
 def test_unknown_names_are_listed():

@@ -1,5 +1,5 @@
-"""The thesis' Tables 7.1 / 7.2 in direction: CE-APG, PAPG, CEM, APG, short-horizon APG and our SAC
-on the same Ch. 7 task of each system, several seeds, one record per run.
+"""The thesis' Tables 7.1 / 7.2 in direction: CE-APG, PAPG, CEM, APG, short-horizon APG, our SAC and
+Stable-Baselines3's PPO and SAC on the same Ch. 7 task of each system, several seeds, one record per run.
 
 Every learner sees the same task: the spec's start distribution, the Ch. 7 reward
 (:data:`TASKS`), policy steps of 0.05 s, episodes of ``horizon`` steps. Every trained policy is
@@ -7,7 +7,12 @@ scored by the same code, :func:`rollout_metrics`, on the same held-out starts: t
 stabilisation rate (every coordinate within the spec's success eps of the goal over the last
 second, thesis eq. 3.2) and the upright rate (the angles alone). The APG family also reports
 the best member's training return (the author's metric). Interactions are counted as the
-learners count them (K x N x T x iterations for the APG family; env steps for SAC).
+learners count them (K x N x T x iterations for the APG family; env steps for SAC and SB3).
+
+SB3's PPO and SAC (``sb3-ppo``, ``sb3-sac``; the ``sb3`` extra) train through the gymnasium wrapper
+:class:`hybridctl.envs.single.SwingupEnv` on the task's spec overrides, period and episode length,
+with SB3's default hyperparameters (no tuning for these tasks, stated in the record), and are scored
+by the same :func:`rollout_metrics` on the same starts.
 
 Runs are resumable: a run whose ``record.json`` exists is skipped, so an interrupted study
 continues where it stopped.
@@ -19,6 +24,7 @@ continues where it stopped.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import time
 from dataclasses import dataclass, field
@@ -35,8 +41,8 @@ from ..systems import System, load
 from ..systems.success import stabilisation
 from .training import machine
 
-STUDY_METHODS = ("ce-apg", "papg", "cem", "apg", "shapg", "sac")
-"""Learners of the study, in the thesis' Table 7.1 order, then our SAC."""
+STUDY_METHODS = ("ce-apg", "papg", "cem", "apg", "shapg", "sac", "sb3-ppo", "sb3-sac")
+"""Learners of the study, in the thesis' Table 7.1 order, then our SAC, then Stable-Baselines3's PPO and SAC."""
 
 
 @dataclass(frozen=True)
@@ -78,6 +84,8 @@ class StudySettings:
     lr_end: float = 1e-5              # fewer epochs here, so the end is higher
     compile: bool = True
     sac_steps: int = 200_000          # a tenth of the APG family's interactions (8 x 4 x 100 x 600 = 1.92e6): ~2-4 min here
+    sb3_steps: int = 200_000          # SB3 PPO / SAC env steps, our SAC's budget (PPO ~3 min here; SB3 SAC ~45 min:
+    #                                   one gradient step per env step on the CPU, ~75 steps/s measured)
     eval_episodes: int = 16
     eval_seed: int = EVAL_SEED
     horizon: int | None = None        # policy steps per episode; None: the task's (TASKS); thesis 500
@@ -185,13 +193,24 @@ def _train_apg(method: str, system_name: str, seed: int, settings: StudySettings
     return metrics, facts
 
 
+def task_period(system_name: str) -> float:
+    """Seconds each action is held in the Ch. 7 task (the task's ``control__swingup_period`` or the spec's)."""
+    return float(TASKS[system_name].overrides.get("control__swingup_period", load(system_name).swingup_period))
+
+
+def episode_system(system_name: str) -> tuple[System, float]:
+    """(the task's system with episodes of ``horizon`` policy steps, the policy period): what the
+    env-step learners (our SAC, SB3) train on."""
+    task, period = TASKS[system_name], task_period(system_name)
+    return load(system_name, **task.overrides, episode__duration=task.horizon * period), period
+
+
 def _train_sac(system_name: str, seed: int, settings: StudySettings, out: Path) -> tuple[dict, dict]:
     """Train our SAC on the same task (episodes of ``horizon`` policy steps); metrics and facts."""
     from ..learn import SAC, SACConfig
 
+    system, period = episode_system(system_name)
     task = TASKS[system_name]
-    period = float(task.overrides.get("control__swingup_period", load(system_name).swingup_period))
-    system = load(system_name, **task.overrides, episode__duration=task.horizon * period)
     agent = SAC(system, SACConfig(seed=seed, total_steps=settings.sac_steps))
     start = time.perf_counter()
     agent.learn(out=out / "run", progress=False)
@@ -202,6 +221,48 @@ def _train_sac(system_name: str, seed: int, settings: StudySettings, out: Path) 
     facts = {"interactions": int(agent.num_timesteps), "train_wall_time_s": wall, "best_training_return": None,
              "which": "deterministic actor", "config": dataclasses.asdict(agent.config)}
     return metrics, facts
+
+
+SB3_ALGORITHMS = {"sb3-ppo": "PPO", "sb3-sac": "SAC"}
+"""Study method -> the Stable-Baselines3 class trained with its default hyperparameters."""
+
+
+def _train_sb3(method: str, system_name: str, seed: int, settings: StudySettings, out: Path) -> tuple[dict, dict]:
+    """Train SB3's PPO or SAC (defaults, ``MlpPolicy``) through the gymnasium wrapper on the same task for
+    ``settings.sb3_steps`` env steps; metrics on the held-out starts and training facts. The model is
+    saved as ``out/run/model.zip`` (our own file: :func:`hybridctl.learn.load_sb3` reads it without
+    unpickling)."""
+    try:
+        import stable_baselines3 as sb3
+    except ImportError as exc:
+        raise ImportError(f"{method} needs Stable-Baselines3: pip install -c constraints.txt -e \".[sb3]\"") from exc
+    from ..envs.single import SwingupEnv
+
+    system, period = episode_system(system_name)
+    env = SwingupEnv(system, decision_period=period)
+    model = getattr(sb3, SB3_ALGORITHMS[method])("MlpPolicy", env, seed=seed, device="cpu", verbose=0)
+    start = time.perf_counter()
+    model.learn(total_timesteps=settings.sb3_steps)
+    wall = time.perf_counter() - start
+    (out / "run").mkdir(parents=True, exist_ok=True)
+    model.save(out / "run" / "model.zip")
+    x0 = held_out_starts(env.system, settings.eval_episodes, settings.eval_seed)
+    act = lambda x, h: (model.predict(x.numpy(), deterministic=True)[0], None)   # noqa: E731
+    metrics = rollout_metrics(env.system, act, x0, TASKS[system_name].horizon, period)
+    facts = {"interactions": int(model.num_timesteps), "train_wall_time_s": wall, "best_training_return": None,
+             "which": "deterministic policy",
+             "config": {"algorithm": f"stable_baselines3.{SB3_ALGORITHMS[method]}", "policy": "MlpPolicy",
+                        "hyperparameters": "SB3 defaults", "sb3_version": sb3.__version__,
+                        "total_timesteps": settings.sb3_steps, "seed": seed, "decision_period": period}}
+    return metrics, facts
+
+
+TRAINERS: dict[str, Callable[[str, int, StudySettings, Path], tuple[dict, dict]]] = {
+    **{m: functools.partial(_train_apg, m) for m in ("ce-apg", "papg", "cem", "apg", "shapg")},
+    "sac": _train_sac,
+    **{m: functools.partial(_train_sb3, m) for m in SB3_ALGORITHMS},
+}
+"""Study method -> ``trainer(system_name, seed, settings, out) -> (metrics, facts)`` (one per STUDY_METHODS)."""
 
 
 def run_one(method: str, system_name: str, seed: int, out: str | Path, settings: StudySettings | None = None,
@@ -216,10 +277,7 @@ def run_one(method: str, system_name: str, seed: int, out: str | Path, settings:
         return io.read_json(out / "record.json")
     torch.set_num_threads(1)
     start = time.perf_counter()
-    if method == "sac":
-        metrics, facts = _train_sac(system_name, seed, settings, out)
-    else:
-        metrics, facts = _train_apg(method, system_name, seed, settings, out)
+    metrics, facts = TRAINERS[method](system_name, seed, settings, out)
     record = {"method": method, "system": system_name, "seed": seed, "task": dataclasses.asdict(TASKS[system_name]),
               "eval": {**metrics, "seed": settings.eval_seed}, **facts,
               "wall_time_s": time.perf_counter() - start, "machine": machine(), "command": command}

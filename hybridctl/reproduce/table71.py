@@ -9,7 +9,9 @@ K 24, N 4, T 500, 100 x 200 APG iterations, 9.6e8 interactions, ~1 h a run here)
 tree, results/ch7/table71_thesis/SYSTEM/METHOD-sSEED/ (checkpoints every 5 epochs, so a run killed
 at a session's end resumes from the same command), collected into results/ch7/table71_thesis.json.
 ``collect`` merges every record into results/ch7/table71.json (keeping the runs already recorded
-there) with the per-(system, method) summary. Not yet run: the
+there) with the per-(system, method) summary. ``--methods sb3-ppo sb3-sac`` trains Stable-Baselines3's
+PPO and SAC (defaults; the ``sb3`` extra) through the gymnasium wrapper on the same tasks (PPO ~3 min
+a run here, SB3 SAC ~45 min: one gradient step per env step). Not yet run: the
 double cart-pole except CE-APG seed 0 (``run double_cartpole``; ~25 min a run on this machine).
 ``run`` takes ``--backend``/``--workers``/``--address`` for the APG family's population (each epoch's
 APG phase as chunks of members, one per worker; default serial): ``APGConfig.backend``.
