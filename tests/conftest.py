@@ -1,12 +1,15 @@
 """Shared test setup: deterministic torch and a small thread count (CI has 2 cores)."""
 
 import os
+import tempfile
 
 import numpy as np
 import pytest
 import torch
 
 os.environ.setdefault("MPLBACKEND", "Agg")
+# SB3's default logger makes an empty SB3-<date> folder per learn call where SB3_LOGDIR does not name one
+os.environ.setdefault("SB3_LOGDIR", os.path.join(tempfile.gettempdir(), "hybridctl-tests-sb3-log"))
 torch.set_num_threads(1)
 
 

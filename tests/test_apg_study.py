@@ -3,6 +3,8 @@ resumable records, and the Fig. 7.1 plots."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -50,11 +52,18 @@ def test_run_one_writes_a_record_and_resumes_by_skipping(tmp_path, method):
 
 
 @pytest.mark.parametrize("method", ["sb3-ppo", "sb3-sac"])
-def test_sb3_learners_train_through_the_gym_wrapper_and_are_scored_by_the_same_code(tmp_path, method):
+def test_sb3_learners_train_through_the_gym_wrapper_and_are_scored_by_the_same_code(tmp_path, method,
+                                                                                     monkeypatch):
     pytest.importorskip("stable_baselines3")
+    import tempfile
+
     from hybridctl.learn import load_sb3
 
+    monkeypatch.delenv("SB3_LOGDIR", raising=False)     # SB3's default would make a folder in the temp dir
+    litter = lambda: set(Path(tempfile.gettempdir()).glob("SB3-*"))   # noqa: E731
+    before = litter()
     record = run_one(method, "acrobot", 0, tmp_path / method, TINY, command="test")
+    assert litter() == before
     assert record["eval"]["episodes"] == 3 and record["config"]["hyperparameters"] == "SB3 defaults"
     assert record["interactions"] >= 200          # PPO collects whole rollouts of n_steps (2048)
     agent = load_sb3(tmp_path / method / "run" / "model.zip")      # our reader: no unpickling

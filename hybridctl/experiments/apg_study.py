@@ -37,6 +37,7 @@ import torch
 from .. import io
 from ..learn.apg import APG, METHOD_CLASSES, APGConfig
 from ..learn.run import EVAL_SEED
+from ..learn.sb3 import silent_logger
 from ..systems import System, load
 from ..systems.success import stabilisation
 from .training import machine
@@ -241,6 +242,7 @@ def _train_sb3(method: str, system_name: str, seed: int, settings: StudySettings
     system, period = episode_system(system_name)
     env = SwingupEnv(system, decision_period=period)
     model = getattr(sb3, SB3_ALGORITHMS[method])("MlpPolicy", env, seed=seed, device="cpu", verbose=0)
+    model.set_logger(silent_logger())
     start = time.perf_counter()
     model.learn(total_timesteps=settings.sb3_steps)
     wall = time.perf_counter() - start

@@ -26,13 +26,13 @@ from .run import EvalResult, check_finite
 from .runlog import RunLog
 from .sac import SAC, SACConfig
 from .robustness import failure_rates
-from .sb3 import Normalizer, SB3Agent, SB3Policy, load_sb3
+from .sb3 import Normalizer, SB3Agent, SB3Policy, load_sb3, silent_logger
 from ..parallel import ProcessBackend, RayBackend, SerialBackend, make_backend
 from .ssac import SSAC, GateDataset, SSACConfig
 
 __all__ = ["APG", "APGConfig", "FineTune", "FineTuneConfig", "TunablePolicy", "Policy", "PolicyPopulation", "SAC", "SACConfig", "SSAC", "SSACConfig", "GateDataset", "Actor", "QNetwork", "ObsTransform",
            "DeterministicPolicy", "ReplayBuffer", "EpisodeStaging", "sample_mixed", "plot_training_curves",
-           "CheckpointError", "resolve_checkpoint_dir", "write_checkpoint_dir", "GateConfig", "GateNet",
+           "CheckpointError", "silent_logger", "resolve_checkpoint_dir", "write_checkpoint_dir", "GateConfig", "GateNet",
            "fit_gate", "gate_metrics", "warm_start_gate", "load_controller", "ARS", "ARSConfig", "failure_rates",
            "make_backend", "SerialBackend", "ProcessBackend", "RayBackend",
            "Learner", "Saved", "Checkpointer", "RunLog", "Callback", "CallbackList", "EvalResult", "check_finite",

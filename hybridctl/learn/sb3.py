@@ -830,6 +830,14 @@ def _read_normalizer(path: Path, normalizer: str | Path | Normalizer | None, tru
     return None
 
 
+def silent_logger():
+    """A Stable-Baselines3 logger that writes nothing, for ``model.set_logger`` before ``learn``: SB3's own
+    (``verbose=0``) still makes an empty ``SB3-<date>`` folder in the temporary directory on every call."""
+    from stable_baselines3.common.logger import Logger
+
+    return Logger(folder=None, output_formats=[])
+
+
 def load_sb3(path: str | Path, normalizer: str | Path | Normalizer | None = None, trust: bool = False,
              algo: str | None = None) -> SB3Agent:
     """Read an SB3 ``.zip`` (PPO, A2C, SAC, TD3, DDPG; TQC of sb3-contrib) without unpickling anything.

@@ -47,6 +47,7 @@ from pathlib import Path
 
 import numpy as np  # noqa: E402
 
+from hybridctl.learn.sb3 import silent_logger  # noqa: E402
 from hybridctl.reproduce.common import RESULTS, recorded_path  # noqa: E402
 
 DEFAULT_OUT = Path("runs") / "finetune-agents"
@@ -379,6 +380,7 @@ def train_agent(key, out: Path, seed: int, scale: float, command: list[str]) -> 
         venv = VecNormalize(venv, **env_cfg["normalize_kwargs"])
     policy = kwargs.pop("policy")
     model = _algo_class(algo)(policy, venv, seed=seed, device="cpu", verbose=0, **kwargs)
+    model.set_logger(silent_logger())
     t0 = time.perf_counter()
     model.learn(total_timesteps=budget, callback=_progress_callback(budget, f"{env_id}:{algo}"))
     wall = time.perf_counter() - t0

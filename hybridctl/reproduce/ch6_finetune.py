@@ -28,6 +28,7 @@ import torch
 from hybridctl import io
 from hybridctl.experiments.finetune import finetune_and_report, machine
 from hybridctl.learn.finetune import FineTuneConfig, wilson_interval
+from hybridctl.learn.sb3 import silent_logger
 from hybridctl.reproduce.common import RESULTS, add_backend_flags, backend_options, check_backend_flags, command_line
 
 AGENTS = Path("runs/finetune-agents")
@@ -106,6 +107,7 @@ def run_continue(agent: str, steps: int | None, cap_scale: float, command: str) 
         venv.obs_rms.mean, venv.obs_rms.var, venv.obs_rms.count = stats["mean"], stats["var"], float(stats["count"])
     # SB3's own loader (cloudpickle): this zip was written on this machine by finetune_agents.py
     model = cls.load(AGENTS / agent / "model.zip", env=venv, device="cpu")
+    model.set_logger(silent_logger())
     start = time.perf_counter()
     model.learn(total_timesteps=done_steps, reset_num_timesteps=False)
     wall = time.perf_counter() - start

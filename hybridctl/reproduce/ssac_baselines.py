@@ -64,6 +64,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from hybridctl.learn.sb3 import silent_logger
 from hybridctl.reproduce import common
 
 ENV_ID = "hybridctl/AcrobotSwingup-v0"
@@ -455,6 +456,7 @@ def train_run(algo: str, seed: int, budget: int, args, clock: Clock, command: st
             model = load_run(run_dir, algo, progress)
         progress["budget"] = budget
         progress["commands"].append(command)
+        model.set_logger(silent_logger())
         recorder = _curve_recorder()
         host = platform.node()
         while model.num_timesteps < budget:
