@@ -17,6 +17,8 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
+# one xdist worker runs the module, so the wheel is built and installed once, not once per worker
+pytestmark = pytest.mark.xdist_group("install")
 
 
 @pytest.fixture(scope="module")

@@ -12,7 +12,8 @@ pytest.importorskip("stable_baselines3")
 pytest.importorskip("sb3_contrib")
 
 
-pytestmark = pytest.mark.usefixtures("one_torch_thread")
+# one xdist worker runs the module, so its module-scoped training fixture runs once, not once per worker
+pytestmark = [pytest.mark.usefixtures("one_torch_thread"), pytest.mark.xdist_group("ssac_baselines")]
 
 # algo -> (first budget, chunk, second budget): two chunks, then a resume for the difference. On-policy
 # budgets are whole rollouts (n_envs * n_steps: PPO 16 * 256, TRPO 2 * 1024, A2C 16 * 5) so that every
