@@ -49,6 +49,7 @@ def test_run_one_writes_a_record_and_resumes_by_skipping(tmp_path, method):
     assert again["wall_time_s"] == record["wall_time_s"]                         # read back, not retrained
     rows = summarize([record, again])
     assert rows[0]["seeds"] == 2 and rows[0]["method"] == method
+    assert rows[0]["train_wall_time_s"] == record["train_wall_time_s"]
 
 
 @pytest.mark.parametrize("method", ["sb3-ppo", "sb3-sac"])

@@ -319,7 +319,8 @@ def zero_policy_baseline(system_name: str, settings: StudySettings | None = None
 
 def summarize(records: list[dict]) -> list[dict]:
     """One row per (system, method): mean and std over seeds of the held-out return, the stabilisation
-    and upright rates, the best training return, interactions and wall time."""
+    and upright rates, the best training return, interactions, wall time of the last process and
+    training wall time over every session of a resumed run."""
     rows = []
     keys = sorted({(r["system"], r["method"]) for r in records},
                   key=lambda k: (k[0], STUDY_METHODS.index(k[1])))
@@ -333,5 +334,9 @@ def summarize(records: list[dict]) -> list[dict]:
                      "upright": float(np.mean([r["eval"]["upright"] for r in group])),
                      "best_training_return": float(np.mean(best)) if best else None,
                      "interactions": int(np.mean([r["interactions"] for r in group])),
-                     "wall_time_s": float(np.mean([r["wall_time_s"] for r in group]))})
+                     "wall_time_s": float(np.mean([r["wall_time_s"] for r in group])),
+                     # training alone, summed over a run's resumed sessions (wall_time_s is the last
+                     # process's, evaluation included)
+                     "train_wall_time_s": float(np.mean([r.get("train_wall_time_s") or r["wall_time_s"]
+                                                         for r in group]))})
     return rows
