@@ -127,3 +127,17 @@ def test_the_thesis_budget_gives_every_method_the_same_interactions():
         assert (c.horizon, c.apg_iterations, c.epochs, c.lr_end, c.checkpoint_every) == (500, 100, 200, 1e-6, 5)
     assert set(budgets.values()) == {24 * 4 * 500 * 100 * 200}
     assert apg_config("apg", "acrobot", 0, StudySettings()).batch == 4    # the reduced study: the thesis' APG
+
+
+def test_thesis_collect_draws_every_runs_curves_finished_or_not(tmp_path):
+    from hybridctl.reproduce.table71 import write_curves
+
+    header = "epoch,env_steps,mean_return,best_return,grad_norm\n"
+    for name, rows in (("ce-apg-s0", 3), ("apg-s1", 1)):
+        run = tmp_path / "acrobot" / name / "run"
+        run.mkdir(parents=True)
+        (run / "progress.csv").write_text(header + "".join(f"{k},{96 * k},{-10 + k},{-9 + k},{10.0 ** k}\n"
+                                                           for k in range(1, rows + 1)))
+    assert write_curves(tmp_path, tmp_path / "curves.png").stat().st_size > 0
+    with pytest.raises(ValueError, match="at least one run"):
+        write_curves(tmp_path / "acrobot" / "none", tmp_path / "empty.png")

@@ -7,7 +7,8 @@ Runs go to runs/ch7/table71/SYSTEM/METHOD-sSEED/record.json; a finished run is s
 interrupted study continues. ``--budget thesis`` runs the thesis' own budget (StudySettings.thesis:
 K 24, N 4, T 500, 100 x 200 APG iterations, 9.6e8 interactions, ~1 h a run here) into the committed
 tree, results/ch7/table71_thesis/SYSTEM/METHOD-sSEED/ (checkpoints every 5 epochs, so a run killed
-at a session's end resumes from the same command), collected into results/ch7/table71_thesis.json.
+at a session's end resumes from the same command), collected into results/ch7/table71_thesis.json with every run's training curves (finished or not) in
+results/ch7/table71_thesis_curves.png.
 ``collect`` merges every record into results/ch7/table71.json (keeping the runs already recorded
 there) with the per-(system, method) summary. ``--methods sb3-ppo sb3-sac`` trains Stable-Baselines3's
 PPO and SAC (defaults; the ``sb3`` extra) through the gymnasium wrapper on the same tasks (PPO ~3 min
@@ -30,6 +31,16 @@ BUDGETS = {"reduced": (OUT, RECORD, StudySettings), "thesis": (RESULTS / "ch7" /
                                                              RESULTS / "ch7" / "table71_thesis.json",
                                                              StudySettings.thesis)}
 """Per --budget: (run folder, record, settings)."""
+
+
+def write_curves(out: Path, path: Path) -> Path:
+    """The training curves of every run under ``out/SYSTEM/METHOD-sSEED/run/progress.csv`` (finished or
+    not) side by side, labelled METHOD-sSEED: :func:`hybridctl.viz.plot_return_curves`."""
+    from hybridctl import viz
+
+    runs = {folder.parent.name: viz.read_progress_rows(folder / "progress.csv")
+            for folder in sorted(out.glob("*/*/run")) if (folder / "progress.csv").exists()}
+    return viz.plot_return_curves(runs, path, title="Table 7.1 at the thesis' budget: training curves")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -69,6 +80,8 @@ def main(argv: list[str] | None = None) -> int:
                                "zero_policy": {name: zero_policy_baseline(name, make_settings()) for name in systems},
                                "runs": records})
         print(f"wrote {record}: {len(records)} runs")
+        if args.budget == "thesis":
+            print(f"wrote {write_curves(out, record.with_name(record.stem + '_curves.png'))}")
     return 0
 
 
