@@ -346,3 +346,21 @@ def test_compiled_column_major_step_agrees(name):
     for _ in range(2):                                   # built once, then reused
         compiled = system.step_columns(x, u, compiled=True)
         np.testing.assert_allclose(compiled.numpy(), eager.numpy(), rtol=1e-12, atol=1e-12)
+
+
+def test_two_loads_of_a_system_share_their_generated_functions_and_other_parameters_do_not():
+    # torch.compile guards on a traced function's code object: a step generated afresh per System made
+    # every training run recompile, and past torch's recompile limit the rollout silently ran eager
+    first, second = systems.load("acrobot"), systems.load("acrobot")
+    step = first.dynamics.generate_torch_step(first.dt, first.integrator)
+    assert step is second.dynamics.generate_torch_step(second.dt, second.integrator)
+    assert first.dynamics.scalar() is second.dynamics.scalar()
+    other = systems.load("acrobot", dt=first.dt / 2)
+    other_step = other.dynamics.generate_torch_step(other.dt, other.integrator)
+    assert other_step is not step
+
+
+def test_two_loads_of_a_multibody_system_share_their_generated_step():
+    first, second = systems.load("furuta"), systems.load("furuta")
+    assert first.dynamics.generate_torch_step(first.dt, first.integrator) is \
+        second.dynamics.generate_torch_step(second.dt, second.integrator)

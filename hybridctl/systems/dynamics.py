@@ -517,6 +517,32 @@ def free_early(lines: list[str]) -> list[str]:
     return out
 
 
+# Generated functions, shared by every dynamics object whose generated source (and constants) match.
+# Why: torch.compile guards on the code object of each function it traces, so a function generated
+# afresh for every System (as every training run loads its own) made a compiled rollout recompile per
+# run; after torch._dynamo's recompile limit (8 graphs) it silently ran eager, 5-10x slower (measured:
+# the 3rd and 4th APG runs of one double cart-pole study process took 1614-1811 s, the first two 182-333 s).
+SHARED_FUNCTIONS_LIMIT = 256     # distinct generated functions kept (oldest dropped first)
+_SHARED_FUNCTIONS: dict = {}
+
+
+def shared_function(source: str, name: str, scope: dict, filename: str, constants: list | tuple = ()):
+    """The function ``name`` defined by generated ``source`` (built from numbers only, never from a
+    file's text) executed in a copy of ``scope``, one object per (source, name, constants) in this
+    process; it carries ``.source`` and ``.constants``."""
+    key = (source, name, tuple(constants))
+    function = _SHARED_FUNCTIONS.get(key)
+    if function is None:
+        namespace = dict(scope)
+        exec(compile(source, filename, "exec"), namespace)  # noqa: S102 - our own generated code
+        function = namespace[name]
+        function.source, function.constants = source, list(constants)
+        while len(_SHARED_FUNCTIONS) >= SHARED_FUNCTIONS_LIMIT:
+            _SHARED_FUNCTIONS.pop(next(iter(_SHARED_FUNCTIONS)))
+        _SHARED_FUNCTIONS[key] = function
+    return function
+
+
 class ChainDynamics:
     """Manipulator terms and time derivatives of a planar chain, for numpy or torch arrays."""
 
@@ -561,10 +587,9 @@ class ChainDynamics:
         if fn is None:
             source = _scalar_source(self, "scalar_step", dt, integrator, bound) if integrator is not None \
                 else _scalar_source(self, "scalar_derivatives", 0.0, None, None)
-            namespace = {"_sin": math.sin, "_cos": math.cos}
-            exec(compile(source, f"<hybridctl.systems.dynamics scalar {key}>", "exec"), namespace)
-            fn = self._scalar[key] = namespace["scalar_step" if integrator is not None else "scalar_derivatives"]
-            fn.source = source
+            fn = self._scalar[key] = shared_function(
+                source, "scalar_step" if integrator is not None else "scalar_derivatives",
+                {"_sin": math.sin, "_cos": math.cos}, f"<hybridctl.systems.dynamics scalar {key}>")
         return fn
 
     def generate_torch_step(self, dt: float, integrator: str | None):
@@ -577,10 +602,8 @@ class ChainDynamics:
             except NotImplementedError:
                 fn = None
             else:
-                namespace = {"_torch": torch}
-                exec(compile(source, f"<hybridctl.systems.dynamics torch {key}>", "exec"), namespace)
-                fn = namespace["torch_step"]
-                fn.source, fn.constants = source, constants
+                fn = shared_function(source, "torch_step", {"_torch": torch},
+                                     f"<hybridctl.systems.dynamics torch {key}>", constants)
             self._torch_code[key] = fn
         return self._torch_code[key]
 
@@ -598,10 +621,8 @@ class ChainDynamics:
         fn = self._torch_code.get(key)
         if fn is None:
             source, constants = _torch_source(self, dt, integrator, columns=True)
-            namespace = {"_torch": torch}
-            exec(compile(source, f"<hybridctl.systems.dynamics torch {key}>", "exec"), namespace)
-            fn = self._torch_code[key] = namespace["torch_step"]
-            fn.source, fn.constants = source, constants
+            fn = self._torch_code[key] = shared_function(source, "torch_step", {"_torch": torch},
+                                                         f"<hybridctl.systems.dynamics torch {key}>", constants)
         xp = self._xp(x)
         if compiled:
             fast = self._torch_code.get(("compiled",) + key)

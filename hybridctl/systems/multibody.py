@@ -33,7 +33,7 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from .dynamics import free_early, integrator_lines, step_loop_source
+from .dynamics import free_early, integrator_lines, shared_function, step_loop_source
 
 MAX_TERMS = 20_000
 """Most polynomial terms (all entries of M, C v, tau_g and the energies together) a model may
@@ -436,11 +436,9 @@ def polynomials_source(model: MultibodyModel, polys: Sequence[Sequence[Term]]) -
 
 def _compile(source: str, name: str, namespace: dict):
     """Compile generated source (built from numbers only) and return the function ``name``."""
-    scope = dict(namespace)
-    exec(compile(source, f"<hybridctl generated {name}>", "exec"), scope)  # noqa: S102 - our own generated code
-    function = scope[name]
-    function.source = source       # as ChainDynamics' generated functions: benchmarks count its operations
-    return function
+    # one function object per source in the process (see shared_function: torch.compile guards on it);
+    # .source as ChainDynamics' generated functions: benchmarks count its operations
+    return shared_function(source, name, namespace, f"<hybridctl generated {name}>")
 
 
 class GeneratedDynamics:
