@@ -28,6 +28,7 @@ parameters, and workers build their simulators themselves (see :func:`cached_env
 
 from __future__ import annotations
 
+import argparse
 import ast
 import concurrent.futures as cf
 import contextlib
@@ -41,6 +42,8 @@ import sys
 import threading
 import time
 from typing import Any, Callable, Iterator, Sequence
+
+from .limits import check_at_most, cpu_count
 
 BACKENDS = ("serial", "processes", "ray")
 
@@ -418,3 +421,47 @@ def make_backend(name: str = "processes", workers: int | None = None, address: s
     if name == "ray":
         return RayBackend(workers, address, runtime_env, task_resources)
     raise ValueError(f"backend must be one of {BACKENDS}, got {name!r}")
+
+
+def _worker_count(text: str) -> int:
+    """argparse type of ``--workers``: an integer > 0."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
+    return value
+
+
+_worker_count.__name__ = "int"   # argparse names the type in "invalid int value"
+
+
+def add_backend_arguments(parser: argparse.ArgumentParser, default: str | None, what: str,
+                          workers: int | None = None) -> None:
+    """``--backend``, ``--workers`` and ``--address``: where ``what`` runs, the same three flags on every
+    ``hybridctl`` command and ``hybridctl.reproduce`` driver that runs parallel work (each adds its own
+    ``--force``, which :func:`check_backend_arguments` reads). ``default``: the backend without the flag;
+    ``workers``: the worker count without the flag (None: all cores, or the Ray cluster's CPUs).
+    ``--address`` defaults to ``RAY_ADDRESS``; with ``--backend ray`` and no address a new local Ray
+    instance on 127.0.0.1 is started, never a running one joined."""
+    parser.add_argument("--backend", choices=BACKENDS, default=default,
+                        help=f"where {what} runs: this process, local worker processes or Ray (default {default})")
+    shown = workers if workers is not None else "all cores, or the cluster's CPUs"
+    parser.add_argument("--workers", type=_worker_count, default=workers,
+                        help=f"worker processes, or Ray tasks in flight (default: {shown}; local workers above "
+                             f"the cores are refused without --force)")
+    parser.add_argument("--address", default=None,
+                        help="Ray cluster to join with --backend ray (host:6379, ray://host:10001, auto; "
+                             "default: $RAY_ADDRESS, else a new local instance)")
+
+
+def check_backend_arguments(backend: str | None, workers: int | None, address: str | None, force: bool) -> None:
+    """Refuse (ValueError, naming the flag) ``--address`` without ``--backend ray`` and, unless ``force``,
+    local ``--workers`` above the cores this process may use (Ray workers are not bound by local cores).
+    ``workers``: the count the user gave, None where they gave none."""
+    if address is not None and backend != "ray":
+        raise ValueError(f"--address {address} applies to --backend ray only, not "
+                         f"{backend or 'the default backend'!r}")
+    if workers is not None and backend != "ray":
+        check_at_most("--workers", workers, cpu_count(), force, why="cores this process may use")

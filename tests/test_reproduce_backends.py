@@ -50,8 +50,8 @@ def test_the_other_drivers_have_no_backend_flags(name, capsys):
 
 
 def test_the_flags_are_the_commands_flags():
-    """Same names, choices, parsing and refusals as hybridctl.cli._common's (copied: reproduce may not
-    import cli, ARCHITECTURE.md)."""
+    """Same names, choices, help, parsing and refusals as hybridctl.cli._common's: both are
+    hybridctl.parallel.add_backend_arguments (reproduce may not import cli, ARCHITECTURE.md)."""
     from hybridctl.cli import _common
 
     ours, theirs = argparse.ArgumentParser(), argparse.ArgumentParser()
@@ -60,7 +60,8 @@ def test_the_flags_are_the_commands_flags():
     actions = {parser: {a.dest: a for a in parser._actions} for parser in (ours, theirs)}
     for dest in ("backend", "workers", "address"):
         a, b = actions[ours][dest], actions[theirs][dest]
-        assert (a.option_strings, a.choices, a.default, a.nargs) == (b.option_strings, b.choices, b.default, b.nargs)
+        assert (a.option_strings, a.choices, a.default, a.nargs, a.help) == (b.option_strings, b.choices, b.default,
+                                                                             b.nargs, b.help)
     argv = ["--backend", "ray", "--workers", "3", "--address", "host:6379"]
     parsed, expected = ours.parse_args(argv), theirs.parse_args(argv)
     assert common.backend_options(parsed) == {key: getattr(expected, key) for key in ("backend", "workers", "address")}

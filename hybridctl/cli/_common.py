@@ -219,19 +219,11 @@ def command_line(argv: list[str]) -> str:
 
 
 def add_backend_flags(parser: argparse.ArgumentParser, default: str, what: str) -> None:
-    """``--backend``, ``--workers`` and ``--address``: where ``what`` runs, the same flags on every command
-    that runs parallel work (``--address`` defaults to ``RAY_ADDRESS``; with ``--backend ray`` and no
-    address a new local Ray instance on 127.0.0.1 is started, never a running one joined)."""
-    from ..parallel import BACKENDS
+    """``--backend``, ``--workers`` and ``--address`` (:func:`hybridctl.parallel.add_backend_arguments`,
+    shared with the ``reproduce`` drivers) and the Ray task flags (:func:`add_ray_task_flags`)."""
+    from ..parallel import add_backend_arguments
 
-    parser.add_argument("--backend", choices=BACKENDS, default=default,
-                        help=f"where {what} runs: this process, local worker processes or Ray (default {default})")
-    parser.add_argument("--workers", type=positive(int),
-                        help="worker processes, or Ray tasks in flight (default: all cores, or the cluster's "
-                             "CPUs; local workers above the cores are refused without --force)")
-    parser.add_argument("--address", default=None,
-                        help="Ray cluster to join with --backend ray (host:6379, ray://host:10001, auto; "
-                             "default: $RAY_ADDRESS, else a new local instance)")
+    add_backend_arguments(parser, default, what)
     add_ray_task_flags(parser)
 
 
@@ -291,13 +283,12 @@ def ray_options_for(args: argparse.Namespace):
 
 
 def check_backend_flags(args: argparse.Namespace) -> None:
-    """Refuse ``--address`` without ``--backend ray`` and local ``--workers`` above the cores (``--force``)."""
-    if args.address is not None and args.backend != "ray":
-        raise ValueError(f"--address {args.address} applies to --backend ray only, not {args.backend!r}")
+    """Refuse ``--address`` without ``--backend ray``, Ray task flags without it, and local ``--workers``
+    above the cores (``--force``): :func:`hybridctl.parallel.check_backend_arguments`."""
+    from ..parallel import check_backend_arguments
+
+    check_backend_arguments(args.backend, args.workers, args.address, args.force)
     check_ray_task_flags(args, args.backend)
-    if args.workers is not None and args.backend != "ray":  # Ray workers are not bound by local cores
-        limits.check_at_most("--workers", args.workers, limits.cpu_count(), args.force,
-                             why="cores this process may use")
 
 
 def check_ray_task_flags(args: argparse.Namespace, backend: str) -> None:

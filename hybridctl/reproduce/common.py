@@ -21,8 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from hybridctl.limits import check_at_most, cpu_count
-from hybridctl.parallel import BACKENDS
+from hybridctl.parallel import add_backend_arguments, check_backend_arguments
 from hybridctl.systems.spec import DATA_DIR
 
 __all__ = ["RESULTS", "machine_info", "emit", "shipped_policy", "recorded_path", "command_line",
@@ -107,34 +106,13 @@ def command_line(module: str, argv: list[str] | None = None) -> str:
 # tests/test_reproduce_backends.py checks that the two stay alike.
 
 
-def _positive_int(text: str) -> int:
-    """argparse type: an integer >= 1."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}")
-    return value
-
-
-def add_backend_flags(parser: argparse.ArgumentParser, default: str, what: str, workers: int | None = None) -> None:
-    """``--backend``, ``--workers``, ``--address`` and ``--force``: where ``what`` runs, as on every
-    hybridctl command that runs parallel work; :func:`backend_options` passes them to the workload.
-
-    ``default``: the driver's backend, ``workers``: its worker count (None: all cores, or the Ray
-    cluster's CPUs), so that a driver run without the flags runs as before. ``--address`` defaults
-    to ``RAY_ADDRESS``; with ``--backend ray`` and no address a new local Ray instance is started.
-    """
-    parser.add_argument("--backend", choices=BACKENDS, default=default,
-                        help=f"where {what} runs: this process, local worker processes or Ray (default {default})")
-    parser.add_argument("--workers", type=_positive_int, default=workers,
-                        help=f"worker processes, or Ray tasks in flight (default: "
-                             f"{workers if workers is not None else 'all cores, or the cluster CPUs'}; local "
-                             f"workers above the cores are refused without --force)")
-    parser.add_argument("--address", default=None,
-                        help="Ray cluster to join with --backend ray (host:6379, ray://host:10001, auto; "
-                             "default: $RAY_ADDRESS, else a new local instance)")
+def add_backend_flags(parser: argparse.ArgumentParser, default: str | None, what: str,
+                      workers: int | None = None) -> None:
+    """``--backend``, ``--workers`` and ``--address`` as on every hybridctl command that runs parallel work
+    (:func:`hybridctl.parallel.add_backend_arguments`), and ``--force``; :func:`backend_options` passes
+    them to the workload. ``default``: the driver's backend, ``workers``: its worker count (None: all
+    cores, or the Ray cluster's CPUs), so that a driver run without the flags runs as before."""
+    add_backend_arguments(parser, default, what, workers)
     parser.add_argument("--force", action="store_true",
                         help="allow local --workers above the cores this process may use")
 
@@ -143,13 +121,9 @@ def check_backend_flags(args: argparse.Namespace, parser: argparse.ArgumentParse
     """Refuse ``--address`` without ``--backend ray`` and local ``--workers`` above the cores unless
     ``--force`` (a driver's own default count is taken as it is). ValueError, or with ``parser`` its
     usage error (one line, exit status 2)."""
+    given = args.workers is not None and (parser is None or args.workers != parser.get_default("workers"))
     try:
-        if args.address is not None and args.backend != "ray":
-            raise ValueError(f"--address {args.address} applies to --backend ray only, not "
-                             f"{args.backend or 'the default backend'!r}")
-        given = args.workers is not None and (parser is None or args.workers != parser.get_default("workers"))
-        if given and args.backend != "ray":      # Ray workers are not bound by local cores
-            check_at_most("--workers", args.workers, cpu_count(), args.force, why="cores this process may use")
+        check_backend_arguments(args.backend, args.workers if given else None, args.address, args.force)
     except ValueError as exc:
         if parser is None:
             raise
