@@ -13,6 +13,7 @@ from hybridctl.cli import main
 from hybridctl.envs.toy import PointReach, point_reach
 from hybridctl.learn.checkpoint import CheckpointError
 from hybridctl.learn.finetune import FineTune, FineTuneConfig, TunablePolicy, parse_source, wilson_interval
+from hybridctl.systems import load as load_system
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 SSAC = "ssac:models/policies/ssac-acrobot"
@@ -274,3 +275,88 @@ def test_report_figures_draw_rates_at_zero_and_one(tmp_path):
                        ("x.png", lambda p: plot_finetune_report(rows[0]["before"], rows[0]["after"], history, p))):
         draw(tmp_path / name)
         assert (tmp_path / name).stat().st_size > 5000
+
+
+# ----------------------------------------------------------------------------- APG-family sources
+
+@pytest.fixture(scope="module")
+def tiny_papg(tmp_path_factory):
+    """A tiny float64 PAPG-GRU trained through the LQR takeover on the cart-pole (1 epoch; 0.1 s decisions,
+    not the spec's 0.05), saved."""
+    from hybridctl.learn.apg import APG, APGConfig
+    config = APGConfig(method="papg", horizon=12, batch=2, apg_iterations=2, population=2, elites=1, rank_window=1,
+                       epochs=1, dtype="float64", takeover="lqr", control_period=0.1, start_noise=0.2,
+                       init_std=0.3)
+    out = tmp_path_factory.mktemp("papg")
+    with torch.random.fork_rng():
+        torch.set_num_threads(1)
+        APG("cartpole", config).learn(out=out, progress=False)
+    return out / "final"
+
+
+def test_apg_source_rolls_out_what_apg_trains_recurrent_through_its_takeover(tiny_papg):
+    """The fine-tuning's episodes of an APG-family checkpoint are the APG rollout (GRU state carried,
+    the cost-to-go gate + LQR at every integrator step, the checkpoint's decision period, reward and
+    starts): the same returns to 1e-9, on serial and on worker processes (the policy travels pickled)."""
+    from hybridctl.learn.apg import APG
+    from hybridctl.learn.apg.core import population_returns
+    from hybridctl.parallel import make_backend
+    from hybridctl.systems import load
+
+    t = FineTune("cartpole", f"papg:{tiny_papg}", updates=1, n_directions=2, backend="serial")
+    agent = APG.load(tiny_papg, device="cpu")
+    assert t.tunable.decision_period == agent.period == 0.1 != load("cartpole").swingup_period
+    assert t.tunable.system_overrides["initial_state__high"] == [0.2] * 4
+    hanging = dict(t.tunable.system_overrides)
+    # hanging down (the checkpoint's starts: the GRU and its state act) and just off upright (the gate fires
+    # and the LQR holds what the tiny policy alone drops)
+    upright = {**hanging, "initial_state__nominal": load("cartpole").goal.tolist(),
+               "initial_state__low": [-0.01] * 4, "initial_state__high": [0.01] * 4}
+    seeds, horizon = [3, 4, 5], 60
+    rows = np.repeat(t.theta0[None], len(seeds), axis=0)
+    for overrides, gate_acts in ((hanging, False), (upright, True)):
+        t.tunable.system_overrides = overrides
+        system = load("cartpole", **overrides)
+        x0 = torch.as_tensor(np.concatenate([system.sample_initial_states(1, np.random.default_rng(s)) for s in seeds]))
+        with torch.no_grad():
+            expected, *_ = population_returns(agent.system, agent.policy().population, x0[None], horizon,
+                                              agent.substeps, agent.config.observation, takeover=agent.takeover)
+            free, *_ = population_returns(agent.system, agent.policy().population, x0[None], horizon,
+                                          agent.substeps, agent.config.observation)
+        for backend in (make_backend("serial"), make_backend("processes", workers=2)):
+            try:
+                got = t._rollouts(rows, seeds, backend, t._postprocessor(), max_steps=horizon)
+            finally:
+                backend.close()
+            assert [r["raw_return"] for r in got] == pytest.approx(expected[0].tolist(), abs=1e-9)
+        assert np.allclose(expected[0].numpy(), free[0].numpy()) != gate_acts
+
+
+def test_apg_source_fine_tunes_saves_and_drives_drake(tiny_papg, tmp_path):
+    """learn / predict (recurrent: action and state) / load, and the fine-tuned checkpoint as a Drake
+    controller: the recurrent swing-up under the spec's cost-to-go gate at the checkpoint's period."""
+    from hybridctl.experiments.controllers import controller_parts
+
+    t = FineTune("cartpole", f"papg:{tiny_papg}", updates=2, n_directions=2, backend="serial", eval_episodes=2)
+    t.learn(out=tmp_path, progress=False)
+    assert t.update == 2 and t.env_steps == 2 * 2 * 2 * 100   # 10 s episodes of 0.1 s decisions
+    assert not np.array_equal(t.theta, t.theta0)
+    action, state = t.predict(np.zeros(4))
+    assert action.shape == (1,) and state.shape == (t.tunable.module.policy.hidden_dim,)
+    again, _ = t.predict(np.zeros(4), state=state)
+    assert not np.array_equal(action, again)   # the state carries over
+    parts = controller_parts(load_system("cartpole"), f"finetune:{tmp_path / 'final'}")
+    assert parts.gate is None and parts.swingup_period == 0.1 and hasattr(parts.swingup, "initial_state")
+    loaded = FineTune.load(tmp_path / "final")
+    assert np.array_equal(loaded.theta, t.theta)
+
+
+def test_apg_source_needs_the_takeover_and_its_own_system(tmp_path):
+    from hybridctl.learn.apg import APG, APGConfig
+    config = APGConfig(method="papg", horizon=4, batch=1, apg_iterations=1, population=2, elites=1, rank_window=1,
+                       epochs=1, dtype="float64", takeover="none")
+    APG("cartpole", config).learn(out=tmp_path, progress=False)
+    with pytest.raises(ValueError, match="--takeover lqr"):
+        FineTune("cartpole", f"papg:{tmp_path / 'final'}")
+    with pytest.raises(ValueError, match="trained on cartpole, not acrobot"):
+        FineTune("acrobot", f"papg:{tmp_path / 'final'}")

@@ -20,6 +20,21 @@ def test_shipped_cells_name_checkpoints_that_exist_with_their_training_record():
             assert cell.policy in cell.controller
 
 
+def test_fine_tuned_cells_name_committed_runs_of_the_shipped_swing_ups():
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    tuned = {c.key: c for c in matrix.CELLS if c.finetune is not None}
+    assert set(tuned) == {f"{s}:{row}" for s in matrix.SYSTEMS for row in ("ssac-fine-tuned", "apg-fine-tuned")
+                          if (s, row) != ("double_cartpole", "apg-fine-tuned")}
+    for cell in tuned.values():
+        report = matrix.io.read_json(root / cell.finetune / "report.json")
+        assert report["env_steps"] > 0 and (root / cell.finetune / "final" / "model.pt").is_file()
+        # the fine-tuning started from the row above's shipped checkpoint
+        learned = matrix.cell_by_key(f"{cell.system}:" + ("ssac" if cell.row == "SSAC fine-tuned" else "apg-family"))
+        assert report["command"].split("--policy ")[1].split()[0] == learned.controller
+
+
 def test_the_acrobot_map_spans_every_angle_unless_near_hanging_down():
     axes, ranges = matrix.map_ranges("acrobot")
     assert axes == (0, 1)

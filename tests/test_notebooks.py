@@ -57,6 +57,7 @@ EXPECTED_LINES = {
         "SB3's own load of our output ran the payload: False",
         "SB3's own load of the planted input ran the payload: True",   # ... and would have run under SB3
         "balanced: True",                     # the fine-tuned SSAC swing-up in the Drake diagram
+        "fine-tuned GRU swing-up balanced: True",   # the fine-tuned CE-APG GRU swing-up (recurrent block) in Drake
         "Ch. 6 record: results/ch6/results.json",
     ],
     "07_your_robot.ipynb": [

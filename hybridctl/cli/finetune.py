@@ -18,9 +18,11 @@ def add_parser(sub) -> None:
     p = sub.add_parser("finetune", help="fine-tune a trained agent by direct policy search (thesis Ch. 6)",
                        description=__doc__ + "\n\nPolicies: sb3:PATH.zip (Stable-Baselines3 PPO, A2C, SAC, TD3, DDPG, "
                        "TQC; read without unpickling; normaliser from vecnormalize.npz beside it or --normalizer), "
-                       "ars:PATH, sac:PATH, ssac:PATH (hybridctl checkpoints; sac/ssac need a system name as ENV).")
-    p.add_argument("env", help="gymnasium env id (e.g. Pendulum-v1, Hopper-v5) or a hybridctl system (sac/ssac)")
-    p.add_argument("--policy", required=True, metavar="KIND:PATH", help="the trained agent (sb3:, ars:, sac:, ssac:)")
+                       "ars:PATH, sac:PATH, ssac:PATH, and the APG family's ce-apg:PATH, papg:PATH, apg:PATH, cem:PATH, shapg:PATH "
+                       "(hybridctl checkpoints; these need a system name as ENV; an APG-family swing-up is tuned "
+                       "recurrent, inside the spec's cost-to-go gate and LQR, on its training's reward and starts).")
+    p.add_argument("env", help="gymnasium env id (e.g. Pendulum-v1, Hopper-v5) or a hybridctl system (sac/ssac/APG family)")
+    p.add_argument("--policy", required=True, metavar="KIND:PATH", help="the trained agent (sb3:, ars:, sac:, ssac:, ce-apg:, papg:, apg:, cem:, shapg:)")
     p.add_argument("--reward", choices=KINDS, default=DEFAULTS.reward,
                    help="identity (plain return) or a dimension term, e.g. mesh-mean (eq. 6.1 / 6.2)")
     p.add_argument("--reward-form", choices=FORMS, default=DEFAULTS.reward_form,
@@ -30,6 +32,12 @@ def add_parser(sub) -> None:
     p.add_argument("--updates", type=positive(int), default=DEFAULTS.updates, help="updates (thesis: 200)")
     p.add_argument("--directions", type=positive(int), default=DEFAULTS.n_directions,
                    help="directions n per update; 2n rollouts (thesis: 64)")
+    p.add_argument("--step-size", type=positive(float), nargs=2, metavar=("START", "END"),
+                   default=(DEFAULTS.step_size_start, DEFAULTS.step_size_end),
+                   help="step size alpha, linear from START to END (thesis: 0.02 0.002)")
+    p.add_argument("--noise", type=positive(float), nargs=2, metavar=("START", "END"),
+                   default=(DEFAULTS.noise_start, DEFAULTS.noise_end),
+                   help="perturbation sigma, linear from START to END (thesis: 0.025 0.0025)")
     p.add_argument("--select", choices=SELECTIONS, default=DEFAULTS.select,
                    help="parameters perturbed: the action path (default), all (the author's code), last layer")
     p.add_argument("--episode-steps", type=positive(int), help="cap on episode length (default: the env's)")
@@ -60,6 +68,8 @@ def run_finetune(args: argparse.Namespace) -> int:
     """Fine-tune, then print before / after and where the outputs are."""
     check_backend_flags(args)
     config = FineTuneConfig(updates=args.updates, n_directions=args.directions, select=args.select,
+                            step_size_start=args.step_size[0], step_size_end=args.step_size[1],
+                            noise_start=args.noise[0], noise_end=args.noise[1],
                             reward=args.reward, reward_form=args.reward_form,
                             dimension_settings=args.dimension_settings, episode_steps=args.episode_steps,
                             seed=args.seed, backend=args.backend, workers=args.workers, address=args.address,

@@ -37,7 +37,7 @@ CONTROLLERS = {
     "trajopt": "direct-collocation swing-up from hanging down tracked by Drake's time-varying LQR + cost-to-go "
                "gate (hysteresis) + LQR; any system, solved once and cached (Drake engine only)",
     "ssac:PATH": "learned swing-up + learned gate (hysteresis) + LQR from an SSAC checkpoint directory",
-    "finetune:PATH": "a fine-tuned sac/ssac swing-up (hybridctl finetune's final/ checkpoint), with its gate and LQR",
+    "finetune:PATH": "a fine-tuned sac/ssac/APG-family swing-up (hybridctl finetune's final/ checkpoint), with its gate and LQR",
     "sac:PATH": "learned swing-up only from a SAC checkpoint directory (gate always off)",
     "ssac-costgate:PATH": "learned swing-up of an SSAC (or SAC) checkpoint + the spec's cost-to-go gate (hysteresis) "
                           "+ LQR, as the APG controllers; for a system whose learned gate does not fire",
@@ -102,16 +102,18 @@ def controller_parts(system: System, controller: str = "energy") -> ControllerPa
         gate_meta = meta.get("gate", {})
         return ControllerParts(policy, "never" if kind == "sac" else gate, gate_meta.get("gate_on"),
                                gate_meta.get("gate_off"))
-    if sep and kind == "finetune":   # thesis Ch. 6: a fine-tuned sac/ssac swing-up (FineTune checkpoint)
+    if sep and kind == "finetune":   # thesis Ch. 6: a fine-tuned sac/ssac/APG-family swing-up (FineTune checkpoint)
         if not path:
             raise ValueError(f"controller {controller!r} needs a checkpoint path after 'finetune:'")
         tuner = FineTune.load(path, device="cpu")   # Drake runs on the CPU, whatever device it trained on
         if tuner.tunable.system != system.name:
             raise ValueError(f"{path} fine-tunes {tuner.tunable.source} on {tuner.env_name}; a Drake diagram of "
-                             f"{system.name} needs a sac:/ssac: source of that system")
+                             f"{system.name} needs a sac:/ssac:/APG-family source of that system")
         gate_meta = tuner.tunable.meta.get("gate", {})
-        gate = tuner.tunable.gate if tuner.tunable.gate is not None else "never"
-        return ControllerParts(tuner.tuned_module(), gate, gate_meta.get("gate_on"), gate_meta.get("gate_off"))
+        gate = tuner.tunable.gate
+        gate = "never" if gate is None else None if isinstance(gate, str) else gate   # str: the spec's cost-to-go gate
+        return ControllerParts(tuner.tuned_module(), gate, gate_meta.get("gate_on"), gate_meta.get("gate_off"),
+                               swingup_period=tuner.tunable.decision_period)
     if sep and kind in APG_METHODS:   # thesis Ch. 7: the trained GRU with its hidden state in the Context
         if not path:
             raise ValueError(f"controller {controller!r} needs a checkpoint path after '{kind}:'")

@@ -25,7 +25,7 @@ all directions kept, the schedules per update); the episodes come from
 :mod:`hybridctl.learn.rollouts` (shared with ARS and the failure rates): chunks of perturbed
 policies, one batched forward of the chunk's policies (``torch.func.vmap`` over their weights)
 per env step, over the chunk's envs (gymnasium envs, the MuJoCo batch stepper, or a hybridctl
-system's batched torch dynamics for sac/ssac sources, on ``device``). Chunks are spread over a
+system's batched torch dynamics for sac/ssac and APG-family sources, on ``device``). Chunks are spread over a
 :mod:`hybridctl.parallel` backend, by default enough of them to give each of its workers two;
 the policy, its normaliser and the post-processor go to the backend once per update
 (``backend.put``). A chunk's numbers do not depend on its size (2 rows or more, measured bit for
@@ -58,15 +58,16 @@ from .checkpoint import PROGRESS_FILE, Saved
 from .config_check import check_fields, check_types
 from .random_search import RandomSearchLearner
 from .robustness import wilson_interval  # noqa: F401 (re-exported: hybridctl.learn.finetune.wilson_interval)
-from .rollouts import (AUTO_CHUNK_MAX, AUTO_CHUNK_MAX_ACCELERATOR, ChunkInputs, ChunkTask,  # noqa: F401
-                       Shipped, batched_actions, chunk_slices, evaluation_seeds, make_env, normalise,
+from .apg import METHODS as APG_METHODS
+from .rollouts import (AUTO_CHUNK_MAX, AUTO_CHUNK_MAX_ACCELERATOR, COST_TO_GO_GATE, ChunkInputs,  # noqa: F401
+                       ChunkTask, Shipped, batched_actions, chunk_slices, is_recurrent, evaluation_seeds, make_env, normalise,
                        recorded_env_id, recorded_env_kwargs, rollouts, run_chunk, unflatten)
 from .run import EvalResult
 from .config_check import check_device_field
 
 SELECTIONS = ("action", "all", "last")
 DIMENSION_SETTINGS = ("author", "ch4")
-SOURCE_KINDS = ("sb3", "ars", "sac", "ssac")
+SOURCE_KINDS = ("sb3", "ars", "sac", "ssac", *APG_METHODS)
 
 
 @dataclass
@@ -96,7 +97,7 @@ class FineTuneConfig:
     backend: str = "processes"         # "serial", "processes" (local, default), "ray"
     workers: int | None = None         # None: every core (processes) or the cluster's CPUs (ray)
     address: str | None = None         # Ray cluster address (backend "ray")
-    device: str = "cpu"                # hybridctl: where a hybridctl system's rollouts run (sac/ssac sources: the
+    device: str = "cpu"                # hybridctl: where a hybridctl system's rollouts run (system sources: the
     #                                    policy, gate and batched dynamics; "cuda:0" on a GPU); gymnasium and MuJoCo
     #                                    envs step on the host, so their rollouts stay on the CPU
     checkpoint_every: int = 10         # updates between atomic checkpoints
@@ -196,7 +197,11 @@ class TunablePolicy:
     ``module`` may define ``parameter_names(select)`` (SB3 policies do: the action path, all, or
     the last layer); otherwise "action" and "all" are every parameter and "last" the last
     ``nn.Linear``'s. ``system``: a hybridctl system name when the policy drives that system's
-    swing-up (sac/ssac sources: rollouts on its batched torch env); ``gate``: SSAC's gate.
+    swing-up (sac/ssac/APG-family sources: rollouts on its batched torch env); ``gate``: SSAC's gate,
+    or :data:`~hybridctl.learn.rollouts.COST_TO_GO_GATE` (the spec's LQR cost-to-go gate, the APG
+    family's takeover); ``decision_period``: the swing-up's decision period in seconds (None: the
+    spec's). A recurrent ``module`` (``forward(x, state) -> (action, state)``, ``initial_state``)
+    starts each episode at its zero state.
     """
 
     module: torch.nn.Module
@@ -204,9 +209,10 @@ class TunablePolicy:
     source: str = "module"
     sb3: Any = None                 # the SB3Agent for sb3 sources (written back by save_sb3)
     system: str | None = None
-    gate: torch.nn.Module | None = None
+    gate: torch.nn.Module | str | None = None
     meta: dict = field(default_factory=dict)
     system_overrides: dict = field(default_factory=dict)   # the checkpoint's spec overrides (reward, starts)
+    decision_period: float | None = None
 
     def parameter_names(self, select: str) -> list[str]:
         """Names of the parameters perturbed under ``select`` (see :data:`SELECTIONS`)."""
@@ -236,12 +242,16 @@ def parse_source(text: str) -> tuple[str, str]:
 
 
 def load_policy(source: str, env: str, trust: bool = False, normalizer: str | None = None) -> TunablePolicy:
-    """The :class:`TunablePolicy` of ``source`` ("sb3:PATH", "ars:PATH", "sac:PATH", "ssac:PATH") for ``env``.
+    """The :class:`TunablePolicy` of ``source`` ("sb3:PATH", "ars:PATH", "sac:PATH", "ssac:PATH", or an APG
+    family's "ce-apg:PATH", "papg:PATH", ...) for ``env``.
 
     sb3: a Stable-Baselines3 zip read without unpickling (:func:`hybridctl.learn.sb3.load_sb3`;
     its normaliser from ``normalizer`` or a ``vecnormalize.npz`` beside it; a pickle only with
     ``trust``). ars: an ARS checkpoint, its running statistics frozen. sac / ssac: a hybridctl
     checkpoint of a system (``env`` must be that system's name); ssac keeps its gate and LQR.
+    apg, shapg, papg, cem, ce-apg: an APG-family checkpoint of the system (its default policy: the
+    best member or the CEM mean), recurrent, under the spec's cost-to-go gate and LQR as in its Drake
+    controller, at its own decision period, on its training's reward and starts.
     Raises CheckpointError / ValueError naming the file or what does not fit the env.
     """
     kind, path = parse_source(source)
@@ -269,10 +279,12 @@ def load_policy(source: str, env: str, trust: bool = False, normalizer: str | No
                                 meta={"algo": "ars", "trained_env": agent.env_name})
         _check_gym_spaces(tunable, env, spec.obs_dim, spec.act_dim, path)
         return tunable
-    # sac / ssac: our swing-up checkpoints drive a system
+    # sac / ssac / the APG family: our swing-up checkpoints drive a system
     if env not in known_systems():
         raise ValueError(f"a {kind}: policy drives a hybridctl system; env must be one of {known_systems()}, "
                          f"got {env!r}")
+    if kind in APG_METHODS:
+        return _apg_policy(kind, path, env, source)
     from .export import load_controller
     policy, gate, meta = load_controller(path, load_system(env))
     if kind == "ssac" and gate is None:
@@ -284,6 +296,30 @@ def load_policy(source: str, env: str, trust: bool = False, normalizer: str | No
                          system_overrides=overrides,
                          meta={"algo": kind, "trained_algorithm": meta.get("algorithm"), "system_overrides": overrides,
                                "gate": {k: v for k, v in (meta.get("gate") or {}).items() if k in ("gate_on", "gate_off")}})
+
+
+def _apg_policy(kind: str, path: str, env: str, source: str) -> TunablePolicy:
+    """An APG-family checkpoint as a recurrent swing-up under the spec's cost-to-go gate and LQR."""
+    from .apg import APG
+    agent = APG.load(path, device="cpu")   # the learner's copy on the CPU (workers move theirs to the device)
+    if agent.system.name != env:
+        raise ValueError(f"{path} was trained on {agent.system.name}, not {env}")
+    if agent.config.takeover != "lqr":
+        raise ValueError(f"{path} was trained without the LQR takeover (takeover={agent.config.takeover!r}); "
+                         f"fine-tuning inside the switched controller needs one trained through it "
+                         f"(hybridctl train {kind} {env} --takeover lqr)")
+    system = agent.system
+    # the task it was trained on: its reward (the system's overrides) and its starts (hanging down +-
+    # start_noise on every state, or the spec's spread when start_noise is None)
+    overrides = dict(system.spec.overrides)
+    if agent.config.start_noise is not None:
+        noise = float(agent.config.start_noise)
+        overrides.update(initial_state__low=[-noise] * system.n_states, initial_state__high=[noise] * system.n_states)
+    on, off = float(system.gate.on), float(system.gate.off)
+    return TunablePolicy(agent.closed_loop_policy(), None, source, system=env, gate=COST_TO_GO_GATE,
+                         system_overrides=overrides, decision_period=float(agent.period),
+                         meta={"algo": kind, "trained_algorithm": agent.config.method, "system_overrides": overrides,
+                               "decision_period": float(agent.period), "gate": {"gate_on": on, "gate_off": off}})
 
 
 def _check_gym_spaces(tunable: TunablePolicy, env: str, obs_dim: int, act_dim: int, path) -> None:
@@ -304,7 +340,7 @@ class FineTune(RandomSearchLearner):
     ``evaluate`` / ``save`` / ``load`` / ``save_sb3``.
 
     Args:
-        env: a gymnasium env id (or a hybridctl system name for sac/ssac sources), or a factory.
+        env: a gymnasium env id (or a hybridctl system name for sac/ssac/APG-family sources), or a factory.
         policy: a source string ("sb3:PATH", "ars:PATH", "sac:PATH", "ssac:PATH"), a
             :class:`TunablePolicy`, or an ``nn.Module`` mapping observations to actions.
         config: :class:`FineTuneConfig` (the thesis' single setting by default); ``overrides``
@@ -346,7 +382,7 @@ class FineTune(RandomSearchLearner):
                             f"{type(policy).__name__}")
         if policy.system is None and torch.device(self.config.device).type != "cpu":
             raise ValueError(f"FineTuneConfig.device {self.config.device!r} applies to a hybridctl system's rollouts "
-                             f"(sac/ssac sources, whose dynamics are torch); {self.env_name} steps on the host, so "
+                             f"(sac/ssac/APG-family sources, whose dynamics are torch); {self.env_name} steps on the host, so "
                              f"its rollouts run on the CPU: leave device 'cpu'")
         self.tunable = policy
         self.tunable.module.eval()
@@ -390,7 +426,7 @@ class FineTune(RandomSearchLearner):
                   max_steps: int | None = None, keep_states: bool = False) -> list[dict]:
         """One episode per (theta row, seed), in chunks spread over ``backend``
         (:class:`~hybridctl.learn.rollouts.ChunkTask`: a system's torch dynamics on ``device`` for
-        sac/ssac sources, the MuJoCo batch stepper where it applies, else gymnasium envs).
+        sac/ssac/APG-family sources, the MuJoCo batch stepper where it applies, else gymnasium envs).
 
         The chunks: ``chunk_size`` rows each, or ("auto", None) :func:`~hybridctl.learn.rollouts.chunk_slices`
         from the backend's worker count. The policy, gate, normaliser and post-processor go to the
@@ -403,15 +439,17 @@ class FineTune(RandomSearchLearner):
         inputs = backend.put(ChunkInputs(module, self.names, self.tunable.normalizer, postprocessor, gate))
         tasks = [ChunkTask(self.env, self.env_kwargs, inputs, thetas[rows], seeds[rows],
                            max_steps or self.config.episode_steps, self.tunable.system, keep_states, engine, device,
-                           self.tunable.system_overrides)
+                           self.tunable.system_overrides, self.tunable.decision_period)
                  for rows in chunk_slices(len(seeds), self.config.chunk_size, getattr(backend, "workers", 1), largest)]
         return rollouts(tasks, backend)
 
-    def _shipped(self) -> tuple[Shipped, Shipped | None]:
-        """The policy and gate (None: no gate) as bytes for the workers, made once: the parameters they
-        keep are never changed (the perturbed ones travel in the chunks' theta rows)."""
+    def _shipped(self) -> tuple[Shipped, Shipped | str | None]:
+        """The policy and gate (None: no gate; the cost-to-go gate's name: built by each worker) as bytes
+        for the workers, made once: the parameters they keep are never changed (the perturbed ones travel
+        in the chunks' theta rows)."""
         if getattr(self, "_shipped_pair", None) is None:
-            gate = Shipped(self.tunable.gate) if self.tunable.gate is not None else None
+            gate = self.tunable.gate
+            gate = Shipped(gate) if isinstance(gate, torch.nn.Module) else gate
             self._shipped_pair = (Shipped(self.tunable.module), gate)
         return self._shipped_pair
 
@@ -432,16 +470,28 @@ class FineTune(RandomSearchLearner):
         return f"fine-tune {self.env_name}"
 
     # -- use ---------------------------------------------------------------------------------
-    def predict(self, obs: np.ndarray, deterministic: bool = True) -> np.ndarray:
-        """The fine-tuned policy's (maximum-likelihood) action for one or a batch of observations."""
+    def predict(self, obs: np.ndarray, deterministic: bool = True, state: np.ndarray | None = None):
+        """The fine-tuned policy's (maximum-likelihood) action for one or a batch of observations.
+
+        A recurrent policy (an APG-family source) returns ``(action, next state)``, as SB3's
+        recurrent policies do: ``state`` is the previous call's (None: the zero state of a new episode).
+        """
         if not deterministic:
             raise ValueError("fine-tuned policies act deterministically (maximum-likelihood actions); "
                              "deterministic=False is not supported")
         self._write_theta()
+        module = self.tunable.module
         z = normalise(self.tunable.normalizer, np.asarray(obs, dtype=np.float64))
-        first = next(self.tunable.module.parameters())
+        first = next(module.parameters())
+        z = torch.as_tensor(z, dtype=first.dtype, device=first.device)
         with torch.no_grad():
-            return self.tunable.module(torch.as_tensor(z, dtype=first.dtype, device=first.device)).double().cpu().numpy()
+            if not is_recurrent(module):
+                return module(z).double().cpu().numpy()
+            h = module.initial_state(z.shape[0] if z.dim() > 1 else 1) if state is None else \
+                torch.as_tensor(state, dtype=first.dtype, device=first.device)
+            h = h[0] if z.dim() == 1 and h.dim() > 1 else h
+            action, h = module(z, h)
+            return action.double().cpu().numpy(), h.double().cpu().numpy()
 
     def tuned_module(self) -> torch.nn.Module:
         """A copy of the policy module with the fine-tuned weights (normalised observations -> actions),

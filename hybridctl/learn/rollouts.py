@@ -15,7 +15,8 @@ Two execution strategies, kept apart because each reproduces its learner's numbe
 * :class:`ChunkTask` -- a chunk of B episodes of a torch module whose named parameters
   come from the rows of ``thetas``: one ``torch.func.vmap`` forward of ``functional_call`` per
   env step, over gymnasium envs, the MuJoCo batch stepper (one thread), or a hybridctl
-  system's batched torch dynamics (SSAC: gate + LQR inside), the latter on any torch device
+  system's batched torch dynamics (SSAC: gate + LQR inside; a recurrent APG-family swing-up with the
+  spec's cost-to-go gate and its hidden state carried per episode), the latter on any torch device
   with no copy to the host until the chunk ends. What every chunk of a batch reads and none
   changes (the policy, its normaliser, the post-processor: :class:`ChunkInputs`) is shipped
   once per batch (``backend.put``; the tasks carry the reference). :func:`chunk_slices` splits
@@ -246,7 +247,8 @@ class ChunkInputs:
     names: list[str]              # the perturbed parameters, in the order of a theta row
     normalizer: Any               # frozen observation normaliser (None: observations as they are)
     postprocessor: PostProcessor
-    gate: Shipped | None = None   # SSAC's gate (the switched dynamics: gate + LQR inside the rollout)
+    gate: Shipped | str | None = None   # SSAC's gate, or COST_TO_GO_GATE (the spec's, built in the worker): the
+    #                                     switched dynamics, gate + LQR inside the rollout; None: no gate
 
 
 def shared_value(value: Any) -> Any:
@@ -274,6 +276,7 @@ class ChunkTask:
     engine: str = "auto"          # "auto": the MuJoCo batch stepper where it applies; "backend": gymnasium envs
     device: str = "cpu"           # where a system's rollout runs (gymnasium and MuJoCo envs step on the host)
     system_overrides: dict | None = None   # the system's spec overrides (a checkpoint's reward, starts)
+    decision_period: float | None = None   # a system's swing-up decision period (None: the spec's swingup_period)
 
     @property
     def shared(self) -> ChunkInputs:
@@ -348,6 +351,20 @@ def batched_actions(module: torch.nn.Module, params: dict[str, torch.Tensor], ob
     """Actions (B, act) of B policies (module with ``params`` row b) for observations (B, obs): one vmapped forward."""
     with torch.no_grad():
         return vmap(lambda p, o: functional_call(module, p, (o,)))(params, obs)
+
+
+def batched_recurrent_actions(module: torch.nn.Module, params: dict[str, torch.Tensor], obs: torch.Tensor,
+                              state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(actions (B, act), next states (B, hidden)) of B recurrent policies, ``module(obs, state) -> (action,
+    state)`` with ``params`` row b, for observations (B, obs) and their states (B, hidden): one vmapped forward."""
+    with torch.no_grad():
+        return vmap(lambda p, o, h: functional_call(module, p, (o, h)))(params, obs, state)
+
+
+def is_recurrent(module: torch.nn.Module) -> bool:
+    """True for a policy that carries a state: ``forward(x, state) -> (action, state)`` with
+    ``initial_state(batch)`` (an APG-family :class:`~hybridctl.learn.apg.ClosedLoopPolicy`)."""
+    return callable(getattr(module, "initial_state", None))
 
 
 # ----------------------------------------------------------------------------- one result format
@@ -654,15 +671,28 @@ def _run_mujoco_chunk(task: ChunkTask) -> list[dict]:
     return _chunk_results(task, history, returns, steps, terminated, finite, None)
 
 
-def _system_decision(system, gate: torch.nn.Module | None, device: torch.device
+COST_TO_GO_GATE = "cost-to-go"
+"""A chunk's gate that is the spec's LQR cost-to-go gate (:class:`~hybridctl.systems.control.CostToGoGate`,
+the APG family's takeover), built by each worker from its own system rather than shipped."""
+
+
+def _system_decision(system, gate: torch.nn.Module | str | None, device: torch.device,
+                     decision_period: float | None = None
                      ) -> tuple[Callable[[torch.Tensor, torch.Tensor, torch.Tensor], tuple], int, int]:
     """(decide, substeps, decisions per episode) of ``system``'s swing-up env: ``decide(x, u, mode)`` ->
     ``(x_next, diverged, mode)`` is one decision of :class:`~hybridctl.envs.TorchVectorEnv` (the action
-    held over the substeps) or, with SSAC's ``gate``, of :class:`~hybridctl.envs.SwitchedVectorEnv`
-    (gate + LQR inside, at the env's default K, thresholds and gate stride), on ``device``."""
+    held over the substeps) or, with a ``gate`` (SSAC's, or :data:`COST_TO_GO_GATE`), of
+    :class:`~hybridctl.envs.SwitchedVectorEnv` (gate + LQR inside, at the env's default K, thresholds
+    and gate stride: the Drake diagram's), on ``device``; a decision lasts ``decision_period`` (None:
+    the spec's swing-up period)."""
     from ..envs.single import advance, decision_schedule
     from ..envs.switched import switched_decision
-    _, substeps, decisions = decision_schedule(system, None)
+    from ..systems.control import CostToGoGate
+    _, substeps, decisions = decision_schedule(system, decision_period)
+    if isinstance(gate, str):
+        if gate != COST_TO_GO_GATE:
+            raise ValueError(f"a chunk's gate must be a torch module, {COST_TO_GO_GATE!r} or None, got {gate!r}")
+        gate = CostToGoGate(system).to(device)
     if gate is None:
         return (lambda x, u, mode: (*advance(system, x, u, substeps), mode)), substeps, decisions
     K = torch.as_tensor(system.lqr()[0], dtype=torch.float64, device=device)
@@ -679,7 +709,7 @@ def _system_decision(system, gate: torch.nn.Module | None, device: torch.device
 
 def _run_system_chunk(task: ChunkTask) -> list[dict]:
     """A hybridctl system's swing-up: the chunk's episodes on its batched torch dynamics (SSAC: gate + LQR
-    inside), on ``task.device``, the semantics of its :class:`~hybridctl.envs.TorchVectorEnv` (actions
+    inside; a recurrent policy's state starts at zero and is carried per episode), on ``task.device``, the semantics of its :class:`~hybridctl.envs.TorchVectorEnv` (actions
     clipped, reward 0 and the last finite state on divergence, truncation after the episode's decisions,
     the thesis success test on the last states of a truncated episode).
 
@@ -694,9 +724,12 @@ def _run_system_chunk(task: ChunkTask) -> list[dict]:
         check_device_available("the rollout device", device)
     system = load_system(task.system, **(task.system_overrides or {}))
     n = len(task.seeds)
-    gate = task.shared.gate.get().to(device) if task.shared.gate is not None else None
-    decide, _, decisions = _system_decision(system, gate, device)
+    gate = task.shared.gate
+    gate = gate.get().to(device) if isinstance(gate, Shipped) else gate
+    decide, _, decisions = _system_decision(system, gate, device, task.decision_period)
     module = task.module.to(device)
+    recurrent = is_recurrent(module)
+    hidden = module.initial_state(n).to(device) if recurrent else None
     dtype = next(module.parameters()).dtype
     params = unflatten(module, task.names, torch.as_tensor(task.thetas, dtype=torch.float64, device=device))
     x0 = np.concatenate([system.sample_initial_states(1, np.random.default_rng(int(s))) for s in task.seeds])
@@ -712,7 +745,11 @@ def _run_system_chunk(task: ChunkTask) -> list[dict]:
     bad_action = torch.zeros((), dtype=torch.bool, device=device)
     limit = system.action_limit
     for k in range(horizon):
-        u = batched_actions(module, params, x.to(dtype)).to(torch.float64)
+        if recurrent:
+            u, hidden = batched_recurrent_actions(module, params, x.to(dtype), hidden)
+            u = u.to(torch.float64)
+        else:
+            u = batched_actions(module, params, x.to(dtype)).to(torch.float64)
         bad_action |= ~torch.isfinite(u).all()
         x, diverged, mode = decide(x, u.clamp(-limit, limit), mode)
         reward = torch.where(diverged, 0.0, system.reward(x))
