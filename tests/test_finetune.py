@@ -323,7 +323,9 @@ def test_apg_source_rolls_out_what_apg_trains_recurrent_through_its_takeover(tin
                                               agent.substeps, agent.config.observation, takeover=agent.takeover)
             free, *_ = population_returns(agent.system, agent.policy().population, x0[None], horizon,
                                           agent.substeps, agent.config.observation)
-        for backend in (make_backend("serial"), make_backend("processes", workers=2)):
+        # worker processes once (the policy travels pickled, its system rebuilt there), where the GRU acts
+        backends = ("serial",) if gate_acts else ("serial", "processes")
+        for backend in (make_backend(name, workers=2) for name in backends):
             try:
                 got = t._rollouts(rows, seeds, backend, t._postprocessor(), max_steps=horizon)
             finally:
