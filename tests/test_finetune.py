@@ -362,3 +362,33 @@ def test_apg_source_needs_the_takeover_and_its_own_system(tmp_path):
         FineTune("cartpole", f"papg:{tmp_path / 'final'}")
     with pytest.raises(ValueError, match="trained on cartpole, not acrobot"):
         FineTune("acrobot", f"papg:{tmp_path / 'final'}")
+
+
+def test_a_fine_tuned_checkpoint_loads_from_any_working_folder(tmp_path, monkeypatch):
+    """Its source is recorded as given (e.g. models/policies/NAME, from the repository root): loading from
+    another folder finds it above the checkpoint (a committed record) or among the package's own models."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    t = FineTune("acrobot", SSAC, updates=1, n_directions=2, backend="serial", eval_episodes=2)
+    t.learn(out=tmp_path / "ft", progress=False)
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    outside = FineTune.load(tmp_path / "ft" / "final")          # the package's shipped model
+    assert outside.tunable.source == SSAC and np.array_equal(outside.theta, t.theta)
+    committed = FineTune.load(root / "results" / "matrix" / "finetune" / "ceapg-gru-acrobot" / "final")
+    assert committed.tunable.source == "ce-apg:models/policies/ceapg-gru-acrobot" and committed.update == 100
+    with pytest.raises(CheckpointError, match="no checkpoint directory at models/policies/nope"):
+        FineTune.load(_with_source(tmp_path / "ft" / "final", tmp_path / "broken", "ssac:models/policies/nope"))
+
+
+def _with_source(final, copy_to, source):
+    """A copy of the checkpoint ``final`` whose config.json names another source."""
+    import shutil
+
+    shutil.copytree(final, copy_to)
+    meta = json.loads((copy_to / "config.json").read_text())
+    meta["source"] = source
+    (copy_to / "config.json").write_text(json.dumps(meta))
+    return copy_to

@@ -603,5 +603,27 @@ class FineTune(RandomSearchLearner):
                                        f"got {type(source).__name__}")
         record = meta.get("system") if isinstance(meta.get("system"), dict) else {}
         env = system if system is not None else recorded_env_id(record.get("name"), file, "system.name")
+        if isinstance(source, str) and isinstance(env, str):
+            found_at = recorded_source_path(source, found)
+            if found_at != source:   # read from where it was found; the record keeps its own name for it
+                source = dataclasses.replace(load_policy(found_at, env, trust=trust), source=source)
         return cls(env, source, config, env_kwargs=recorded_env_kwargs(record.get("kwargs"), file,
                                                                        "system.kwargs"), trust=trust)
+
+
+def recorded_source_path(source: str, checkpoint: Path) -> str:
+    """A recorded ``KIND:PATH`` with a relative PATH made findable from any working folder: as it is
+    where it exists from here, else from the nearest folder above ``checkpoint`` that holds it (the
+    records name paths from the repository root), else the package's own shipped model
+    (``models/...``, also in an installed wheel); unchanged where none holds it (the error then names it)."""
+    from ..systems.spec import MODELS_DIR
+    kind, sep, path = str(source).partition(":")
+    relative = Path(path)
+    if not sep or not path or relative.is_absolute() or relative.exists():
+        return source
+    for folder in Path(checkpoint).resolve().parents:
+        if (folder / relative).exists():
+            return f"{kind}:{folder / relative}"
+    if relative.parts[:1] == ("models",) and (MODELS_DIR.parent / relative).exists():
+        return f"{kind}:{MODELS_DIR.parent / relative}"
+    return source
