@@ -18,11 +18,14 @@ def add_parser(sub) -> None:
     p = sub.add_parser("finetune", help="fine-tune a trained agent by direct policy search (thesis Ch. 6)",
                        description=__doc__ + "\n\nPolicies: sb3:PATH.zip (Stable-Baselines3 PPO, A2C, SAC, TD3, DDPG, "
                        "TQC; read without unpickling; normaliser from vecnormalize.npz beside it or --normalizer), "
-                       "ars:PATH, sac:PATH, ssac:PATH, and the APG family's ce-apg:PATH, papg:PATH, apg:PATH, cem:PATH, shapg:PATH "
+                       "ars:PATH, sac:PATH, ssac:PATH, and the APG family's ce-apg:PATH, papg:PATH, apg:PATH, "
+                       "cem:PATH, shapg:PATH "
                        "(hybridctl checkpoints; these need a system name as ENV; an APG-family swing-up is tuned "
                        "recurrent, inside the spec's cost-to-go gate and LQR, on its training's reward and starts).")
-    p.add_argument("env", help="gymnasium env id (e.g. Pendulum-v1, Hopper-v5) or a hybridctl system (sac/ssac/APG family)")
-    p.add_argument("--policy", required=True, metavar="KIND:PATH", help="the trained agent (sb3:, ars:, sac:, ssac:, ce-apg:, papg:, apg:, cem:, shapg:)")
+    p.add_argument("env", help="gymnasium env id (e.g. Pendulum-v1, Hopper-v5) or a hybridctl system "
+                                "(sac/ssac/APG family)")
+    p.add_argument("--policy", required=True, metavar="KIND:PATH",
+                   help="the trained agent (sb3:, ars:, sac:, ssac:, ce-apg:, papg:, apg:, cem:, shapg:)")
     p.add_argument("--reward", choices=KINDS, default=DEFAULTS.reward,
                    help="identity (plain return) or a dimension term, e.g. mesh-mean (eq. 6.1 / 6.2)")
     p.add_argument("--reward-form", choices=FORMS, default=DEFAULTS.reward_form,

@@ -37,7 +37,8 @@ CONTROLLERS = {
     "trajopt": "direct-collocation swing-up from hanging down tracked by Drake's time-varying LQR + cost-to-go "
                "gate (hysteresis) + LQR; any system, solved once and cached (Drake engine only)",
     "ssac:PATH": "learned swing-up + learned gate (hysteresis) + LQR from an SSAC checkpoint directory",
-    "finetune:PATH": "a fine-tuned sac/ssac/APG-family swing-up (hybridctl finetune's final/ checkpoint), with its gate and LQR",
+    "finetune:PATH": "a fine-tuned sac/ssac/APG-family swing-up (hybridctl finetune's final/ checkpoint), with its "
+                     "gate and LQR",
     "sac:PATH": "learned swing-up only from a SAC checkpoint directory (gate always off)",
     "ssac-costgate:PATH": "learned swing-up of an SSAC (or SAC) checkpoint + the spec's cost-to-go gate (hysteresis) "
                           "+ LQR, as the APG controllers; for a system whose learned gate does not fire",

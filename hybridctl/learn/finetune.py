@@ -60,8 +60,8 @@ from .random_search import RandomSearchLearner
 from .robustness import wilson_interval  # noqa: F401 (re-exported: hybridctl.learn.finetune.wilson_interval)
 from .apg import METHODS as APG_METHODS
 from .rollouts import (AUTO_CHUNK_MAX, AUTO_CHUNK_MAX_ACCELERATOR, COST_TO_GO_GATE, ChunkInputs,  # noqa: F401
-                       ChunkTask, Shipped, batched_actions, chunk_slices, is_recurrent, evaluation_seeds, make_env, normalise,
-                       recorded_env_id, recorded_env_kwargs, rollouts, run_chunk, unflatten)
+                       ChunkTask, Shipped, batched_actions, chunk_slices, evaluation_seeds, is_recurrent, make_env,
+                       normalise, recorded_env_id, recorded_env_kwargs, rollouts, run_chunk, unflatten)
 from .run import EvalResult
 from .config_check import check_device_field
 
@@ -382,7 +382,8 @@ class FineTune(RandomSearchLearner):
                             f"{type(policy).__name__}")
         if policy.system is None and torch.device(self.config.device).type != "cpu":
             raise ValueError(f"FineTuneConfig.device {self.config.device!r} applies to a hybridctl system's rollouts "
-                             f"(sac/ssac/APG-family sources, whose dynamics are torch); {self.env_name} steps on the host, so "
+                             f"(sac/ssac/APG-family sources, whose dynamics are torch); {self.env_name} steps on "
+                             f"the host, so "
                              f"its rollouts run on the CPU: leave device 'cpu'")
         self.tunable = policy
         self.tunable.module.eval()

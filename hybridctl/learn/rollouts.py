@@ -709,7 +709,8 @@ def _system_decision(system, gate: torch.nn.Module | str | None, device: torch.d
 
 def _run_system_chunk(task: ChunkTask) -> list[dict]:
     """A hybridctl system's swing-up: the chunk's episodes on its batched torch dynamics (SSAC: gate + LQR
-    inside; a recurrent policy's state starts at zero and is carried per episode), on ``task.device``, the semantics of its :class:`~hybridctl.envs.TorchVectorEnv` (actions
+    inside; a recurrent policy's state starts at zero and is carried per episode), on ``task.device``, the
+    semantics of its :class:`~hybridctl.envs.TorchVectorEnv` (actions
     clipped, reward 0 and the last finite state on divergence, truncation after the episode's decisions,
     the thesis success test on the last states of a truncated episode).
 
