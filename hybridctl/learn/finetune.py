@@ -341,7 +341,8 @@ class FineTune(RandomSearchLearner):
 
     Args:
         env: a gymnasium env id (or a hybridctl system name for sac/ssac/APG-family sources), or a factory.
-        policy: a source string ("sb3:PATH", "ars:PATH", "sac:PATH", "ssac:PATH"), a
+        policy: a source string ("sb3:PATH", "ars:PATH", "sac:PATH", "ssac:PATH", or an APG family's
+            "ce-apg:PATH", "papg:PATH", ...: recurrent, see :func:`load_policy`), a
             :class:`TunablePolicy`, or an ``nn.Module`` mapping observations to actions.
         config: :class:`FineTuneConfig` (the thesis' single setting by default); ``overrides``
             replace its fields.
