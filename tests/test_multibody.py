@@ -415,3 +415,22 @@ def test_the_shipped_furuta_swing_up_balances_from_hanging_down_in_drake(tmp_pat
     assert summary["balanced"] is True and 1.0 < summary["first_balance_time"] < 6.0, summary
     with pytest.raises(CheckpointError, match="gate.cost_scale"):   # its own learned gate reads the scale
         simulate_and_write(system, f"ssac:{shipped}", out=tmp_path / "learned-gate", html=False)
+
+
+def test_a_robot_from_its_file_pickles_and_refuses_a_changed_file(rng, tmp_path):
+    import pickle
+    chain = systems.load("cartpole")
+    sdf = tmp_path / "cartpole.sdf"
+    sdf.write_text(render_model(chain))
+    model = systems.from_drake(str(sdf), goal=chain.goal, Q=chain.Q, R=chain.R, gravity=9.81,
+                               action_limit=chain.action_limit)
+    data = pickle.dumps(model)
+    X, U = _random(model, rng)
+    again = pickle.loads(data)
+    np.testing.assert_array_equal(again.derivatives(torch.tensor(X), torch.tensor(U)).numpy(),
+                                  model.derivatives(torch.tensor(X), torch.tensor(U)).numpy())
+    with pytest.warns(UserWarning, match="changes the physics"):
+        heavier = systems.load("cartpole", cart_mass=2.0)
+    sdf.write_text(render_model(heavier))                   # another plant in the same file
+    with pytest.raises(ValueError, match="changed since the system was pickled"):
+        pickle.loads(data)

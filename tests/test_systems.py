@@ -364,3 +364,16 @@ def test_two_loads_of_a_multibody_system_share_their_generated_step():
     first, second = systems.load("furuta"), systems.load("furuta")
     assert first.dynamics.generate_torch_step(first.dt, first.integrator) is \
         second.dynamics.generate_torch_step(second.dt, second.integrator)
+
+
+def test_a_system_pickles_as_its_spec_and_steps_alike():
+    import copy
+    import pickle
+    system = systems.load("double_cartpole", dt=0.0025)
+    again = pickle.loads(pickle.dumps(system))
+    assert again is not system and again.dt == 0.0025 and again.spec.overrides == {"dt": 0.0025}
+    x = torch.rand(5, system.n_states, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    u = torch.linspace(-50, 50, 5, dtype=torch.float64)[:, None]
+    torch.testing.assert_close(again.step(x, u), system.step(x, u), rtol=0, atol=0)
+    np.testing.assert_array_equal(again.lqr()[0], system.lqr()[0])
+    assert copy.deepcopy(system) is system                  # shared, never copied: it does not change

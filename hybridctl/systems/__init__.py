@@ -82,6 +82,11 @@ class System:
     Typed spec sections: ``gate`` (:class:`GateSection`: on, off, cost_scale,
     label_horizon, warm_near, warm_far), ``success`` (eps, lookback),
     ``initial_state`` (nominal, low, high) and ``swingup`` (controller, gains).
+
+    A System pickles as its spec (plain values, sources, path and overrides) and is rebuilt where it
+    is unpickled (a worker process, a Ray task): its generated dynamics do not pickle. A multibody
+    system is rebuilt from its model file, which must still hold the same bytes there.
+    ``copy.deepcopy`` shares a System rather than copying it: nothing changes one after it is built.
     """
 
     def __init__(self, spec: Spec):
@@ -178,6 +183,12 @@ class System:
                       f"under the hold (hybridctl simulate {self.name} --controller lqr --x0=... near the goal) and "
                       f"rescale the gate (hybridctl.systems.control.lqr_basin_level; docs: Bring your own robot)",
                       UserWarning, stacklevel=4)
+
+    def __reduce__(self):
+        return (_rebuild_system, (self.spec,))
+
+    def __deepcopy__(self, memo: dict) -> "System":
+        return self
 
     def _load_multibody(self) -> None:
         """Read the model file through Drake (or the cache), fill the spec's defaults from it
@@ -616,6 +627,18 @@ class System:
         return (f"{self.name} ({where}): no LQR about the goal with these parameters ({reason}); "
                 f"check the spec's params (gravity, masses, lengths, inertias) and lqr.Q / lqr.R "
                 f"(Q must weigh every unstable state, e.g. the spec's default)")
+
+
+def _rebuild_system(spec: Spec) -> System:
+    """The System an unpickled spec describes (:meth:`System.__reduce__`). A multibody spec records its
+    model file's sha256: a file that changed since is refused, naming it, rather than giving another plant."""
+    recorded = spec.values.get("model.file_sha256")
+    system = System(spec)
+    found = system.spec.values.get("model.file_sha256")
+    if recorded is not None and found != recorded:
+        raise ValueError(f"{spec.name}: its model file {spec.get('model.file')} changed since the system was "
+                         f"pickled (sha256 {recorded[:12]}... then, {str(found)[:12]}... now)")
+    return system
 
 
 def multibody_request(spec: Spec):

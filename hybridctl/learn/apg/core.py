@@ -20,9 +20,7 @@ from __future__ import annotations
 
 import copy
 import math
-import pickle
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Callable, NamedTuple
 
 import numpy as np
@@ -307,33 +305,6 @@ class ClosedLoopPolicy(torch.nn.Module):
     def initial_state(self, batch: int = 1) -> torch.Tensor:
         """Zero recurrent state [batch, hidden]."""
         return self.policy.initial_state(batch)
-
-    def __getstate__(self) -> dict:
-        # a System holds generated functions that do not pickle: it travels as its spec file and
-        # overrides (what a worker process rebuilds it from, as the rollouts rebuild theirs)
-        state = self.__dict__.copy()
-        spec = self.system.spec
-        if Path(spec.path).suffix != ".toml" or not Path(spec.path).is_file():
-            raise pickle.PicklingError(f"a ClosedLoopPolicy of {self.system.name} pickles only for a system read "
-                                       f"from a spec file (systems/NAME.toml); this one came from {spec.path}")
-        state["system"] = (str(spec.path), dict(spec.overrides))
-        return state
-
-    def __deepcopy__(self, memo: dict) -> "ClosedLoopPolicy":
-        # a copy shares the system (built from its spec, never changed) and copies the rest
-        new = self.__class__.__new__(self.__class__)
-        memo[id(self)] = new
-        memo[id(self.system)] = self.system
-        for key, value in self.__dict__.items():
-            new.__dict__[key] = copy.deepcopy(value, memo)
-        return new
-
-    def __setstate__(self, state: dict) -> None:
-        from ...systems import load
-        if isinstance(state.get("system"), tuple):
-            path, overrides = state["system"]
-            state = {**state, "system": load(path, **overrides)}
-        super().__setstate__(state)
 
     def forward(self, x: torch.Tensor, state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Action and next recurrent state for raw states x (moved to the policy's dtype and device)."""
