@@ -377,3 +377,4 @@ def test_a_system_pickles_as_its_spec_and_steps_alike():
     torch.testing.assert_close(again.step(x, u), system.step(x, u), rtol=0, atol=0)
     np.testing.assert_array_equal(again.lqr()[0], system.lqr()[0])
     assert copy.deepcopy(system) is system                  # shared, never copied: it does not change
+    assert copy.copy(system) is system

@@ -86,7 +86,7 @@ class System:
     A System pickles as its spec (plain values, sources, path and overrides) and is rebuilt where it
     is unpickled (a worker process, a Ray task): its generated dynamics do not pickle. A multibody
     system is rebuilt from its model file, which must still hold the same bytes there.
-    ``copy.deepcopy`` shares a System rather than copying it: nothing changes one after it is built.
+    ``copy.copy`` and ``copy.deepcopy`` share a System rather than copying it: nothing changes one after it is built.
     """
 
     def __init__(self, spec: Spec):
@@ -186,6 +186,10 @@ class System:
 
     def __reduce__(self):
         return (_rebuild_system, (self.spec,))
+
+    def __copy__(self) -> "System":
+        # without it copy.copy would go through __reduce__ and rebuild the system on the same spec object
+        return self
 
     def __deepcopy__(self, memo: dict) -> "System":
         return self
