@@ -95,6 +95,14 @@ def test_ch7_rewards_from_upright_and_the_smooth_option():
     y = author.goal.copy()
     y[0], y[4] = 0.5, 2.0
     assert math.isclose(float(author.reward(y)), 10 - 0.25 - 0.01 * 4)
+    # the cart-speed term (hybridctl's): weight 0.5 on the cart's 2 m/s; the angle rates keep their own penalty
+    resting = systems.load("double_cartpole", reward__kind="angle_squared", linear_velocity_weight=0.5)
+    z = resting.goal.copy()
+    z[3], z[4] = 2.0, 3.0
+    assert math.isclose(float(resting.reward(z)), -0.5 * 4)
+    assert math.isclose(float(resting.reward(torch.as_tensor(z))), -0.5 * 4)
+    through_config = APG._system("double_cartpole", APGConfig(reward_kind="angle_cosine", linear_velocity_weight=0.5))
+    assert through_config.reward_linear_velocity_weight == 0.5
     tip = systems.load("double_cartpole", reward__kind="tip_distance", alive_bonus=10.0)
     assert float(tip.reward(tip.goal)) == 10.0
     assert math.isclose(float(tip.reward(tip.initial_state.nominal)), 10 - (2 * 1.25) ** 2)
@@ -104,6 +112,8 @@ def test_ch7_rewards_from_upright_and_the_smooth_option():
         systems.load("acrobot", reward__kind="nope")
     with pytest.raises(systems.SpecError, match="velocity_penalty.*>= 0"):
         systems.load("acrobot", velocity_penalty=-0.01)
+    with pytest.raises(systems.SpecError, match="linear_velocity_weight.*>= 0"):
+        systems.load("double_cartpole", linear_velocity_weight=-1.0)
     with pytest.raises(ValueError, match="APGConfig.reward_kind must be one of"):
         APGConfig(reward_kind="tip_height").validate()
 

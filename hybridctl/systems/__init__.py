@@ -135,6 +135,8 @@ class System:
                                                       OPTIONAL_DEFAULTS["reward.velocity_penalty"]))
         self.reward_position_weight = float(spec.get("reward.position_weight",
                                                      OPTIONAL_DEFAULTS["reward.position_weight"]))
+        self.reward_linear_velocity_weight = float(spec.get("reward.linear_velocity_weight",
+                                                            OPTIONAL_DEFAULTS["reward.linear_velocity_weight"]))
         # upright_centered settings (optional keys): Gaussian widths of the cart's distance and speed
         self.reward_position_scale = float(spec.get("reward.position_scale",
                                                     OPTIONAL_DEFAULTS["reward.position_scale"]))
@@ -461,15 +463,21 @@ class System:
 
         Angles phi are ``state_error``'s (wrapped, measured from upright; relative joint
         angles as the state holds them); dphi their velocities; p the non-angle positions
-        (a cart's x). With b = ``reward.alive_bonus``, c = ``reward.velocity_penalty``,
-        w = ``reward.position_weight`` (all 0 unless set):
+        (a cart's x) and dp their velocities. With b = ``reward.alive_bonus``,
+        c = ``reward.velocity_penalty``, w = ``reward.position_weight``,
+        v = ``reward.linear_velocity_weight`` (all 0 unless set):
 
-        * ``angle_squared``: b - sum phi^2 - w sum p^2 - c sum dphi^2. With b = c = w = 0
+        * ``angle_squared``: b - sum phi^2 - w sum p^2 - v sum dp^2 - c sum dphi^2. With b = c = w = 0
           it is the thesis' acrobot -phi1^2 - phi2^2 (Sec. 7.2.3) and cart-pole -phi^2
           (Sec. 7.2.4); the author's acrobot is b = 10, c = 0.01, his double cart-pole
           b = 10, w = 1, c = 0.01 (implementation notes Ch. 7). -phi^2 jumps at phi = +-pi.
         * ``angle_cosine``: the smooth option, 2 (1 - cos phi) in place of phi^2 (equal to
           second order at upright, no jump at +-pi).
+
+        v is hybridctl's (the thesis and the author penalise only angle rates): a swing-up
+        handed to the LQR by the cost-to-go gate must bring the cart to rest, and a cart
+        that drifts at 1 m/s is, for the double cart-pole's gate, a cost-to-go above the
+        switch-on level by itself.
         * ``tip_distance``: thesis eqs. 7.5-7.7: b - (0.05 x_tip^2 + (y_tip - y_des)^2) -
           c sum dphi^2, the distal tip's position (x_tip: horizontal, with the cart;
           y_tip: height above the pivot; y_des: its upright height). Eq. 7.6's alive bonus
@@ -494,8 +502,9 @@ class System:
         else:
             cost = (phi * phi).sum(-1)
         if linear:
-            p = err[..., linear]
-            cost = cost + self.reward_position_weight * (p * p).sum(-1)
+            p, dp = err[..., linear], err[..., [n_q + i for i in linear]]
+            cost = cost + self.reward_position_weight * (p * p).sum(-1) \
+                + self.reward_linear_velocity_weight * (dp * dp).sum(-1)
         return self.reward_alive_bonus - cost - penalty
 
     def sample_initial_states(self, n: int, generator: np.random.Generator | None = None) -> np.ndarray:
