@@ -365,6 +365,38 @@ def test_cli_trains_and_resumes_ce_apg(tmp_path):
     assert "stabilised" in second.stdout
 
 
+def test_init_goes_on_from_another_runs_policy_under_another_reward_with_force(tmp_path, capsys):
+    """``--init``: the first run's policy, normalisation, settings and counters go on (--epochs is the total;
+    flags change settings); a changed reward is refused without --force; the best policy is chosen anew under the new reward (the
+    first run's best score, with an alive bonus of 10 per step, would otherwise stay the best)."""
+    import json
+
+    from hybridctl.cli import main
+    from hybridctl.learn.apg import APG as Loaded
+
+    first, second = tmp_path / "first", tmp_path / "second"
+    small = ["--preset", "reduced", "--apg-iterations", "1", "--horizon", "5", "--population", "3", "--elites", "2",
+             "--eval-episodes", "1", "--quiet"]
+    assert main(["train", "ce-apg", "cartpole", *small, "--alive-bonus", "10", "--epochs", "1", "--out", str(first)]) == 0
+    again = ["train", "ce-apg", "cartpole", *small, "--init", str(first / "final"), "--alive-bonus", "0",
+             "--linear-velocity-weight", "0.5", "--epochs", "3", "--out", str(second)]
+    with pytest.raises(SystemExit) as refused:
+        main(again)
+    assert refused.value.code == 2 and "reward." in str(refused.value) and "--force" in str(refused.value)
+    assert not (second / "final").exists()
+    assert main(again + ["--force"]) == 0
+    record = json.loads((second / "eval.json").read_text())
+    assert record["epochs"] == 3 and record["env_steps"] == 3 * 3 * 4 * 5
+    tuned = Loaded.load(second / "final", force=True)
+    assert tuned.config.linear_velocity_weight == 0.5 and tuned.config.alive_bonus == 0.0
+    assert tuned.system.reward_linear_velocity_weight == 0.5
+    rows = (second / "progress.csv").read_text().splitlines()
+    header = rows[0].split(",")
+    best = max(float(r.split(",")[header.index("best_return")]) for r in rows[1:])
+    assert [int(r.split(",")[0]) for r in rows[1:]] == [2, 3]
+    assert record["best_training_return"] == pytest.approx(best) and best < 0   # no alive bonus: every return < 0
+
+
 @pytest.mark.slow
 def test_compiled_step_gives_the_eager_gradients():
     """torch.compile of the per-step work (about 30 s to compile here): the same gradients."""

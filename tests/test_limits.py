@@ -60,7 +60,7 @@ CLI_CASES = [
     # items 5-6: a Ray address with a local backend, flag abbreviations
     (["train", "ars", "Pendulum-v1", "--address", "auto"],
      r"ARSConfig.address \(--address\) applies to backend 'ray' only, not 'processes'"),
-    (["train", "ce-apg", "acrobot", "--init", "0.5"], r"unrecognized arguments: --init 0.5"),
+    (["train", "ce-apg", "acrobot", "--init-s", "0.5"], r"unrecognized arguments: --init-s 0.5"),
     (["train", "ce-apg", "acrobot", "--over"], r"unrecognized arguments: --over"),
     (["simulate", "acrobot", "--dur", "5"], r"unrecognized arguments: --dur 5"),
     (["balance-map", "acrobot", "--eng", "torch"], r"unrecognized arguments: --eng torch"),

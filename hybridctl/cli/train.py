@@ -287,8 +287,8 @@ def _unknown_flag_hint(algorithm: str, options: dict[str, set[str]]) -> Callable
 
 
 def add_common_flags(parser: argparse.ArgumentParser, algorithm: str) -> set[str]:
-    """The run flags every learner takes, plus ``--variant`` (ssac) and ``--init`` (ars); return their
-    option strings."""
+    """The run flags every learner takes, plus ``--variant`` (ssac) and ``--init`` (ARS, the APG family);
+    return their option strings."""
     run = parser.add_argument_group("run")
     actions = [
         run.add_argument("--out", metavar="DIR", help="run folder (default runs/train/ALGO-SYSTEM-sSEED; a new run beside an earlier one of the same settings gets -2, -3, ...; --resume and --overwrite take the newest)"),
@@ -297,7 +297,7 @@ def add_common_flags(parser: argparse.ArgumentParser, algorithm: str) -> set[str
         run.add_argument("--force", action="store_true",
                          help="with --resume: continue despite another algorithm or plant (spec values), changed "
                               "math settings, or a missing/damaged replay.pt or gate_data.pt (each is reported); "
-                              "with --init: start from another env's checkpoint"),
+                              "with --init: start from another env's checkpoint, or another plant's or reward's"),
         run.add_argument("--overwrite", action="store_true",
                          help="replace the run the --out folder holds (without it, or --resume, such a folder is "
                               "refused)"),
@@ -323,10 +323,11 @@ def add_common_flags(parser: argparse.ArgumentParser, algorithm: str) -> set[str
             "--preset", choices=APG_PRESETS, default=None,
             help="settings: the thesis' (Sec. 7.3.7) or 'reduced' (trains in minutes; see APGConfig.preset); "
                  "field flags change the chosen preset (default: thesis; with --resume: the run's)"))
-    if algorithm == "ars":
+    if ALGORITHMS[algorithm].warm_starts:
         actions.append(run.add_argument(
-            "--init", metavar="CHECKPOINT", help="start from this checkpoint's policy and normalisation (the "
-            "thesis trains 750 identity epochs, then 250 with post-processing)"))
+            "--init", metavar="CHECKPOINT", help="start from this checkpoint's policy and normalisation; its "
+            "counters go on, so --epochs is the total (ARS: the thesis trains 750 identity epochs, then 250 with "
+            "post-processing; APG family: --force to go on under another reward)"))
     add_quiet_flag(run)
     add_debug_flag(run)
     options = {s for action in actions for s in action.option_strings}

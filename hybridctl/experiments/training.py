@@ -299,8 +299,9 @@ def train_and_evaluate(algorithm: str, system: str, out: str | Path | None = Non
         resume: continue from the run folder's newest checkpoint (a new run when it has none);
             a checkpoint of another algorithm or plant, or an incomplete or damaged one (also a
             missing replay.pt / gate_data.pt), refuses naming what differs or the file.
-        init: ARS only: start from this checkpoint's policy and normalisation (the thesis trains
-            750 identity epochs, then 250 with post-processing).
+        init: ARS and the APG family: start from this checkpoint's policy and normalisation (the
+            thesis trains ARS 750 identity epochs, then 250 with post-processing); its counters go on,
+            so the budget is the total. A checkpoint of another plant or reward needs ``force``.
         eval_episodes: deterministic episodes in ``eval.json`` (default SAC/SSAC 100, ARS the
             config's ``eval_episodes``).
         command: the command line, recorded in ``eval.json``.
@@ -374,6 +375,7 @@ def _starting_learner(algo, algorithm: str, system: str, target, system_name: st
         report(f"--resume: no checkpoint under {out}; starting a new run")
     if init is not None:
         agent = algo.load(init, system=system, force=force, **settings)
+        agent.warm_started()
         report(f"starting from {init} ({agent.log_key} {agent.progress_count}); training to "
                f"{getattr(agent.config, agent.budget_field)} {agent.unit}s")
         return agent

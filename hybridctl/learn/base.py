@@ -217,6 +217,10 @@ class Learner:
     def after_restore(self, found: Path, meta: dict, bulky: bool) -> None:
         """Hook: after the declared state was restored (e.g. restart the env's episodes)."""
 
+    def warm_started(self) -> None:
+        """Hook: this learner was loaded from another run's checkpoint to train on (``--init``), perhaps
+        on another reward: forget what only held for that run's task (a best score it was ranked by)."""
+
     def plot_curves(self, log: RunLog) -> None:
         """Hook: write training curves into the log folder (default: none)."""
 

@@ -61,6 +61,7 @@ class APGFamily(Learner):
     algorithm_name = "APG"          # every method's checkpoints: algorithm "APG", the method in config.json
     config_class = APGConfig
     budget_field, unit, uses_backend = "epochs", "epoch", True
+    warm_starts = True              # --init: go on from another run's policy, e.g. with another reward
     log_key = "epoch"
     log_columns = ("epoch", "iterations", "env_steps", "physics_steps", "lr", "mean_return", "best_return",
                    "elite_score", "grad_norm", "nan_grads", "large_grads", "diverged", "sigma", "wall_time",
@@ -329,6 +330,12 @@ class APGFamily(Learner):
         return out
 
     # ------------------------------------------------------------------ checkpoints
+    def warm_started(self) -> None:
+        """Started from another run's checkpoint (``--init``): its best score was a return under that run's
+        reward, so the best policy is chosen anew from this run's epochs (policy, normalisation, Adam's
+        moments and the counters carry over: interactions count from the first run)."""
+        self.best_score = -math.inf
+
     def checkpoint_extra(self) -> dict:
         """config.json beside algorithm, system (its record, the config's reward settings among its
         overrides) and config: the method, the policy's architecture, substeps and control period."""
