@@ -101,8 +101,20 @@ def test_ch7_rewards_from_upright_and_the_smooth_option():
     z[3], z[4] = 2.0, 3.0
     assert math.isclose(float(resting.reward(z)), -0.5 * 4)
     assert math.isclose(float(resting.reward(torch.as_tensor(z))), -0.5 * 4)
-    through_config = APG._system("double_cartpole", APGConfig(reward_kind="angle_cosine", linear_velocity_weight=0.5))
-    assert through_config.reward_linear_velocity_weight == 0.5
+    through_config = APG._system("double_cartpole", APGConfig(reward_kind="angle_cosine", linear_velocity_weight=0.5,
+                                                              cost_to_go_weight=2.0))
+    assert through_config.reward_linear_velocity_weight == 0.5 and through_config.reward_cost_to_go_weight == 2.0
+    # the gate's measure: k log(1 + e' S e / scale), 0 at the goal, the same on numpy and torch (float32 too)
+    shaped = systems.load("double_cartpole", reward__kind="angle_squared", cost_to_go_weight=2.0)
+    S, scale = shaped.lqr()[1], shaped.gate.cost_scale
+    w = shaped.goal.copy()
+    w[0], w[3] = 0.3, 1.0
+    e = shaped.state_error(w)
+    expected = -2.0 * math.log1p(float(e @ S @ e) / scale)
+    assert float(shaped.reward(shaped.goal)) == 0.0
+    assert math.isclose(float(shaped.reward(w)), expected, rel_tol=1e-12)
+    assert math.isclose(float(shaped.reward(torch.as_tensor(w))), expected, rel_tol=1e-12)
+    assert math.isclose(float(shaped.reward(torch.as_tensor(w, dtype=torch.float32))), expected, rel_tol=1e-5)
     tip = systems.load("double_cartpole", reward__kind="tip_distance", alive_bonus=10.0)
     assert float(tip.reward(tip.goal)) == 10.0
     assert math.isclose(float(tip.reward(tip.initial_state.nominal)), 10 - (2 * 1.25) ** 2)
@@ -114,6 +126,8 @@ def test_ch7_rewards_from_upright_and_the_smooth_option():
         systems.load("acrobot", velocity_penalty=-0.01)
     with pytest.raises(systems.SpecError, match="linear_velocity_weight.*>= 0"):
         systems.load("double_cartpole", linear_velocity_weight=-1.0)
+    with pytest.raises(ValueError, match="cost_to_go_weight"):
+        APGConfig(cost_to_go_weight=-1.0).validate()
     with pytest.raises(ValueError, match="APGConfig.reward_kind must be one of"):
         APGConfig(reward_kind="tip_height").validate()
 
@@ -366,9 +380,10 @@ def test_cli_trains_and_resumes_ce_apg(tmp_path):
 
 
 def test_init_goes_on_from_another_runs_policy_under_another_reward_with_force(tmp_path, capsys):
-    """``--init``: the first run's policy, normalisation, settings and counters go on (--epochs is the total;
-    flags change settings); a changed reward is refused without --force; the best policy is chosen anew under the new reward (the
-    first run's best score, with an alive bonus of 10 per step, would otherwise stay the best)."""
+    """``--init``: the first run's policy, normalisation, settings and counters go on (--epochs is the
+    total; flags change settings); a changed reward is refused without --force; the best policy is
+    chosen anew under the new reward (the first run's best score, with an alive bonus of 10 per step,
+    would otherwise stay the best)."""
     import json
 
     from hybridctl.cli import main
@@ -377,7 +392,8 @@ def test_init_goes_on_from_another_runs_policy_under_another_reward_with_force(t
     first, second = tmp_path / "first", tmp_path / "second"
     small = ["--preset", "reduced", "--apg-iterations", "1", "--horizon", "5", "--population", "3", "--elites", "2",
              "--eval-episodes", "1", "--quiet"]
-    assert main(["train", "ce-apg", "cartpole", *small, "--alive-bonus", "10", "--epochs", "1", "--out", str(first)]) == 0
+    assert main(["train", "ce-apg", "cartpole", *small, "--alive-bonus", "10", "--epochs", "1",
+                 "--out", str(first)]) == 0
     again = ["train", "ce-apg", "cartpole", *small, "--init", str(first / "final"), "--alive-bonus", "0",
              "--linear-velocity-weight", "0.5", "--epochs", "3", "--out", str(second)]
     with pytest.raises(SystemExit) as refused:

@@ -137,6 +137,9 @@ class System:
                                                      OPTIONAL_DEFAULTS["reward.position_weight"]))
         self.reward_linear_velocity_weight = float(spec.get("reward.linear_velocity_weight",
                                                             OPTIONAL_DEFAULTS["reward.linear_velocity_weight"]))
+        self.reward_cost_to_go_weight = float(spec.get("reward.cost_to_go_weight",
+                                                       OPTIONAL_DEFAULTS["reward.cost_to_go_weight"]))
+        self._reward_S: dict = {}   # (dtype, device) -> the LQR's S as a tensor, for reward.cost_to_go_weight
         # upright_centered settings (optional keys): Gaussian widths of the cart's distance and speed
         self.reward_position_scale = float(spec.get("reward.position_scale",
                                                     OPTIONAL_DEFAULTS["reward.position_scale"]))
@@ -465,7 +468,7 @@ class System:
         angles as the state holds them); dphi their velocities; p the non-angle positions
         (a cart's x) and dp their velocities. With b = ``reward.alive_bonus``,
         c = ``reward.velocity_penalty``, w = ``reward.position_weight``,
-        v = ``reward.linear_velocity_weight`` (all 0 unless set):
+        v = ``reward.linear_velocity_weight``, k = ``reward.cost_to_go_weight`` (all 0 unless set):
 
         * ``angle_squared``: b - sum phi^2 - w sum p^2 - v sum dp^2 - c sum dphi^2. With b = c = w = 0
           it is the thesis' acrobot -phi1^2 - phi2^2 (Sec. 7.2.3) and cart-pole -phi^2
@@ -477,7 +480,10 @@ class System:
         v is hybridctl's (the thesis and the author penalise only angle rates): a swing-up
         handed to the LQR by the cost-to-go gate must bring the cart to rest, and a cart
         that drifts at 1 m/s is, for the double cart-pole's gate, a cost-to-go above the
-        switch-on level by itself.
+        switch-on level by itself. k (hybridctl's too) subtracts k log(1 + e' S e / s), with S the
+        spec's LQR cost-to-go matrix and s = ``gate.cost_scale``: the cost-to-go gate's own measure,
+        flat (log) far from the goal, so it pulls a state that is nearly up into the gate's region,
+        cart position and speed weighed as the LQR weighs them. v applies to the angle kinds, k to all three.
         * ``tip_distance``: thesis eqs. 7.5-7.7: b - (0.05 x_tip^2 + (y_tip - y_des)^2) -
           c sum dphi^2, the distal tip's position (x_tip: horizontal, with the cart;
           y_tip: height above the pivot; y_des: its upright height). Eq. 7.6's alive bonus
@@ -493,6 +499,8 @@ class System:
         linear = [i for i in range(n_q) if i not in angles]
         phi, dphi = err[..., angles], err[..., [n_q + i for i in angles]]
         penalty = self.reward_velocity_penalty * (dphi * dphi).sum(-1)
+        if self.reward_cost_to_go_weight:
+            penalty = penalty + self.reward_cost_to_go_weight * self._log_cost_to_go(err)
         if self.reward_kind == "tip_distance":
             x_tip, y_tip = self.dynamics.tip_position(x)
             distance = 0.05 * x_tip * x_tip + (y_tip - float(self.chain.link_length.sum())) ** 2
@@ -506,6 +514,16 @@ class System:
             cost = cost + self.reward_position_weight * (p * p).sum(-1) \
                 + self.reward_linear_velocity_weight * (dp * dp).sum(-1)
         return self.reward_alive_bonus - cost - penalty
+
+    def _log_cost_to_go(self, err):
+        """log(1 + e' S e / gate.cost_scale) of state errors ``err`` (numpy or torch), S the spec's LQR's."""
+        scale = self.gate.cost_scale
+        if not isinstance(err, torch.Tensor):
+            return np.log1p(control.cost_to_go(err, self.lqr()[1]) / scale)
+        key = (err.dtype, err.device)
+        if key not in self._reward_S:
+            self._reward_S[key] = torch.as_tensor(self.lqr()[1], dtype=err.dtype, device=err.device)
+        return torch.log1p(control.cost_to_go(err, self._reward_S[key]) / scale)
 
     def sample_initial_states(self, n: int, generator: np.random.Generator | None = None) -> np.ndarray:
         """n initial states from the spec's uniform distribution (nominal + U(low, high))."""

@@ -36,11 +36,11 @@ REWARD_KINDS = ("tip_height", "quadratic", "tip_height_centered", "upright_cente
 # reward.speed_scale (> 0; default 1 m and 1 m/s)
 CENTERED_REWARD_SETTINGS = ("reward.position_scale", "reward.speed_scale")
 # thesis Ch. 7 (analytic policy gradients): see System.reward; their settings reward.alive_bonus,
-# reward.velocity_penalty, reward.position_weight and reward.linear_velocity_weight are optional (default 0)
-# and >= 0
+# reward.velocity_penalty, reward.position_weight, reward.linear_velocity_weight and reward.cost_to_go_weight
+# are optional (default 0) and >= 0
 CH7_REWARD_KINDS = ("angle_squared", "angle_cosine", "tip_distance")
 CH7_REWARD_SETTINGS = ("reward.alive_bonus", "reward.velocity_penalty", "reward.position_weight",
-                       "reward.linear_velocity_weight")
+                       "reward.linear_velocity_weight", "reward.cost_to_go_weight")
 REWARD_KINDS = REWARD_KINDS + CH7_REWARD_KINDS
 
 SYSTEM_NAME = re.compile(r"[a-z0-9][a-z0-9_-]{0,63}")
@@ -504,6 +504,7 @@ OPTIONAL_DEFAULTS = {
     "reward.velocity_penalty": 0.0,
     "reward.position_weight": 0.0,
     "reward.linear_velocity_weight": 0.0,
+    "reward.cost_to_go_weight": 0.0,
     "reward.position_scale": 1.0,     # upright_centered settings (m, m/s)
     "reward.speed_scale": 1.0,
 }

@@ -47,6 +47,7 @@ class APGConfig:
     velocity_penalty: float = 0.0      # reward.velocity_penalty; author's acrobot / double cart-pole: 0.01
     position_weight: float = 0.0       # reward.position_weight (cart x^2); author's double cart-pole: 1
     linear_velocity_weight: float = 0.0  # reward.linear_velocity_weight (cart speed^2); hybridctl, not the thesis'
+    cost_to_go_weight: float = 0.0     # reward.cost_to_go_weight (k log(1 + LQR cost-to-go / gate scale)); hybridctl
     horizon: int = 500                 # T policy steps per episode, thesis Sec. 7.3.4 ("at least 500 steps")
     control_period: float | None = None  # s per policy step; None: the spec's control.swingup_period
     start_noise: float | None = 0.01   # starts hanging down +- U(-0.01, 0.01) per state, author's envs
@@ -154,7 +155,7 @@ class APGConfig:
             if not 0.0 <= getattr(self, name) < 1.0:
                 raise ValueError(f"APGConfig.{name} must be in [0, 1), got {getattr(self, name)!r}")
         check_fields(self, non_negative=("init_std", "alive_bonus", "velocity_penalty", "position_weight",
-                                          "linear_velocity_weight"))
+                                          "linear_velocity_weight", "cost_to_go_weight"))
         for name in ("truncation", "clip", "control_period", "start_noise"):
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0):

@@ -147,7 +147,8 @@ class APGFamily(Learner):
         reward = {"reward__kind": cfg.reward_kind, "reward__alive_bonus": float(cfg.alive_bonus),
                   "reward__velocity_penalty": float(cfg.velocity_penalty),
                   "reward__position_weight": float(cfg.position_weight),
-                  "reward__linear_velocity_weight": float(cfg.linear_velocity_weight)}
+                  "reward__linear_velocity_weight": float(cfg.linear_velocity_weight),
+                  "reward__cost_to_go_weight": float(cfg.cost_to_go_weight)}
         if isinstance(system, System):
             base = system.name if system.name in known_systems() else str(system.spec.path)
             return systems_mod.load(base, **{**system.spec.overrides, **reward})
