@@ -140,3 +140,24 @@ def test_shipped_ssac_cartpole_reproduces_its_evaluation_and_balances_from_hangi
     cartpole = systems.load("cartpole")                    # the deployed plant: the spec's own reward and starts
     traj = drake.simulate(experiments.build_named_diagram(cartpole, f"ssac:{path}"), np.zeros(4), duration=10.0)
     assert traj.balanced and bool(np.asarray(traj.gate)[-1])   # balanced, with the LQR in control at the end
+
+
+def test_shipped_shapg_double_cartpole_balances_from_hanging_down_in_drake():
+    """The short-horizon APG GRU swing-up of the double cart-pole (trained through the LQR takeover, the
+    gate's cost-to-go as a reward term): in the Drake diagram with the spec's cost-to-go gate and Drake's
+    LQR it swings both poles up from hanging down and balances, the LQR in control from within 5 s;
+    its checkpoint records the reward it was trained on."""
+    pytest.importorskip("pydrake")
+    from hybridctl import drake, experiments, systems
+    from hybridctl.learn.apg import APG
+
+    torch.set_num_threads(1)
+    path = POLICIES / "shapg-gru-double-cartpole"
+    agent = APG.load(path)
+    assert agent.config.method == "shapg" and agent.config.takeover == "lqr" and agent.config.cost_to_go_weight == 1
+    assert agent.env_steps == 8 * 16 * 80 * 6000
+    dcp = systems.load("double_cartpole")
+    traj = drake.simulate(experiments.build_named_diagram(dcp, f"shapg:{path}"), dcp.nudged_nominal_state(),
+                          duration=10.0)
+    gate = np.asarray(traj.gate).astype(bool)
+    assert traj.balanced and gate[-1] and traj.t[np.argmax(gate)] < 5.0

@@ -134,21 +134,16 @@ CELLS = (
     _learned("double_cartpole", "SSAC", "ssac", "ssac-double-cartpole",
              "Switched SAC from the spec's starts near hanging down, 3e6 steps (earlier, from starts on the whole "
              "circle at 2e6 steps: 64 % success, 58.5 % of a 21 x 21 map, results/ch3/double_cartpole)"),
-    _empty("double_cartpole", "APG family",
-           "Earlier, CE-APG in the reduced Table 7.1 (no takeover): -438 against u = 0's -616, no balance. "
-           "With the cart-pole's PAPG-GRU recipe, 10 policy steps per compiled call did not finish compiling in "
-           "20 minutes (stopped). With the takeover, one compiled call per step: CE-APG-GRU with the angle "
-           "reward (horizons 3 s and 4 s; the 4 s run stopped at epoch 21 of 40, its best training return flat at "
-           "-228 from epoch 6) or the tip-distance reward (a 2.5 s horizon: the tip rises, the poles never stand, "
-           "best return -128 against -125 for the trajopt swing-up's path, a reward that does not tell them apart) "
-           "balances none. Short-horizon APG (20-step unrolls from the carried state, the method that led the "
-           "reduced Table 7.1 on this system) swings up and holds both poles upright by itself within 2 s, but its "
-           "cart drifts (0.5-1 m/s), so the cost-to-go gate, which needs the cart near x = 0 and slow, fires on only "
-           "part of the map (41/121 after 40 epochs; seed 1: 14/121; 6 s episodes: 33/121; 80 epochs raised the training "
-           "return and lowered the map to 15/121); "
-           "a cart-position weight of 0.3 or 1 (the author's) holds the cart but stops the swing-up instead:"),
+    _learned("double_cartpole", "APG family", "shapg", "shapg-gru-double-cartpole",
+             "short-horizon APG (20-step unrolls), GRU, through the LQR takeover: 40 epochs with the angle reward "
+             "(it swings up and holds both poles by itself but its cart drifts past the gate: 39-41/121), then 20 "
+             "more from that policy (--init) with the gate's cost-to-go as a reward term, k log(1 + e' S e / s) "
+             "(the same term from the start, 40 epochs: 120/121). "
+             "Tried before, none shipped: CE-APG-GRU with the angle or the tip-distance reward (0/121), "
+             "short-horizon APG's seed 1 (14/121), 6 s episodes (33/121), 80 epochs (15/121), cart weights 0.3 and "
+             "1 (12 and 2/121), a cart-speed penalty of 0.1 or 0.02 from scratch (5 and 0/121)"),
     _finetuned_ssac("double_cartpole"),
-    _empty("double_cartpole", "APG fine-tuned", "no APG-family swing-up to fine-tune (the row above)"),
+    _finetuned("double_cartpole", "APG fine-tuned", "shapg-gru-double-cartpole", APG_FINETUNE_NOTE),
     Cell("double_cartpole", "trajopt", "trajopt", None, TRAJOPT_NOTE),
     _empty("double_cartpole", "energy", "no energy swing-up for two poles"),
 )
