@@ -470,25 +470,25 @@ class System:
         c = ``reward.velocity_penalty``, w = ``reward.position_weight``,
         v = ``reward.linear_velocity_weight``, k = ``reward.cost_to_go_weight`` (all 0 unless set):
 
-        * ``angle_squared``: b - sum phi^2 - w sum p^2 - v sum dp^2 - c sum dphi^2. With b = c = w = 0
-          it is the thesis' acrobot -phi1^2 - phi2^2 (Sec. 7.2.3) and cart-pole -phi^2
+        * ``angle_squared``: b - sum phi^2 - w sum p^2 - v sum dp^2 - c sum dphi^2 - k log(1 + e' S e / s).
+          With b = c = w = v = k = 0 it is the thesis' acrobot -phi1^2 - phi2^2 (Sec. 7.2.3) and cart-pole -phi^2
           (Sec. 7.2.4); the author's acrobot is b = 10, c = 0.01, his double cart-pole
           b = 10, w = 1, c = 0.01 (implementation notes Ch. 7). -phi^2 jumps at phi = +-pi.
         * ``angle_cosine``: the smooth option, 2 (1 - cos phi) in place of phi^2 (equal to
           second order at upright, no jump at +-pi).
-
-        v is hybridctl's (the thesis and the author penalise only angle rates): a swing-up
-        handed to the LQR by the cost-to-go gate must bring the cart to rest, and a cart
-        that drifts at 1 m/s is, for the double cart-pole's gate, a cost-to-go above the
-        switch-on level by itself. k (hybridctl's too) subtracts k log(1 + e' S e / s), with S the
-        spec's LQR cost-to-go matrix and s = ``gate.cost_scale``: the cost-to-go gate's own measure,
-        flat (log) far from the goal, so it pulls a state that is nearly up into the gate's region,
-        cart position and speed weighed as the LQR weighs them. v applies to the angle kinds, k to all three.
         * ``tip_distance``: thesis eqs. 7.5-7.7: b - (0.05 x_tip^2 + (y_tip - y_des)^2) -
-          c sum dphi^2, the distal tip's position (x_tip: horizontal, with the cart;
+          c sum dphi^2 (- k log(1 + e' S e / s)), the distal tip's position (x_tip: horizontal, with the cart;
           y_tip: height above the pivot; y_des: its upright height). Eq. 7.6's alive bonus
           is b = 10; eq. 7.8 prints the velocity term as the signed sum dphi1 + dphi2, which
           pays for spinning one way, so the squared form (weight c) is used instead.
+
+        v and k are hybridctl's (the thesis and the author penalise only angle rates); v applies
+        to the angle kinds, k to all three. A swing-up handed to the LQR by the cost-to-go gate
+        must bring the cart to rest: a cart drifting at 1 m/s is, for the double cart-pole's
+        gate, a cost-to-go above its switch-on level by itself. k subtracts
+        k log(1 + e' S e / s), S the spec's LQR cost-to-go matrix and s = ``gate.cost_scale``:
+        the gate's own measure, flat (log) far from the goal, so it pulls a state that is
+        nearly up into the gate's region, cart position and speed weighed as the LQR weighs them.
 
         Our systems keep their own parameters (the thesis' Brax models differ), so returns
         are not comparable number for number with the thesis' tables.
