@@ -510,9 +510,11 @@ class System:
         else:
             cost = (phi * phi).sum(-1)
         if linear:
-            p, dp = err[..., linear], err[..., [n_q + i for i in linear]]
-            cost = cost + self.reward_position_weight * (p * p).sum(-1) \
-                + self.reward_linear_velocity_weight * (dp * dp).sum(-1)
+            p = err[..., linear]
+            cost = cost + self.reward_position_weight * (p * p).sum(-1)
+            if self.reward_linear_velocity_weight:   # off by default: no gather on the rollouts' hot path
+                dp = err[..., [n_q + i for i in linear]]
+                cost = cost + self.reward_linear_velocity_weight * (dp * dp).sum(-1)
         return self.reward_alive_bonus - cost - penalty
 
     def _log_cost_to_go(self, err):
