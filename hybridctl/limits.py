@@ -17,7 +17,8 @@ import os
 __all__ = ["LimitError", "memory_bytes", "cpu_count", "memory_budget", "check_at_most", "check_fits_memory",
            "MAX_SIMULATION_STEPS", "MAX_TOTAL_STEPS", "MAX_GRID", "MAX_DISTURBANCES", "MAX_MONTE_CARLO",
            "MAX_HIDDEN_UNITS", "MAX_NUM_ENVS", "MAX_ZIP_ENTRY_BYTES", "MAX_ZIP_ENTRIES", "MAX_JSON_BYTES",
-           "MAX_SPEC_BYTES", "MIN_DT", "MEMORY_FRACTION"]
+           "MAX_SPEC_BYTES", "MAX_MODEL_CACHE_BYTES", "MAX_MODEL_CACHE_DEPTH",
+           "MAX_MODEL_BODIES", "MAX_NAME_CHARS", "MAX_CACHE_INTEGER", "MIN_DT", "MEMORY_FRACTION"]
 
 
 class LimitError(ValueError):
@@ -54,6 +55,19 @@ MAX_JSON_BYTES = 64 << 20
 """Bytes of one JSON file or zip entry parsed as JSON (``config.json``, an SB3 ``data`` entry)."""
 MAX_SPEC_BYTES = 1 << 20
 """Bytes of one spec file (``systems/NAME.toml``, ``--spec FILE``)."""
+MAX_MODEL_CACHE_BYTES = 16 << 20
+"""Bytes of one generated-model cache file (``$HYBRIDCTL_CACHE/multibody/KEY.json``): a model at
+``systems.multibody.MAX_TERMS`` (20,000 terms of 48 exponents) writes about 3 MB; the acrobot's 5 kB."""
+MAX_MODEL_CACHE_DEPTH = 8
+"""Nesting of lists and objects in one generated-model cache file (a model record nests 5 deep),
+checked on the bytes before they are parsed."""
+MAX_MODEL_BODIES = 256
+"""Moving bodies of one generated model (its drawing's points), as read from a cache file."""
+MAX_NAME_CHARS = 255
+"""Characters of one joint, actuator or body name read from a generated-model cache file."""
+MAX_CACHE_INTEGER = 1 << 53
+"""Largest magnitude of an integer read from a cache file as a number: every integer up to it is
+a float exactly (a larger one could overflow, or round)."""
 
 MEMORY_FRACTION = 0.5
 """The share of the machine's memory one allocation we can size in advance may take."""

@@ -129,7 +129,8 @@ def test_a_generated_model_is_cached_and_a_damaged_cache_is_derived_anew(tmp_pat
     doc = json.loads(cache.read_text())
     doc["mass"][0] = [[1.0, ["__import__('os').system('x')"]]]  # not numbers: data that fails its check
     cache.write_text(json.dumps(doc))
-    third = _from_drake_file(DRAKE_MODELS[1], 4)
+    with pytest.warns(UserWarning, match=r"model cache .*: the entry is damaged: a term of 'mass' must be .*; derived"):
+        third = _from_drake_file(DRAKE_MODELS[1], 4)
     assert third.model.info["cached"] is False and third.model == first.model
     assert json.loads(cache.read_text())["mass"] == first.model.to_json()["mass"]    # replaced
     with pytest.raises(ModelError, match="is damaged: a term of 'mass' must be"):
@@ -434,3 +435,155 @@ def test_a_robot_from_its_file_pickles_and_refuses_a_changed_file(rng, tmp_path)
     sdf.write_text(render_model(heavier))                   # another plant in the same file
     with pytest.raises(ValueError, match="changed since the system was pickled"):
         pickle.loads(data)
+
+
+# ------------------------------------------------------------------ issue 47: no cache changes the physics
+def _pendubot_urdf(effort=2.5):
+    """Drake's acrobot with the motor at the shoulder (a pendubot) and an effort limit."""
+    inertial = ('<inertial><origin xyz="0 0 -{c}"/><mass value="{m}"/>'
+                '<inertia ixx="{i}" ixy="0" ixz="0" iyy="{i}" iyz="0" izz="0.01"/></inertial>')
+    return textwrap.dedent(f"""\
+        <?xml version="1.0"?>
+        <robot name="pendubot">
+          <link name="base"/>
+          <link name="upper_link">{inertial.format(c=0.5, m=1.0, i=0.083)}</link>
+          <link name="lower_link">{inertial.format(c=1.0, m=1.0, i=0.33)}</link>
+          <joint name="weld" type="fixed"><parent link="world"/><child link="base"/></joint>
+          <joint name="shoulder" type="continuous"><parent link="base"/><child link="upper_link"/>
+            <axis xyz="0 1 0"/><limit effort="{effort}" velocity="100"/><dynamics damping="0.1"/></joint>
+          <joint name="elbow" type="continuous"><parent link="upper_link"/><child link="lower_link"/>
+            <origin xyz="0 0 -1"/><axis xyz="0 1 0"/><dynamics damping="0.1"/></joint>
+          <transmission type="SimpleTransmission" name="t"><actuator name="m"/><joint name="shoulder"/></transmission>
+        </robot>
+        """)
+
+
+def _pendubot(tmp_path, effort=2.5, **kwargs):
+    path = tmp_path / "pendubot.urdf"
+    if not path.is_file():
+        path.write_text(_pendubot_urdf(effort))
+    kwargs.setdefault("action_limit", 10.0)                 # four times the effort limit
+    return systems.from_drake(str(path), goal=[np.pi, 0, 0, 0], Q=np.eye(4), R=np.eye(1), **kwargs)
+
+
+def _beyond_the_limits(system, rng, n=200):
+    """Random states, and inputs up to 4x the largest of the action and effort limits (inputs that Drake clamps)."""
+    efforts = [e for e in system.model.info["effort_limits"] if e is not None]
+    scale = 4.0 * max([system.action_limit, *efforts])
+    X = rng.uniform(-2 * np.pi, 2 * np.pi, size=(n, system.n_states))
+    X[:, system.n_states // 2:] = rng.uniform(-5, 5, size=(n, system.n_states // 2))
+    U = rng.uniform(-scale, scale, size=(n, system.n_actions))
+    U[:4] = np.array([1, -1, 4, -4])[:, None] * scale / 4   # at the limit and far beyond it
+    return X, U
+
+
+def _drake_step(system, plant, context, x, u):
+    """One step of the spec's integrator on Drake's plant (its derivatives, the input held)."""
+    k1 = system.drake_derivatives(plant, context, x, u)
+    if system.integrator == "euler":
+        return x + system.dt * k1
+    k2 = system.drake_derivatives(plant, context, x + system.dt * k1, u)
+    return x + 0.5 * system.dt * (k1 + k2)
+
+
+def _assert_every_step_path_equals_drake(system, rng):
+    X, U = _beyond_the_limits(system, rng)
+    plant = system.drake_plant()
+    context = system.drake_context(plant)
+    derivatives = np.stack([system.drake_derivatives(plant, context, x, u) for x, u in zip(X, U)])
+    steps = np.stack([_drake_step(system, plant, context, x, u) for x, u in zip(X, U)])
+    x, u = torch.tensor(X), torch.tensor(U)
+    np.testing.assert_allclose(system.derivatives(x, u).numpy(), derivatives, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(system.step(x, u).numpy(), steps, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(system.step(x.float(), u.float()).numpy(), steps, rtol=1e-4, atol=1e-3)
+    np.testing.assert_allclose(system.step_columns(x.T.contiguous(), u.T.contiguous()).T.numpy(), steps,
+                               rtol=1e-9, atol=1e-9)
+    for i in range(8):                                      # one float64 state: the plain-float path
+        np.testing.assert_allclose(system.step(x[i], u[i]).numpy(), steps[i], rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(system.step_single(X[i], U[i]), steps[i], rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("name", MULTIBODY_SPECS)
+def test_every_step_path_equals_drake_beyond_the_limits_on_shipped_specs(name, rng):
+    _assert_every_step_path_equals_drake(systems.load(name), rng)
+
+
+@pytest.mark.parametrize("integrator", ["euler", "runge_kutta2"])
+def test_an_action_limit_above_the_effort_limit_is_clamped_as_drake_does(integrator, rng, tmp_path):
+    """Drake's MultibodyPlant clamps each actuator's input to [-effort, effort] (measured: pydrake 1.51 at
+    u = 10 with effort 2.5 gives the accelerations of u = 2.5); the generated dynamics do the same."""
+    system = _pendubot(tmp_path, integrator__method=integrator)
+    assert system.action_limit == 10.0 and system.model.info["effort_limits"] == [2.5]
+    _assert_every_step_path_equals_drake(system, rng)
+    x = torch.zeros(1, 4, dtype=torch.float64)
+    np.testing.assert_array_equal(system.derivatives(x, torch.tensor([[10.0]])).numpy(),
+                                  system.derivatives(x, torch.tensor([[2.5]])).numpy())
+    # beyond the limit the input has no effect, inside it its gradient is Drake's B
+    u = torch.tensor([[10.0], [1.0]], dtype=torch.float64, requires_grad=True)
+    system.derivatives(torch.zeros(2, 4, dtype=torch.float64), u)[:, 2].sum().backward()
+    assert u.grad[0, 0] == 0.0 and u.grad[1, 0] > 0.0
+
+
+def test_an_absurd_effort_limit_goes_through_the_specs_range_check(tmp_path):
+    with pytest.raises(SpecError, match=r"action.limit.* must lie in \[1e-06, 1e\+06\].*1e\+300"):
+        _pendubot(tmp_path, effort=1e300, action_limit=None)
+    ok = tmp_path / "ok"
+    ok.mkdir()
+    assert _pendubot(ok, action_limit=None).action_limit == 2.5     # a plausible one is the default
+
+
+def _flip_gravity(doc):
+    doc["gravity"] = [[[-c, e] for c, e in p] for p in doc["gravity"]]
+
+
+def _big_int(doc):
+    doc["mass"][0][0][0] = 10 ** 400
+
+
+def _deep(doc):
+    doc["info"]["deep"] = "DEEP"
+
+
+def _zero_mass(doc):
+    doc["mass"][0] = []
+
+
+def _huge_shape(doc):
+    doc["bodies"] = [f"b{i}" for i in range(100_000)]
+    doc["body_parents"] = [-1] * 100_000
+    doc["body_origins"] = [[]] * 300_000
+
+
+def _long_name(doc):
+    doc["positions"][0] = "x" * 1_000_000
+
+
+def _absurd_effort(doc):
+    doc["info"]["effort_limits"] = [1e300]
+
+
+TAMPERED = [("gravity signs flipped", _flip_gravity), ("integer too large for a float", _big_int),
+            ("nesting past the recursion limit", _deep), ("zero mass term", _zero_mass),
+            ("huge claimed shape", _huge_shape), ("long string", _long_name), ("effort limit 1e300", _absurd_effort)]
+
+
+@pytest.mark.parametrize("case, tamper", TAMPERED, ids=[c[0] for c in TAMPERED])
+def test_a_tampered_cache_entry_is_derived_anew_with_one_warning(case, tamper, rng, tmp_path, monkeypatch):
+    monkeypatch.setenv(symbolic.CACHE_ENV, str(tmp_path / "cache"))
+    fresh = _pendubot(tmp_path)
+    cache = tmp_path / "cache" / "multibody" / f"{fresh.model.info['key']}.json"
+    doc = json.loads(cache.read_text())
+    tamper(doc)
+    cache.write_text(json.dumps(doc).replace('"DEEP"', "[" * 100_000 + "]" * 100_000))
+    with pytest.warns(UserWarning) as caught:
+        again = _pendubot(tmp_path)
+    messages = [str(w.message) for w in caught if "model cache" in str(w.message)]
+    assert len(messages) == 1 and "\n" not in messages[0] and str(cache) in messages[0], messages
+    assert "derived anew" in messages[0]
+    assert again.model.info["cached"] is False and again.model == fresh.model
+    assert again.model.info["effort_limits"] == [2.5]
+    _assert_every_step_path_equals_drake(again, rng)
+    written = json.loads(cache.read_text())                     # replaced: the physics as derived
+    assert written.pop("info")["effort_limits"] == [2.5]
+    assert written == {k: v for k, v in json.loads(json.dumps(fresh.model.to_json())).items() if k != "info"}
+    assert _pendubot(tmp_path).model.info["cached"] is True     # the replaced entry passes its check

@@ -26,6 +26,7 @@ from .spec import CH7_REWARD_KINDS
 from .multibody import GeneratedDynamics, ModelError, MultibodyModel
 from .spec import (OPTIONAL_DEFAULTS, GateSection, InitialStateSection, SpecError, Spec, SuccessSection, SwingupSection, known_systems,
                    read_spec, spec_from_document, typed_sections, validate_shapes)
+from .spec import _require_in_range as require_in_range
 
 __all__ = ["System", "load", "from_drake", "known_systems", "SpecError", "ModelError", "Spec", "check_array", "control",
            "GateSection", "SuccessSection", "InitialStateSection", "SwingupSection"]
@@ -223,6 +224,7 @@ class System:
             spec.values["action.limit"], spec.sources["action.limit"] = float(limits[0]), f"{where} (effort limit)"
             if all(model.revolute):          # every actuator then drives a revolute joint: a torque
                 spec.units["action.limit"] = "N m"
+            require_in_range(spec, "action.limit")   # as a spec's own value: a model's 1e300 is no limit either
         # the model file's bytes are part of the plant: a checkpoint records this with the spec values
         # (learn.checkpoint.system_record), so a changed model is refused on load unless forced
         spec.values["model.file_sha256"] = model.info["file_sha256"]

@@ -33,6 +33,7 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
+from ..limits import MAX_CACHE_INTEGER, MAX_MODEL_BODIES, MAX_NAME_CHARS
 from .dynamics import free_early, integrator_lines, shared_function, step_loop_source
 
 MAX_TERMS = 20_000
@@ -91,6 +92,12 @@ class MultibodyModel:
     def n_u(self) -> int:
         return len(self.actuators)
 
+    @property
+    def effort(self) -> tuple[float, ...]:
+        """Each action's effort limit (``info['effort_limits']``, inf: none); Drake and the generated code clamp to it."""
+        limits = self.info.get("effort_limits") or [None] * self.n_u
+        return tuple(math.inf if e is None else float(e) for e in limits)
+
     def n_terms(self) -> int:
         """All terms of all polynomials (the size :data:`MAX_TERMS` bounds)."""
         polys = [*self.mass, *self.bias, *self.gravity, self.kinetic, self.potential, *self.tip, *self.body_origins]
@@ -118,11 +125,16 @@ class MultibodyModel:
 
         if not isinstance(doc, dict) or doc.get("format") != 1:
             fail("not a format-1 model record")
+
+        def named(value, most):
+            return (isinstance(value, list) and len(value) <= most
+                    and all(isinstance(s, str) and len(s) <= MAX_NAME_CHARS for s in value))
+
         names = {}
         for key in ("positions", "velocities", "actuators"):
             value = doc.get(key)
-            if not isinstance(value, list) or not all(isinstance(s, str) and len(s) < 256 for s in value):
-                fail(f"'{key}' must be a list of names")
+            if not named(value, MAX_JOINTS):
+                fail(f"'{key}' must be a list of at most {MAX_JOINTS} names of at most {MAX_NAME_CHARS} characters")
             names[key] = tuple(value)
         n = len(names["positions"])
         if not 1 <= n <= MAX_JOINTS or len(names["velocities"]) != n:
@@ -133,8 +145,9 @@ class MultibodyModel:
             fail("'revolute' must be one true/false per position")
         width = 4 * n
 
-        def number(v):
-            return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+        def number(v):   # an integer beyond MAX_CACHE_INTEGER would overflow float() or round
+            return ((isinstance(v, float) and math.isfinite(v))
+                    or (isinstance(v, int) and not isinstance(v, bool) and abs(v) <= MAX_CACHE_INTEGER))
 
         count = [0]
 
@@ -169,13 +182,11 @@ class MultibodyModel:
         tip = doc.get("tip", [])
         bodies = doc.get("bodies", [])
         parents = doc.get("body_parents", [])
-        if not (isinstance(bodies, list) and all(isinstance(b, str) and len(b) < 256 for b in bodies)
-                and isinstance(parents, list) and len(parents) == len(bodies)
+        if not (named(bodies, MAX_MODEL_BODIES) and isinstance(parents, list) and len(parents) == len(bodies)
                 and all(isinstance(p, int) and not isinstance(p, bool) and -1 <= p < len(bodies) for p in parents)):
-            fail("'bodies' must be names and 'body_parents' one index in -1..len(bodies)-1 per body")
-        info = doc.get("info", {})
-        if not isinstance(info, dict):
-            fail("'info' must be an object")
+            fail(f"'bodies' must be at most {MAX_MODEL_BODIES} names and 'body_parents' one index in "
+                 f"-1..len(bodies)-1 per body")
+        info = _checked_info(doc.get("info", {}), n_u, len(bodies), number, fail)
         return cls(positions=names["positions"], velocities=names["velocities"], actuators=names["actuators"],
                    revolute=tuple(revolute), mass=polys("mass", n * (n + 1) // 2), bias=polys("bias", n),
                    gravity=polys("gravity", n), kinetic=poly(doc.get("kinetic"), "kinetic"),
@@ -184,6 +195,27 @@ class MultibodyModel:
                    body_origins=polys("body_origins", 3 * len(bodies)),
                    actuation=tuple(tuple(map(float, r)) for r in actuation),
                    damping=tuple(map(float, damping)), info=info)
+
+
+def _checked_info(info, n_u: int, n_bodies: int, number, fail) -> dict:
+    """The cache record's ``info``: only the keys :func:`~hybridctl.systems.symbolic.derive` writes, each checked."""
+    if not isinstance(info, dict):
+        fail("'info' must be an object")
+    unknown = sorted(set(info) - {"generation_seconds", "terms", "expression_chars", "effort_limits",
+                                  "tip_body_index"})
+    if unknown:
+        fail(f"'info' holds keys it never has: {', '.join(map(repr, unknown))[:200]}")
+    if not all(number(info[k]) and info[k] >= 0 for k in ("generation_seconds", "terms", "expression_chars")
+               if k in info):
+        fail("'info' counts must be numbers >= 0")
+    efforts = info.get("effort_limits", [None] * n_u)
+    if not (isinstance(efforts, list) and len(efforts) == n_u
+            and all(e is None or (number(e) and e > 0) for e in efforts)):
+        fail(f"'info.effort_limits' must be {n_u} limits, each a number > 0 or null (none)")
+    index = info.get("tip_body_index", 0)
+    if not (isinstance(index, int) and not isinstance(index, bool) and 0 <= index < max(n_bodies, 1)):
+        fail("'info.tip_body_index' must index 'bodies'")
+    return dict(info)
 
 
 # ============================================================================ code generation
@@ -322,6 +354,8 @@ def _ldlt_solve(code: _Code, m: dict, r: list):
         d = m[(j, j)]
         for k in range(j):
             d = code.add(d, code.mul(L[(j, k)], W[(j, k)]), -1.0)
+        if isinstance(d, float) and not d > 0.0:
+            raise ModelError(f"the mass matrix is not positive definite (pivot {j} is the constant {d!r})")
         D.append(d)
         inv_d[j] = code.div(1.0, d)
         for i in range(j + 1, n):
@@ -378,6 +412,12 @@ def _column_value(value, like: str) -> str:
     return value if isinstance(value, str) else f"_torch.full_like({like}, {float(value)!r})"
 
 
+def _clamped(model: MultibodyModel, inputs: Sequence[str]) -> list[tuple[str, float]]:
+    """(input, effort limit) of the inputs with a finite limit, which Drake's MultibodyPlant clamps to
+    [-effort, effort] (pydrake 1.51: u = 10 under effort 2.5 moves it as u = 2.5; no limit: inf, no clamp)."""
+    return [(name, e) for name, e in zip(inputs, model.effort) if math.isfinite(e)]
+
+
 def torch_source(model: MultibodyModel, dt: float | None, integrator: str | None, columns: bool = False) -> str:
     """Source of ``torch_step(x, u)``: dx/dt (``integrator`` None) or one step of ``dt``.
 
@@ -388,6 +428,7 @@ def torch_source(model: MultibodyModel, dt: float | None, integrator: str | None
     u = [f"u{j}" for j in range(model.n_u)]
     if u:
         code.lines.append(f"{', '.join(u)}, = u.unbind({axis})")
+    code.lines += [f"{name} = _torch.clamp({name}, {-e!r}, {e!r})" for name, e in _clamped(model, u)]
 
     def derivative(state: str, tag: str) -> str:
         names = [f"{tag}{i}" for i in range(2 * n)]
@@ -415,6 +456,7 @@ def scalar_source(model: MultibodyModel, dt: float | None, integrator: str | Non
         return [_Code.text(a) for a in acc]
 
     head = [f"{', '.join(state)}, = x"] + ([f"{', '.join(inputs)}, = u"] if inputs else [])
+    head += [f"{name} = min(max({name}, {-e!r}), {e!r})" for name, e in _clamped(model, inputs)]  # NaN stays NaN
     if integrator is None:
         acc = stage(state)
         body = code.lines + [f"return [{', '.join(state[n:] + acc)}]"]

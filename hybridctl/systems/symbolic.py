@@ -18,7 +18,9 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -26,7 +28,7 @@ from typing import Sequence
 import numpy as np
 
 from .. import io
-from ..limits import MAX_JSON_BYTES
+from ..limits import MAX_MODEL_CACHE_BYTES, MAX_MODEL_CACHE_DEPTH
 from .multibody import MAX_JOINTS, MAX_TERMS, ModelError, MultibodyModel
 
 CACHE_ENV = "HYBRIDCTL_CACHE"
@@ -357,18 +359,25 @@ def load_model(request: ModelRequest, use_cache: bool = True) -> MultibodyModel:
     """The generated model of ``request``: from the cache when it holds it, else derived and cached.
 
     ``info`` says ``cached``, ``generation_seconds`` (of the derivation, when it ran now) and
-    ``file_sha256`` (:func:`model_hash`, read once here). An unreadable or damaged cache file is
-    derived anew and replaced.
+    ``file_sha256`` (:func:`model_hash`, read once here). A cache entry is read as data with every
+    size checked before it is used (:func:`read_cache_entry`), then compared with Drake's float
+    MultibodyPlant of the same request at random states (:func:`check_against_drake`, about 1 ms);
+    an entry that fails either is derived anew and replaced, with a one-line warning.
     """
     file_hash = model_hash(request)
     key = cache_key(request, file_hash)
     path = cache_folder() / f"{key}.json"
-    if use_cache and path.is_file() and path.stat().st_size <= MAX_JSON_BYTES:
+    if use_cache and path.is_file():
+        plant = parse_plant(request)      # outside the try: a bad model file is the user's error, not the cache's
         try:
-            model = MultibodyModel.from_json(json.loads(path.read_text()), where=str(path))
+            model = read_cache_entry(path)
+            check_against_drake(model, plant, request)
             return _with_info(model, cached=True, cache_file=str(path), key=key, file_sha256=file_hash)
-        except (ModelError, ValueError, OSError):
-            pass
+        except CACHE_ERRORS as exc:
+            reason = str(exc).splitlines()[0][:300] if isinstance(exc, ModelError) else \
+                f"{type(exc).__name__}: {(str(exc).splitlines() or [''])[0][:200]}"
+            warnings.warn(f"model cache {path}: {reason}; derived anew from {request.source}", UserWarning,
+                          stacklevel=2)
     model = derive(request)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -376,6 +385,106 @@ def load_model(request: ModelRequest, use_cache: bool = True) -> MultibodyModel:
     except OSError:  # a read-only home: generate every time
         pass
     return _with_info(model, cached=False, cache_file=str(path), key=key, file_sha256=file_hash)
+
+
+CACHE_ERRORS = (ValueError, OSError, ArithmeticError, RecursionError, TypeError, KeyError, IndexError, MemoryError)
+"""What reading or checking a cache entry may raise on odd data (ModelError is a ValueError; json's errors
+too; OverflowError and ZeroDivisionError are ArithmeticErrors): the entry is derived anew."""
+
+_JSON_STRING = re.compile(rb'"[^"\\]*(?:\\.[^"\\]*)*"')
+
+
+def read_cache_entry(path: Path) -> MultibodyModel:
+    """A cache file as a :class:`MultibodyModel`, its size and nesting checked on the bytes before they are
+    parsed (:data:`~hybridctl.limits.MAX_MODEL_CACHE_BYTES`, :data:`~hybridctl.limits.MAX_MODEL_CACHE_DEPTH`),
+    then every count, length and number (``MultibodyModel.from_json``); ModelError says what is wrong."""
+    size = path.stat().st_size
+    if size > MAX_MODEL_CACHE_BYTES:
+        raise ModelError(f"{size:,} bytes, above the limit of {MAX_MODEL_CACHE_BYTES:,} "
+                         f"(hybridctl.limits.MAX_MODEL_CACHE_BYTES)")
+    data = path.read_bytes()[:MAX_MODEL_CACHE_BYTES]
+    codes = np.frombuffer(_JSON_STRING.sub(b'""', data), dtype=np.uint8)   # brackets inside strings do not nest
+    depth = np.cumsum((codes == ord("[")).astype(np.int32) + (codes == ord("{")) - (codes == ord("]"))
+                      - (codes == ord("}")))
+    if depth.size and depth.max() > MAX_MODEL_CACHE_DEPTH:
+        raise ModelError(f"nests {int(depth.max()):,} deep, above the limit of {MAX_MODEL_CACHE_DEPTH} "
+                         f"(hybridctl.limits.MAX_MODEL_CACHE_DEPTH)")
+    return MultibodyModel.from_json(json.loads(data), where="the entry")
+
+
+CHECK_STATES = 3
+"""Random states at which a cache entry is compared with Drake's plant."""
+CHECK_RTOL, CHECK_ATOL = 1e-9, 1e-12
+"""A cache entry's values may differ from Drake's by CHECK_RTOL times the largest of Drake's values of the
+same kind (mass matrix, bias, gravity, energies, points) plus CHECK_ATOL: rounding is ~1e-15 of it."""
+
+
+def check_against_drake(model: MultibodyModel, plant, request: ModelRequest, rng=None) -> None:
+    """Raise ModelError unless ``model`` is what :func:`derive` makes of ``request``: the structure (names,
+    angles, B, damping, effort limits, bodies) equal to ``plant``'s (:func:`parse_plant`), and M, C v,
+    tau_g, the energies, the tip and the body origins equal to Drake's float values at :data:`CHECK_STATES`
+    states drawn afresh each time (fixed states could be matched by a tampered entry)."""
+    selection, actuated = actuator_selection(plant, request)
+    names, revolute, damping = coordinates(plant)
+    moving = [b for b in (plant.get_body(_body_index(i)) for i in range(1, plant.num_bodies()))
+              if not _welded_to_world(plant, b)]
+    bodies = tuple(b.name() for b in moving)
+    parents = tuple(bodies.index(p) if p in bodies else -1 for p in (_parent_body(plant, b) for b in moving))
+    efforts = tuple(float(e) for e in effort_limits(plant, request))
+    structure = {"positions": tuple(names), "velocities": tuple(f"{x}_dot" for x in names), "actuators": actuated,
+                 "revolute": tuple(revolute), "damping": tuple(float(d) for d in damping), "bodies": bodies,
+                 "body_parents": parents, "effort limits": efforts, "tip points": 3 if request.tip_body else 0,
+                 "actuation": tuple(tuple(float(b) for b in row) for row in plant.MakeActuationMatrix() @ selection)}
+    found = {**{k: getattr(model, k) for k in structure if hasattr(model, k)}, "effort limits": model.effort,
+             "tip points": len(model.tip)}
+    for key, value in structure.items():
+        if found[key] != value:
+            raise ModelError(f"its {key} {str(found[key])[:80]} are not Drake's {str(value)[:80]}")
+    if model.info.get("tip_body_index") != (bodies.index(request.tip_body) if request.tip_body in bodies else None):
+        raise ModelError(f"its tip_body_index is not that of body {request.tip_body!r}")
+    n = len(names)
+    rng = np.random.default_rng() if rng is None else rng
+    q = np.where(revolute, rng.uniform(-np.pi, np.pi, (CHECK_STATES, n)), rng.uniform(-1, 1, (CHECK_STATES, n)))
+    v = rng.uniform(-3, 3, (CHECK_STATES, n))
+    context = plant.CreateDefaultContext()
+    tip_body = plant.GetBodyByName(request.tip_body) if request.tip_body is not None else None
+    drake = {"mass matrix entries": [], "bias terms": [], "gravity terms": [], "energies": [], "points": []}
+    for qs, vs in zip(q, v):
+        plant.SetPositions(context, qs)
+        plant.SetVelocities(context, vs)
+        M = plant.CalcMassMatrix(context)
+        drake["mass matrix entries"].append([M[i, k] for i in range(n) for k in range(i, n)])
+        drake["bias terms"].append(plant.CalcBiasTerm(context))
+        drake["gravity terms"].append(plant.CalcGravityGeneralizedForces(context))
+        drake["energies"].append([plant.CalcKineticEnergy(context), plant.CalcPotentialEnergy(context)])
+        tip = [] if tip_body is None else plant.CalcPointsPositions(
+            context, tip_body.body_frame(), np.reshape(request.tip_point, (3, 1)), plant.world_frame())[:, 0]
+        drake["points"].append([*tip, *(x for b in moving for x in plant.EvalBodyPoseInWorld(context, b).translation())])
+    ours = {"mass matrix entries": model.mass, "bias terms": model.bias, "gravity terms": model.gravity,
+            "energies": (model.kinetic, model.potential), "points": (*model.tip, *model.body_origins)}
+    variables = np.concatenate([np.sin(q), np.cos(q), q, v], axis=1)
+    for kind, polys in ours.items():
+        expected = np.asarray(drake[kind], dtype=float).reshape(CHECK_STATES, -1)
+        got = _evaluate(polys, variables)
+        tolerance = CHECK_RTOL * (np.abs(expected).max(initial=0.0)) + CHECK_ATOL
+        with np.errstate(all="ignore"):
+            error = np.abs(got - expected).max(initial=0.0)
+        if not error <= tolerance:       # NaN fails too
+            raise ModelError(f"its {kind} differ from Drake's MultibodyPlant at a random state by {error:.3g} "
+                             f"(tolerance {tolerance:.3g})")
+
+
+def _evaluate(polys, variables: np.ndarray) -> np.ndarray:
+    """(states, polynomials): each polynomial of terms (coefficient, exponents) at each row of ``variables``."""
+    lengths = [len(p) for p in polys]
+    if not sum(lengths):
+        return np.zeros((len(variables), len(polys)))
+    coefficients = np.array([c for p in polys for c, _ in p], dtype=float)
+    exponents = np.array([e for p in polys for _, e in p], dtype=np.int64)
+    owner = np.repeat(np.arange(len(polys)), lengths)
+    with np.errstate(all="ignore"):
+        terms = coefficients * np.prod(variables[:, None, :] ** exponents[None], axis=2)
+    return np.stack([np.bincount(owner, weights=row, minlength=len(polys)) for row in terms])
 
 
 def _with_info(model: MultibodyModel, **info) -> MultibodyModel:
