@@ -562,9 +562,15 @@ def _absurd_effort(doc):
     doc["info"]["effort_limits"] = [1e300]
 
 
+def _hidden_fast_term(doc):
+    doc["bias"][0].append([1e-30, [0, 0, 0, 0, 0, 0, 16, 0]])    # 1e-30 v0^16: nothing at the states a check
+                                                                 # may draw, 1e2 at v0 = 100 rad/s
+
+
 TAMPERED = [("gravity signs flipped", _flip_gravity), ("integer too large for a float", _big_int),
             ("nesting past the recursion limit", _deep), ("zero mass term", _zero_mass),
-            ("huge claimed shape", _huge_shape), ("long string", _long_name), ("effort limit 1e300", _absurd_effort)]
+            ("huge claimed shape", _huge_shape), ("long string", _long_name), ("effort limit 1e300", _absurd_effort),
+            ("tiny term of high degree in v", _hidden_fast_term)]
 
 
 @pytest.mark.parametrize("case, tamper", TAMPERED, ids=[c[0] for c in TAMPERED])

@@ -443,6 +443,7 @@ def check_against_drake(model: MultibodyModel, plant, request: ModelRequest, rng
     if model.info.get("tip_body_index") != (bodies.index(request.tip_body) if request.tip_body in bodies else None):
         raise ModelError(f"its tip_body_index is not that of body {request.tip_body!r}")
     n = len(names)
+    _check_degrees(model, revolute)
     rng = np.random.default_rng() if rng is None else rng
     q = np.where(revolute, rng.uniform(-np.pi, np.pi, (CHECK_STATES, n)), rng.uniform(-1, 1, (CHECK_STATES, n)))
     v = rng.uniform(-3, 3, (CHECK_STATES, n))
@@ -472,6 +473,25 @@ def check_against_drake(model: MultibodyModel, plant, request: ModelRequest, rng
         if not error <= tolerance:       # NaN fails too
             raise ModelError(f"its {kind} differ from Drake's MultibodyPlant at a random state by {error:.3g} "
                              f"(tolerance {tolerance:.3g})")
+
+
+def _check_degrees(model: MultibodyModel, revolute) -> None:
+    """The degrees Drake's equations have, so that agreement at a few states is agreement everywhere (a tiny
+    v^16 term would pass at the checked states and explode at fast ones): an angle q_i only through s_i, c_i,
+    a prismatic q_i at most squared and never in a sine; v nowhere in M, tau_g, the potential energy and
+    the points, and C v and the kinetic energy quadratic in v."""
+    n = len(revolute)
+    trig = [16 if r else 0 for r in revolute]            # |s|, |c| <= 1: any power stays bounded
+    allowed = np.array(trig + trig + [0 if r else 2 for r in revolute] + [2] * n)
+    groups = {"mass matrix entries": (model.mass, 0), "gravity terms": (model.gravity, 0),
+              "energies": ((model.potential,), 0), "points": ((*model.tip, *model.body_origins), 0),
+              "bias terms": (model.bias, 2), "kinetic energy": ((model.kinetic,), 2)}
+    for kind, (polys, v_degree) in groups.items():
+        exponents = np.array([e for p in polys for _, e in p], dtype=np.int64).reshape(-1, 4 * n)
+        bad = (exponents > allowed).any(axis=1) | (exponents[:, 3 * n:].sum(axis=1) != v_degree)
+        if bad.any():
+            raise ModelError(f"its {kind} have a term of exponents {exponents[bad][0].tolist()} (s, c, q, v), "
+                             f"which Drake's equations never have")
 
 
 def _evaluate(polys, variables: np.ndarray) -> np.ndarray:
