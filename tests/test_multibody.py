@@ -593,3 +593,18 @@ def test_a_tampered_cache_entry_is_derived_anew_with_one_warning(case, tamper, r
     assert written.pop("info")["effort_limits"] == [2.5]
     assert written == {k: v for k, v in json.loads(json.dumps(fresh.model.to_json())).items() if k != "info"}
     assert _pendubot(tmp_path).model.info["cached"] is True     # the replaced entry passes its check
+
+
+def test_a_cache_entry_under_the_key_of_a_request_that_cannot_be_derived_is_not_used(tmp_path, monkeypatch):
+    """An entry written under the key of a request derive refuses (a tip body the model lacks) is checked like
+    any other: derived anew, which gives the request's own one-line error, never a traceback or that entry."""
+    monkeypatch.setenv(symbolic.CACHE_ENV, str(tmp_path / "cache"))
+    system = _pendubot(tmp_path)
+    bad = symbolic.ModelRequest(system.model_request.source, tip_body="hand", tip_point=(0.0, 0.0, 1.0))
+    doc = system.model.to_json()
+    doc["tip"] = [[[1.0, [0] * 8]]] * 3
+    doc["info"] = {"effort_limits": [2.5]}
+    (tmp_path / "cache" / "multibody" / f"{symbolic.cache_key(bad)}.json").write_text(json.dumps(doc))
+    with pytest.warns(UserWarning, match="model cache .*: its tip body 'hand' is not a body of the model; derived"):
+        with pytest.raises(ModelError, match="model.tip_body 'hand' is not a body of the model"):
+            symbolic.load_model(bad)

@@ -387,9 +387,10 @@ def load_model(request: ModelRequest, use_cache: bool = True) -> MultibodyModel:
     return _with_info(model, cached=False, cache_file=str(path), key=key, file_sha256=file_hash)
 
 
-CACHE_ERRORS = (ValueError, OSError, ArithmeticError, RecursionError, TypeError, KeyError, IndexError, MemoryError)
+CACHE_ERRORS = (ValueError, OSError, ArithmeticError, RecursionError, TypeError, KeyError, IndexError, MemoryError,
+                RuntimeError)
 """What reading or checking a cache entry may raise on odd data (ModelError is a ValueError; json's errors
-too; OverflowError and ZeroDivisionError are ArithmeticErrors): the entry is derived anew."""
+too; OverflowError and ZeroDivisionError are ArithmeticErrors; Drake's are RuntimeErrors): derived anew."""
 
 _JSON_STRING = re.compile(rb'"[^"\\]*(?:\\.[^"\\]*)*"')
 
@@ -440,6 +441,8 @@ def check_against_drake(model: MultibodyModel, plant, request: ModelRequest, rng
     for key, value in structure.items():
         if found[key] != value:
             raise ModelError(f"its {key} {str(found[key])[:80]} are not Drake's {str(value)[:80]}")
+    if request.tip_body is not None and not plant.HasBodyNamed(request.tip_body):
+        raise ModelError(f"its tip body {request.tip_body!r} is not a body of the model")
     if model.info.get("tip_body_index") != (bodies.index(request.tip_body) if request.tip_body in bodies else None):
         raise ModelError(f"its tip_body_index is not that of body {request.tip_body!r}")
     n = len(names)
