@@ -55,6 +55,36 @@ MAX_JSON_BYTES = 64 << 20
 """Bytes of one JSON file or zip entry parsed as JSON (``config.json``, an SB3 ``data`` entry)."""
 MAX_SPEC_BYTES = 1 << 20
 """Bytes of one spec file (``systems/NAME.toml``, ``--spec FILE``)."""
+MAX_MODEL_BYTES = 16 << 20
+"""Bytes of one robot model file (URDF, SDF, MJCF, and each file it includes): far above any model of
+an underactuated robot; a larger file is refused before it is parsed."""
+MAX_MESH_BYTES = 32 << 20
+"""Bytes of one file a model names (a mesh, its material library, a texture, a glTF buffer): a replay
+page embeds it, so it is read only when it is a regular file in the model's folder of at most this."""
+MAX_MODEL_FILES = 1_000
+"""File references (meshes, textures, includes) of one model with its includes expanded as the parser
+expands them (a file included twice counts twice)."""
+MAX_INCLUDE_DEPTH = 8
+"""How deep MJCF / SDF ``<include>``s may nest; a file that includes itself is refused at any depth."""
+MAX_BODIES = 100
+"""Bodies (links) of one model with its includes expanded, counted in the file before Drake parses it:
+the generated models have at most 12 joints; deriving one with 100 welded links took 0.7 s, with 300
+19 s (measured, issue 47), so 20,000 would not end."""
+MAX_MODEL_LENGTH = 1e3
+"""|x| of any offset in a model (joint origins, frames, in m): a kilometre. Products of lengths, masses
+and inertias appear squared in the generated code; past this a typo (1e300) becomes inf there."""
+MAX_MODEL_MASS = 1e6
+"""Mass of one body of a model, in kg (a thousand tonnes)."""
+MAX_MODEL_INERTIA = 1e6
+"""Principal moment of inertia of one body of a model, in kg m^2."""
+MAX_DERIVE_SECONDS = 300.0
+"""Wall time of one symbolic derivation of a model's equations (checked as it goes): a planar chain
+of 4 joints took 1.8 s, of 5 joints 14 s, of 6 joints more than 2 minutes (measured, issue 47); past
+this a model is too large to generate code for."""
+
+__all__ += ["MAX_MODEL_BYTES", "MAX_MESH_BYTES", "MAX_MODEL_FILES", "MAX_INCLUDE_DEPTH", "MAX_BODIES",
+            "MAX_MODEL_LENGTH", "MAX_MODEL_MASS", "MAX_MODEL_INERTIA", "MAX_DERIVE_SECONDS"]
+
 MAX_MODEL_CACHE_BYTES = 16 << 20
 """Bytes of one generated-model cache file (``$HYBRIDCTL_CACHE/multibody/KEY.json``): a model at
 ``systems.multibody.MAX_TERMS`` (20,000 terms of 48 exponents) writes about 3 MB; the acrobot's 5 kB."""

@@ -501,3 +501,262 @@ def test_sb3_builds_our_env_by_id_with_make_vec_env_and_ppo():
                     policy_kwargs={"net_arch": [8]})
     model.learn(256)
     assert model.num_timesteps == 256 and model.observation_space.shape == (4,)
+
+
+# ============================================================================ model files (issue 47)
+# A URDF / SDF / MJCF from someone else names files that Drake opens and meshcat embeds in a replay page;
+# every such file is checked first (hybridctl.systems.model_files). Its numbers are checked before code is
+# generated from them, and the derivation is bounded in size and time.
+
+SECRET = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n# the secret: 7f3a9c1e-hostile-47\n"
+
+
+def _urdf(visual: str = "", mass: str = "1", inertia: str = 'ixx="0.01" iyy="0.01" izz="0.01"',
+          origin: str = "0 0 0", limit: str = 'effort="5" velocity="100"', extra: str = "") -> str:
+    return f"""<?xml version="1.0"?>
+<robot name="pendulum">
+  <link name="base"/>
+  <link name="arm">
+    <inertial><origin xyz="0 0 -0.5"/><mass value="{mass}"/><inertia {inertia} ixy="0" ixz="0" iyz="0"/></inertial>
+    {visual}
+  </link>
+  <joint name="weld" type="fixed"><parent link="world"/><child link="base"/></joint>
+  <joint name="pivot" type="continuous"><parent link="base"/><child link="arm"/><origin xyz="{origin}"/>
+    <axis xyz="0 1 0"/><limit {limit}/></joint>
+  <transmission type="SimpleTransmission" name="t"><actuator name="m"/><joint name="pivot"/></transmission>
+  {extra}
+</robot>
+"""
+
+
+def _mesh(filename: str) -> str:
+    return f'<visual><geometry><mesh filename="{filename}"/></geometry></visual>'
+
+
+@pytest.fixture
+def model_cache(tmp_path, monkeypatch):
+    from hybridctl.systems import symbolic
+    monkeypatch.setenv(symbolic.CACHE_ENV, str(tmp_path / "cache"))
+
+
+def _from_file(path: Path):
+    from hybridctl import systems
+    return systems.from_drake(str(path), goal=[0.0, 0.0], Q=np.eye(2), R=np.eye(1))
+
+
+def _replay_payload(html: str) -> bytes:
+    """Every base64 payload of a replay page, decoded (meshcat embeds each command as msgpack in a data: URL)."""
+    import re
+    return b"".join(base64.b64decode(m) for m in re.findall(r"base64,([A-Za-z0-9+/=]+)", html))
+
+
+def _replay(system) -> str:
+    from hybridctl.viz.meshcat import replay_html
+    return replay_html(system, np.array([0.0, 0.1]), np.zeros((2, 2)))
+
+
+def _refused(path: Path, *needles: str):
+    """from_drake and the replay of the model at ``path`` refuse it in one line naming the file and ``needles``."""
+    from hybridctl.systems import ModelError
+    with pytest.raises(ModelError) as raised:
+        _replay(_from_file(path))
+    message = str(raised.value)
+    assert _one_line(message) and str(path) in message, message
+    for needle in needles:
+        assert needle in message, message
+    return message
+
+
+def _model(tmp_path: Path, text: str, name: str = "robot.urdf") -> Path:
+    folder = tmp_path / "model"
+    folder.mkdir(exist_ok=True)
+    (folder / name).write_text(text)
+    return folder / name
+
+
+def test_a_mesh_inside_the_model_folder_is_drawn(tmp_path, model_cache):
+    """The control: a mesh in the model's folder reaches the page (so the check below can see a leak)."""
+    folder = tmp_path / "model"
+    folder.mkdir()
+    (folder / "arm.obj").write_bytes(SECRET)
+    html = _replay(_from_file(_model(tmp_path, _urdf(visual=_mesh("arm.obj")))))
+    assert SECRET in _replay_payload(html)
+
+
+@pytest.mark.parametrize("how", ["absolute", "file_url", "symlink", "dotdot"])
+def test_a_mesh_outside_the_model_folder_never_reaches_a_replay(tmp_path, model_cache, how):
+    secret = tmp_path / "secret.obj"
+    secret.write_bytes(SECRET)
+    folder = tmp_path / "model"
+    folder.mkdir()
+    if how == "symlink":
+        (folder / "arm.obj").symlink_to(secret)
+    ref = {"absolute": str(secret), "file_url": f"file://{secret}", "symlink": "arm.obj",
+           "dotdot": "../secret.obj"}[how]
+    path = _model(tmp_path, _urdf(visual=_mesh(ref)))
+    _refused(path, "outside the model's folder", repr(ref))
+
+
+@pytest.mark.timeout(30, method="thread")   # a regression hangs in C++; the thread method ends the run
+@pytest.mark.parametrize("how", ["dev_random", "dev_zero", "symlink_urandom", "fifo", "not_a_mesh"])
+def test_a_device_fifo_or_other_file_as_a_mesh_is_refused_without_opening_it(tmp_path, model_cache, how):
+    import os
+    folder = tmp_path / "model"
+    folder.mkdir()
+    if how == "symlink_urandom":
+        (folder / "arm.obj").symlink_to("/dev/urandom")
+    if how == "fifo":
+        os.mkfifo(folder / "arm.obj")
+    if how == "not_a_mesh":
+        (folder / "notes.txt").write_bytes(SECRET)
+    ref = {"dev_random": "/dev/random", "dev_zero": "/dev/zero", "symlink_urandom": "arm.obj", "fifo": "arm.obj",
+           "not_a_mesh": "notes.txt"}[how]
+    needle = {"fifo": "is a FIFO, not a regular file", "not_a_mesh": "a mesh must be a .obj"}.get(how, "outside")
+    _refused(_model(tmp_path, _urdf(visual=_mesh(ref))), needle)
+
+
+def test_a_mesh_above_the_size_limit_is_refused(tmp_path, model_cache, monkeypatch):
+    from hybridctl.systems import model_files
+    monkeypatch.setattr(model_files, "MAX_MESH_BYTES", 16)
+    folder = tmp_path / "model"
+    folder.mkdir()
+    (folder / "arm.obj").write_bytes(SECRET)
+    _refused(_model(tmp_path, _urdf(visual=_mesh("arm.obj"))), "above the limit of 16")
+
+
+def test_what_a_mesh_names_is_checked_too(tmp_path, model_cache):
+    """An .obj's material library and its textures, a glTF's buffers: meshcat embeds them as well."""
+    secret = tmp_path / "secret.png"
+    secret.write_bytes(SECRET)
+    folder = tmp_path / "model"
+    folder.mkdir()
+    (folder / "arm.obj").write_bytes(b"mtllib arm.mtl\n" + SECRET)
+    (folder / "arm.mtl").write_text(f"newmtl m\nmap_Kd {secret}\n")
+    _refused(_model(tmp_path, _urdf(visual=_mesh("arm.obj"))), "outside the model's folder", "arm.mtl")
+    (folder / "arm.gltf").write_text(json.dumps({"asset": {"version": "2.0"}, "buffers": [{"uri": "../secret.png"}]}))
+    _refused(_model(tmp_path, _urdf(visual=_mesh("arm.gltf"))), "outside the model's folder", "arm.gltf")
+
+
+def test_a_package_other_than_drake_is_refused(tmp_path, model_cache):
+    _refused(_model(tmp_path, _urdf(visual=_mesh("package://drake_models/x/arm.obj"))), "declared package")
+
+
+@pytest.mark.parametrize("declaration", ['<!DOCTYPE robot [<!ENTITY a "aaaaaaaaaa">]>',
+                                         '<!DOCTYPE robot SYSTEM "/etc/passwd">'])
+def test_a_model_file_with_a_doctype_or_entities_is_refused(tmp_path, model_cache, declaration):
+    text = _urdf().replace('<?xml version="1.0"?>', f'<?xml version="1.0"?>\n{declaration}')
+    _refused(_model(tmp_path, text), "DOCTYPE or ENTITY")
+
+
+MJCF_BODY = """<worldbody><body name="arm"><joint name="pivot" type="hinge" axis="0 1 0"/>
+  <geom type="capsule" fromto="0 0 0 0 0 -1" size="0.05" mass="1"/></body></worldbody>
+  <actuator><motor joint="pivot" gear="1"/></actuator>"""
+
+
+@pytest.mark.timeout(30, method="thread")
+def test_an_mjcf_that_includes_itself_is_refused(tmp_path, model_cache):
+    path = _model(tmp_path, f'<mujoco model="x"><include file="robot.xml"/>{MJCF_BODY}</mujoco>', "robot.xml")
+    _refused(path, "includes itself")
+    _model(tmp_path, '<mujoco model="y"><include file="robot.xml"/></mujoco>', "other.xml")
+    path = _model(tmp_path, f'<mujoco model="x"><include file="other.xml"/>{MJCF_BODY}</mujoco>', "robot.xml")
+    _refused(path, "includes itself", "robot.xml -> other.xml -> robot.xml")
+
+
+def test_includes_are_bounded_in_depth_and_expansion(tmp_path, model_cache):
+    from hybridctl import limits
+    for k in range(limits.MAX_INCLUDE_DEPTH + 2):
+        _model(tmp_path, f'<mujoco model="m{k}"><include file="f{k + 1}.xml"/></mujoco>', f"f{k}.xml")
+    _model(tmp_path, '<mujoco model="end"/>', f"f{limits.MAX_INCLUDE_DEPTH + 2}.xml")
+    _refused(tmp_path / "model" / "f0.xml", "nest deeper than")
+    # each file includes the next 10 times: 10^6 files as the parser would expand them
+    for k in range(6):
+        _model(tmp_path, f'<mujoco model="g{k}">' + f'<include file="g{k + 1}.xml"/>' * 10 + "</mujoco>", f"g{k}.xml")
+    _model(tmp_path, '<mujoco model="end"><worldbody><body name="b"/></worldbody></mujoco>', "g6.xml")
+    _refused(tmp_path / "model" / "g0.xml", "with its includes expanded")
+
+
+@pytest.mark.parametrize("case, kwargs, needles", [
+    ("origin 1e300", {"origin": "1e300 0 0"}, ("at most 1000 m", "MAX_MODEL_LENGTH")),
+    ("origin inf", {"origin": "inf 0 0"}, ("must be finite",)),
+    ("origin overflows", {"origin": "1e400 0 0"}, ("must be finite",)),
+    ("effort inf", {"limit": 'effort="inf" velocity="100"'}, ("must be finite", "effort")),
+    ("velocity nan", {"limit": 'effort="5" velocity="nan"'}, ("must be finite", "velocity")),
+    ("mass -1", {"mass": "-1"}, ("a mass must be > 0",)),
+    ("mass 0", {"mass": "0"}, ("a mass must be > 0",)),
+    ("mass 1e300", {"mass": "1e300"}, ("mass",)),
+    ("negative inertia", {"inertia": 'ixx="-0.01" iyy="0.01" izz="0.01"'}, ("body 'arm'", "positive semidefinite")),
+    ("triangle inequality", {"inertia": 'ixx="0.01" iyy="0.01" izz="0.05"'}, ("body 'arm'", "triangle inequality")),
+])
+def test_non_finite_and_non_physical_numbers_are_refused_before_code_is_generated(tmp_path, model_cache, case,
+                                                                                  kwargs, needles):
+    from hybridctl.systems import ModelError
+    path = _model(tmp_path, _urdf(**kwargs))
+    with pytest.raises(ModelError) as raised:
+        _from_file(path)
+    message = str(raised.value)
+    assert _one_line(message) and str(path) in message, message
+    for needle in needles:
+        assert needle in message, message
+
+
+def _chain(n: int, welded: int = 0) -> str:
+    inertial = '<inertial><mass value="1"/><inertia ixx="0.02" ixy="0" ixz="0" iyy="0.02" iyz="0" izz="0.01"/></inertial>'
+    parts, parent = ['<link name="base"/><joint name="weld" type="fixed"><parent link="world"/><child link="base"/>'
+                     '</joint>'], "base"
+    for i in range(n):
+        parts.append(f'<link name="l{i}">{inertial}</link><joint name="j{i}" type="continuous"><parent link="{parent}"/>'
+                     f'<child link="l{i}"/><origin xyz="0 0 -0.5"/><axis xyz="0 1 0"/></joint><transmission '
+                     f'type="SimpleTransmission" name="t{i}"><actuator name="m{i}"/><joint name="j{i}"/></transmission>')
+        parent = f"l{i}"
+    for k in range(welded):
+        parts.append(f'<link name="w{k}">{inertial}</link><joint name="wj{k}" type="fixed"><parent '
+                     f'link="{"base" if k == 0 else f"w{k - 1}"}"/><child link="w{k}"/></joint>')
+    return '<?xml version="1.0"?>\n<robot name="chain">' + "".join(parts) + "</robot>"
+
+
+@pytest.mark.timeout(60, method="thread")
+def test_twenty_thousand_welded_links_are_refused_before_drake_parses_them(tmp_path, model_cache):
+    import time
+    from hybridctl import limits
+    started = time.perf_counter()
+    _refused(_model(tmp_path, _chain(1, welded=20_000)), f"more than {limits.MAX_BODIES:,} bodies")
+    assert time.perf_counter() - started < 10
+
+
+@pytest.mark.timeout(60, method="thread")
+def test_a_twelve_joint_chain_is_refused_promptly(tmp_path, model_cache):
+    import time
+    from hybridctl.systems import ModelError, symbolic
+    started = time.perf_counter()
+    with pytest.raises(ModelError, match="too large to generate code for"):
+        symbolic.derive(symbolic.ModelRequest(str(_model(tmp_path, _chain(12)))))
+    assert time.perf_counter() - started < 20
+
+
+@pytest.mark.timeout(60, method="thread")
+def test_the_derivation_has_a_deadline_checked_as_it_goes(tmp_path, model_cache, monkeypatch):
+    """A 4-joint chain takes about 2 s; with a 0.3 s limit it stops within a few entries."""
+    import time
+    from hybridctl.systems import ModelError, symbolic
+    monkeypatch.setattr(symbolic, "MAX_DERIVE_SECONDS", 0.3)
+    started = time.perf_counter()
+    with pytest.raises(ModelError, match=r"took more than 0.3 s \(hybridctl.limits.MAX_DERIVE_SECONDS\)") as raised:
+        symbolic.derive(symbolic.ModelRequest(str(_model(tmp_path, _chain(4)))))
+    assert _one_line(str(raised.value))
+    assert time.perf_counter() - started < 1.5
+
+
+@pytest.mark.timeout(60, method="thread")
+def test_cli_simulate_of_a_hostile_model_is_one_line(tmp_path, model_cache, cli_error):
+    """``hybridctl simulate`` of a spec whose model names a FIFO as a mesh: one line, exit 2, nothing hangs."""
+    import os
+    from hybridctl.systems.spec import MODELS_DIR, SPEC_DIR
+    folder = tmp_path / "model"
+    folder.mkdir()
+    os.mkfifo(folder / "wheel.obj")
+    urdf = (MODELS_DIR / "reaction_wheel.urdf").read_text().replace("<inertial>", _mesh("wheel.obj") + "<inertial>", 1)
+    (folder / "reaction_wheel.urdf").write_text(urdf)
+    (folder / "wheel_spec.toml").write_text((SPEC_DIR / "reaction_wheel.toml").read_text())
+    err = cli_error(["simulate", folder / "wheel_spec.toml", "--controller", "zero", "--duration", "0.1",
+                     "--out", tmp_path / "run"])
+    assert "is a FIFO, not a regular file" in err and _one_line(err), err

@@ -29,14 +29,12 @@ import numpy as np
 
 from .. import io
 from ..limits import MAX_MODEL_CACHE_BYTES, MAX_MODEL_CACHE_DEPTH
+from ..limits import MAX_DERIVE_SECONDS, MAX_MODEL_BYTES, MAX_MODEL_INERTIA, MAX_MODEL_LENGTH, MAX_MODEL_MASS
+from . import model_files
 from .multibody import MAX_JOINTS, MAX_TERMS, ModelError, MultibodyModel
 
 CACHE_ENV = "HYBRIDCTL_CACHE"
 """Environment variable: the folder of hybridctl's caches (default ``~/.cache/hybridctl``)."""
-
-MAX_MODEL_BYTES = 16 << 20
-"""Largest model file read (16 MiB): far above any URDF/SDF of an underactuated robot; a larger
-file is refused before Drake parses it."""
 
 MAX_EXPRESSION_CHARS = 5_000_000
 """Most characters of Drake's symbolic expressions (M, C v, tau_g, energies, tip) that are handed
@@ -77,32 +75,47 @@ def resolve_source(ref: str, base: Path | None = None) -> str:
     for candidate in candidates:
         if candidate.is_file():
             return str(candidate.resolve())
+        if candidate.exists():   # a FIFO, a device, a folder: never opened
+            model_files.regular_file(candidate, MAX_MODEL_BYTES, f"model file {ref!r} ({candidate})")
     where = " or ".join(str(c) for c in candidates)
     raise ModelError(f"model file {ref!r}: no such file ({where})")
 
 
-def _file_bytes(source: str) -> bytes:
-    """The model file's bytes (for the cache key), its size checked first."""
+def _packages() -> dict[str, str]:
+    """The packages a model may name files in (``package://NAME/``): pydrake's own models only."""
+    from pydrake.multibody.parsing import PackageMap
+    return {"drake": PackageMap().GetPath("drake")}
+
+
+def _source_path(source: str) -> Path:
     if source.startswith("package://"):
-        from pydrake.multibody.parsing import PackageMap
         package, _, rest = source[len("package://"):].partition("/")
-        path = Path(PackageMap().GetPath(package)) / rest
-    else:
-        path = Path(source)
-    size = path.stat().st_size
-    if size > MAX_MODEL_BYTES:
-        raise ModelError(f"model file {source}: {size:,} bytes, above the limit of {MAX_MODEL_BYTES:,} "
-                         f"(hybridctl.systems.symbolic.MAX_MODEL_BYTES)")
-    return path.read_bytes()
+        return Path(_packages()[package]) / rest
+    return Path(source)
+
+
+def _file_bytes(source: str) -> bytes:
+    """The model file's bytes (for the cache key): a regular file, its size checked before and while reading."""
+    try:
+        return model_files.read_bounded(_source_path(source), MAX_MODEL_BYTES, f"model file {source}")
+    except ModelError as exc:
+        raise ModelError(f"{exc} (hybridctl.limits.MAX_MODEL_BYTES)" if "above the limit" in str(exc)
+                         else str(exc)) from None
+
+
+def scan_files(request: ModelRequest) -> model_files.ModelScan:
+    """Check every file the model names before Drake opens any (:func:`~hybridctl.systems.model_files.scan_model`)."""
+    return model_files.scan_model(_source_path(request.source), _packages())
 
 
 def parse_plant(request: ModelRequest, plant=None):
     """A finalized continuous-time MultibodyPlant of the model (``plant``: one to fill, e.g. from
-    ``AddMultibodyPlantSceneGraph``), its structure checked; ModelError names the file and what to change."""
+    ``AddMultibodyPlantSceneGraph``), its structure checked; ModelError names the file and what to change.
+    Every file the model names is checked first (:func:`scan_files`): Drake opens them."""
     from pydrake.multibody.parsing import Parser
     from pydrake.multibody.plant import MultibodyPlant
 
-    _file_bytes(request.source)  # the size limit, before Drake reads it
+    scan_files(request)
     plant = MultibodyPlant(0.0) if plant is None else plant
     parser = Parser(plant)
     try:
@@ -149,6 +162,56 @@ def check_structure(plant, request: ModelRequest) -> None:
     if plant.num_actuators() == 0:
         raise ModelError(f"model file {src}: has no actuators; add a <transmission> (URDF) or a joint "
                          f"<limit><effort> > 0 (SDF) for each actuated joint")
+    check_physics(plant, request)
+
+
+def check_physics(plant, request: ModelRequest) -> None:
+    """Refuse numbers no robot has, before code is generated from them: a body's mass (finite, >= 0, at
+    most :data:`~hybridctl.limits.MAX_MODEL_MASS`) and inertia (physically valid: positive semidefinite,
+    triangle inequality; moments at most MAX_MODEL_INERTIA), every fixed frame offset (joint origins;
+    |x| at most MAX_MODEL_LENGTH), finite joint limits and damping, and a positive definite mass matrix."""
+    from pydrake.multibody.tree import FrameIndex, JointActuatorIndex
+
+    src = request.source
+    for i in range(1, plant.num_bodies()):
+        body = plant.get_body(_body_index(i))
+        mass = float(body.default_mass())
+        if not (np.isfinite(mass) and 0.0 <= mass <= MAX_MODEL_MASS):
+            raise ModelError(f"model file {src}: body {body.name()!r} has mass {mass:g} kg; a mass must be finite, "
+                             f">= 0 and at most {MAX_MODEL_MASS:g} kg (hybridctl.limits.MAX_MODEL_MASS)")
+        inertia = np.asarray(body.default_rotational_inertia().CopyToFullMatrix3())
+        if not np.isfinite(inertia).all() or not np.isfinite(np.asarray(body.default_com())).all():
+            raise ModelError(f"model file {src}: body {body.name()!r} has a non-finite inertia or centre of mass")
+        moments = np.linalg.eigvalsh((inertia + inertia.T) / 2)
+        if not body.default_spatial_inertia().IsPhysicallyValid() or moments.max() > MAX_MODEL_INERTIA:
+            raise ModelError(f"model file {src}: body {body.name()!r} has principal moments of inertia "
+                             f"{', '.join(f'{m:g}' for m in moments)} kg m^2 (about its origin); an inertia must be "
+                             f"positive semidefinite, obey the triangle inequality (each moment at most the sum of "
+                             f"the other two) and be at most {MAX_MODEL_INERTIA:g} (hybridctl.limits.MAX_MODEL_INERTIA)")
+    for i in range(plant.num_frames()):
+        frame = plant.get_frame(FrameIndex(i))
+        offset = np.asarray(frame.GetFixedPoseInBodyFrame().translation())
+        if not (np.isfinite(offset).all() and np.abs(offset).max() <= MAX_MODEL_LENGTH):
+            raise ModelError(f"model file {src}: frame {frame.name()!r} (of body {frame.body().name()!r}) is at "
+                             f"{offset.tolist()} m; an offset (a joint origin) must be finite and at most "
+                             f"{MAX_MODEL_LENGTH:g} m (hybridctl.limits.MAX_MODEL_LENGTH)")
+    for index in range(plant.num_joints()):
+        joint = plant.get_joint(_joint_index(index))
+        values = [*joint.position_lower_limits(), *joint.position_upper_limits(), *joint.velocity_lower_limits(),
+                  *joint.velocity_upper_limits(), *np.atleast_1d(joint.default_damping_vector())]
+        if any(np.isnan(values)) or not np.isfinite(np.atleast_1d(joint.default_damping_vector())).all():
+            raise ModelError(f"model file {src}: joint {joint.name()!r} has a NaN limit or a non-finite damping")
+    for i in range(plant.num_actuators()):
+        actuator = plant.get_joint_actuator(JointActuatorIndex(i))
+        if np.isnan(actuator.effort_limit()) or actuator.effort_limit() <= 0:
+            raise ModelError(f"model file {src}: actuator {actuator.name()!r} has effort limit "
+                             f"{actuator.effort_limit():g}; it must be > 0 (inf: none)")
+    context = plant.CreateDefaultContext()
+    M = plant.CalcMassMatrix(context)
+    lowest = np.linalg.eigvalsh(M).min() if np.isfinite(M).all() else np.nan
+    if not lowest > 1e-12 * max(1.0, float(np.abs(M).max())):
+        raise ModelError(f"model file {src}: its mass matrix at q = 0 is singular or not positive definite "
+                         f"(lowest eigenvalue {lowest:g}): a moving body without mass or inertia")
 
 
 def _joint_index(i: int):
@@ -202,11 +265,53 @@ def coordinates(plant) -> tuple[list[str], list[bool], np.ndarray]:
 # ============================================================================ symbolic -> polynomials
 def derive(request: ModelRequest) -> MultibodyModel:
     """The model's polynomial equations from Drake's symbolic plant (no cache; see :func:`load_model`)."""
+    with _Deadline(request.source, MAX_DERIVE_SECONDS) as deadline:
+        return _derive(request, deadline)
+
+
+class _Deadline:
+    """The wall-time limit of one derivation: :meth:`check` between stages and entries, and (in the main
+    thread, where no other timer is set) a SIGALRM that interrupts sympy mid-entry. ModelError names it."""
+
+    def __init__(self, source: str, seconds: float):
+        self.source, self.seconds = source, float(seconds)
+        self.started = time.perf_counter()
+        self.previous = None
+
+    def __enter__(self) -> "_Deadline":
+        import signal
+        import threading
+        if (hasattr(signal, "setitimer") and threading.current_thread() is threading.main_thread()
+                and signal.getitimer(signal.ITIMER_REAL)[0] == 0
+                and signal.getsignal(signal.SIGALRM) in (signal.SIG_DFL, signal.SIG_IGN, None)
+                and 0 < self.seconds < float("inf")):
+            self.previous = signal.signal(signal.SIGALRM, lambda *_: self.fail())
+            signal.setitimer(signal.ITIMER_REAL, self.seconds)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.previous is not None:
+            import signal
+            signal.setitimer(signal.ITIMER_REAL, 0)
+            signal.signal(signal.SIGALRM, self.previous)
+
+    def check(self) -> None:
+        if time.perf_counter() - self.started > self.seconds:
+            self.fail()
+
+    def fail(self):
+        raise ModelError(f"model file {self.source}: deriving its equations took more than {self.seconds:g} s "
+                         f"(hybridctl.limits.MAX_DERIVE_SECONDS): too large to generate code for; fewer joints "
+                         f"or bodies would do")
+
+
+def _derive(request: ModelRequest, deadline: _Deadline) -> MultibodyModel:
     import sympy
     from pydrake.symbolic import MakeVectorVariable, to_sympy
 
-    started = time.perf_counter()
+    started = deadline.started
     plant = parse_plant(request)
+    deadline.check()
     selection, actuated = actuator_selection(plant, request)
     names, revolute, damping = coordinates(plant)
     n = plant.num_positions()
@@ -216,6 +321,7 @@ def derive(request: ModelRequest) -> MultibodyModel:
     symbolic.SetPositions(context, q)
     symbolic.SetVelocities(context, v)
     M = symbolic.CalcMassMatrix(context)
+    deadline.check()
     entries = [M[i, k] for i in range(n) for k in range(i, n)]
     entries += list(symbolic.CalcBiasTerm(context)) + list(symbolic.CalcGravityGeneralizedForces(context))
     entries += [symbolic.CalcKineticEnergy(context), symbolic.CalcPotentialEnergy(context)]
@@ -242,7 +348,12 @@ def derive(request: ModelRequest) -> MultibodyModel:
         where = symbolic.CalcPointsPositions(context, symbolic.GetBodyByName(body.name()).body_frame(), origin,
                                              symbolic.world_frame())
         entries += [where[k, 0] for k in range(3)]
-    size = sum(len(e.to_string()) for e in entries)
+    deadline.check()
+    size = 0
+    for entry in entries:   # stops at the limit: a 12-joint chain's strings alone are gigabytes
+        size += len(entry.to_string())
+        if size > MAX_EXPRESSION_CHARS:
+            break
     if size > MAX_EXPRESSION_CHARS:
         raise ModelError(f"model file {request.source}: Drake's symbolic equations have {size:,} characters, above "
                          f"the limit of {MAX_EXPRESSION_CHARS:,} (hybridctl.systems.symbolic.MAX_EXPRESSION_CHARS): "
@@ -255,6 +366,7 @@ def derive(request: ModelRequest) -> MultibodyModel:
     circle = [s[i] ** 2 + c[i] ** 2 - 1 for i in range(n) if revolute[i]]
     polys, count = [], 0
     for index, entry in enumerate(entries):
+        deadline.check()
         polys.append(_polynomial(sympy, to_sympy(entry, memo=memo), trig, generators, circle, revolute, qs,
                                  request.source))
         count += len(polys[-1])
