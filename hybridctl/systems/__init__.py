@@ -713,7 +713,8 @@ def from_drake(model_file: str, goal, Q, R, *, name: str | None = None, actuated
     ``model_file``: a path or a ``package://drake/`` URL. ``goal``: the state to balance at (Drake's
     coordinates: positions then velocities), ``Q`` / ``R``: the LQR weights. ``actuated_joints``:
     joint names in action order (default: every JointActuator of the model); ``action_limit``:
-    default the actuators' effort limit; ``gravity``: m/s^2 (default Drake's 9.81); ``tip_body`` /
+    default the actuators' effort limit (one above it is allowed: Drake's plant, and the generated
+    dynamics with it, clamp each actuator's input to its effort limit); ``gravity``: m/s^2 (default Drake's 9.81); ``tip_body`` /
     ``tip_point``: the point whose height the tip rewards use; ``nominal``: the initial state
     (default all zeros). Every other section gets a default recorded with the source
     "hybridctl.systems.from_drake default" (Euler, dt = control period = 0.01 s, swing-up
