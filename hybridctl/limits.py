@@ -45,6 +45,27 @@ MAX_NUM_ENVS = 1_000_000
 MIN_DT = 1e-6
 """The smallest time step a spec may set (``dt``, ``control.period``): one microsecond."""
 
+# --------------------------------------------------------------------------- Ray and trajopt
+RAY_CONNECT_TIMEOUT_S = 10.0
+"""Seconds to find the Ray cluster named by ``--address`` / ``RAY_ADDRESS`` before joining it: the
+host's DNS lookup, a TCP connect and the gRPC greeting of its head together (a head on the same
+network answers in milliseconds; Ray itself waited 70 s on a closed port, and forever at times)."""
+MAX_TASK_CPUS = 10_000
+"""CPUs one Ray task may ask for (``--task-cpus``); the cluster's largest node is checked too."""
+MAX_TASK_GPUS = 1_000
+"""GPUs one Ray task may ask for (``--task-gpus``); the cluster's largest node is checked too."""
+MAX_TASK_MEMORY_BYTES = 1 << 46
+"""Bytes one Ray task may reserve (``--task-memory``, 64 TiB: above the largest single machines);
+the cluster's largest node is checked too."""
+MAX_TRAJOPT_KNOTS = 2_000
+"""Knots of one collocation swing-up (``TrajoptSettings.knots``; 41 solve every benchmark system)."""
+MAX_TRAJOPT_ROWS = 1_000_000
+"""Rows of one trajopt tracking table (duration / period + 1; 801 for 8 s at 0.01 s), also as read
+from a cache file: the double cart-pole's rows are 14 floats, 0.1 GB at the limit."""
+
+__all__ += ["RAY_CONNECT_TIMEOUT_S", "MAX_TASK_CPUS", "MAX_TASK_GPUS", "MAX_TASK_MEMORY_BYTES", "MAX_TRAJOPT_KNOTS",
+            "MAX_TRAJOPT_ROWS"]
+
 # --------------------------------------------------------------------------- files we read
 MAX_ZIP_ENTRY_BYTES = 1 << 30
 """Decompressed bytes of one entry of a zip we read (an SB3 ``model.zip``); read in chunks and

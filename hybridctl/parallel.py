@@ -37,20 +37,27 @@ import ctypes
 import json
 import multiprocessing as mp
 import os
+import reprlib
 import signal
+import socket
 import sys
 import threading
 import time
 from typing import Any, Callable, Iterator, Sequence
 
-from .limits import check_at_most, cpu_count
+from .limits import (MAX_TASK_CPUS, MAX_TASK_GPUS, MAX_TASK_MEMORY_BYTES, RAY_CONNECT_TIMEOUT_S, check_at_most,
+                     cpu_count)
 
 BACKENDS = ("serial", "processes", "ray")
 
 TASK_RESOURCE_KEYS = ("num_cpus", "num_gpus", "memory")
 """What one Ray task may ask for (Ray's own names; ``memory`` in bytes)."""
-RUNTIME_ENV_KEYS = ("working_dir", "py_modules", "pip", "uv", "conda", "env_vars", "excludes", "image_uri", "config")
+TASK_RESOURCE_FLAGS = {"num_cpus": "--task-cpus", "num_gpus": "--task-gpus", "memory": "--task-memory"}
+"""The command-line flag of each task resource, named in every refusal."""
+RUNTIME_ENV_KEYS = ("working_dir", "py_modules", "env_vars", "excludes", "image_uri", "config")
 """The Ray runtime-environment fields accepted (Ray's own names); anything else is refused as a typo."""
+INSTALLING_RUNTIME_ENV_KEYS = ("pip", "uv", "conda", "container")
+"""Runtime-environment fields that install code on every node at run time: refused (see :func:`check_runtime_env`)."""
 MAX_RUNTIME_ENV_BYTES = 64 * 1024
 """A runtime environment is a few paths and package names; its JSON above this is refused."""
 
@@ -266,36 +273,84 @@ _RAY_OPTIONS: contextvars.ContextVar[dict] = contextvars.ContextVar("hybridctl_r
 
 
 def check_task_resources(task_resources: dict | None) -> dict | None:
-    """``task_resources`` if it is None or a dict of :data:`TASK_RESOURCE_KEYS` to numbers >= 0
-    (``num_cpus``/``num_gpus`` may be fractions, ``memory`` is whole bytes); else ValueError naming the key."""
+    """``task_resources`` if it is None or a dict of :data:`TASK_RESOURCE_KEYS` to finite numbers >= 0 within
+    ``limits.MAX_TASK_CPUS`` / ``MAX_TASK_GPUS`` (fractions in Ray's steps of 0.0001) / ``MAX_TASK_MEMORY_BYTES``
+    (whole bytes); else ValueError naming the key and flag. The cluster's nodes are checked on joining it."""
     if task_resources is None:
         return None
     if not isinstance(task_resources, dict):
         raise ValueError(f"task_resources must be a dict with keys from {TASK_RESOURCE_KEYS}, got {task_resources!r}")
+    checked = {}
     for key, value in task_resources.items():
         if key not in TASK_RESOURCE_KEYS:
             raise ValueError(f"task_resources key {key!r} is not one of {TASK_RESOURCE_KEYS}")
+        name = f"task_resources[{key!r}] ({TASK_RESOURCE_FLAGS[key]})"
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0 or value == float("inf"):
-            raise ValueError(f"task_resources[{key!r}] must be a finite number >= 0, got {value!r}")
-        if key == "memory" and int(value) != value:
-            raise ValueError(f"task_resources['memory'] is in bytes and must be whole, got {value!r}")
-    return dict(task_resources)
+            raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+        limit = {"num_cpus": MAX_TASK_CPUS, "num_gpus": MAX_TASK_GPUS, "memory": MAX_TASK_MEMORY_BYTES}[key]
+        check_at_most(name, value, limit, why="what one task may ask for", force_flag=None)
+        if key == "memory":
+            if int(value) != value:
+                raise ValueError(f"{name} is in bytes and must be whole, got {value!r}")
+            value = int(value)
+        elif 0 < value < 1e-4:
+            raise ValueError(f"{name} is {value!r}: Ray counts resources in steps of 0.0001")
+        checked[key] = value
+    return checked
+
+
+def task_memory_bytes(gib: float) -> int:
+    """``--task-memory`` (GiB, a finite number > 0) as whole bytes; ValueError above ``MAX_TASK_MEMORY_BYTES``."""
+    check_at_most("--task-memory", gib, MAX_TASK_MEMORY_BYTES / 2**30, force_flag=None, why="GiB one task may reserve")
+    return int(gib * 2**30)
+
+
+def _strings(value: Any) -> bool:
+    return isinstance(value, list) and all(isinstance(v, str) and v for v in value)
+
+
+_RUNTIME_ENV_VALUES = {
+    "working_dir": (lambda v: isinstance(v, str) and v, "a non-empty string"),
+    "image_uri": (lambda v: isinstance(v, str) and v, "a non-empty string"),
+    "py_modules": (_strings, "a list of non-empty strings"), "excludes": (_strings, "a list of non-empty strings"),
+    "env_vars": (lambda v: isinstance(v, dict) and all(isinstance(k, str) and k and isinstance(x, str)
+                                                       for k, x in v.items()),
+                 'an object of strings to strings (write "1", not 1)'),
+    "config": (lambda v: isinstance(v, dict) and set(v) <= {"setup_timeout_seconds", "eager_install"}
+               and isinstance(v.get("eager_install", True), bool)
+               and (lambda t: type(t) is int and (t > 0 or t == -1))(v.get("setup_timeout_seconds", 1)),
+               "an object of setup_timeout_seconds (an integer > 0, or -1) and eager_install (a bool)")}
+"""Each accepted runtime-env field: (accepts its value, what it must be)."""
 
 
 def check_runtime_env(runtime_env: dict | None) -> dict | None:
     """``runtime_env`` if it is None or a dict of :data:`RUNTIME_ENV_KEYS` whose JSON is at most
-    :data:`MAX_RUNTIME_ENV_BYTES`; else ValueError naming the key or the size."""
+    :data:`MAX_RUNTIME_ENV_BYTES`, each value as :data:`_RUNTIME_ENV_VALUES` says (a local ``working_dir`` or
+    ``py_modules`` must exist); else ValueError naming the key. :data:`INSTALLING_RUNTIME_ENV_KEYS` (``pip``,
+    ``uv``, ``conda``, ``container``) are refused, saying to pre-install the packages on the cluster: they
+    install at run time on every node, which needs network access a node may lack and runs unpinned code."""
     if runtime_env is None:
         return None
     if not isinstance(runtime_env, dict):
         raise ValueError(f"runtime_env must be a dict (a JSON object) with keys from {RUNTIME_ENV_KEYS}, "
                          f"got {type(runtime_env).__name__}")
     for key in runtime_env:
+        if key in INSTALLING_RUNTIME_ENV_KEYS:
+            raise ValueError(f"runtime_env key {key!r} is refused: it installs packages on every node at run time "
+                             "(network access, unpinned code); pre-install them on the cluster's nodes (or in its "
+                             "image) and leave it out")
         if key not in RUNTIME_ENV_KEYS:
             raise ValueError(f"runtime_env key {key!r} is not one of {RUNTIME_ENV_KEYS}")
-    size = len(json.dumps(runtime_env))
+    size = len(json.dumps(runtime_env, default=str))
     if size > MAX_RUNTIME_ENV_BYTES:
         raise ValueError(f"runtime_env is {size:,} bytes of JSON; at most {MAX_RUNTIME_ENV_BYTES:,} are accepted")
+    for key, value in runtime_env.items():
+        accepts, what = _RUNTIME_ENV_VALUES[key]
+        if not accepts(value):
+            raise ValueError(f"runtime_env[{key!r}] must be {what}, got {reprlib.repr(value)}")
+        for path in {"working_dir": [value], "py_modules": value}.get(key, []):
+            if "://" not in path and not os.path.exists(path):   # local: Ray packs it here; a URI: the cluster's
+                raise ValueError(f"runtime_env[{key!r}]: {path!r} does not exist here (a folder, .zip, .whl or URI)")
     return dict(runtime_env)
 
 
@@ -317,6 +372,77 @@ def ray_address(address: str | None = None) -> str | None:
     """The Ray cluster to join: ``address`` (``--address``), else the ``RAY_ADDRESS`` environment
     variable (as ``ray job submit`` and Ray's own tools set it), else None: a new local instance."""
     return address or os.environ.get("RAY_ADDRESS") or None
+
+
+# a gRPC (HTTP/2) client's preface and empty SETTINGS frame; a Ray head (GCS or Ray Client) answers with SETTINGS
+_HTTP2_HELLO = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes([0, 0, 0, 4, 0, 0, 0, 0, 0])
+
+
+def check_ray_address(address: str, timeout: float | None = None, shown: str | None = None) -> None:
+    """Refuse in one line naming ``address`` (or ``shown``; ConnectionError, ValueError if malformed) a Ray cluster
+    that does not answer within ``timeout`` s (default ``limits.RAY_CONNECT_TIMEOUT_S``; ``ray.init`` waited 70 s
+    or more): DNS lookup (on a thread: ``getaddrinfo`` has no timeout), TCP connect, a Ray head's gRPC greeting
+    (not under ``RAY_USE_TLS``). ``"auto"`` is resolved as Ray does; ``"local"`` and ``name://`` go to Ray."""
+    timeout = RAY_CONNECT_TIMEOUT_S if timeout is None else timeout
+    deadline, shown = time.monotonic() + timeout, shown or address
+    if address == "auto":   # as Ray resolves it (ConnectionError when no cluster runs here)
+        from ray._private.services import canonicalize_bootstrap_address
+        address = canonicalize_bootstrap_address("auto") or "local"
+    text = address[len("ray://"):] if address.startswith("ray://") else address
+    if address == "local" or "://" in text:
+        return
+    host, colon, port = text.rpartition(":") if text.count(":") == 1 or text.startswith("[") else ("", "", "")
+    host = host.strip("[]")
+    if not (host and colon and port.isdigit() and 0 < int(port) < 65536):
+        raise ValueError(f"Ray address {shown!r} is not host:port, ray://host:port or auto")
+    where, limit = f"the Ray cluster at {shown}", f"within {timeout:g} s (limits.RAY_CONNECT_TIMEOUT_S)"
+    found: dict = {}
+
+    def lookup():
+        try:
+            found["infos"] = socket.getaddrinfo(host, int(port), type=socket.SOCK_STREAM)
+        except OSError as exc:
+            found["error"] = exc
+    (thread := threading.Thread(target=lookup, name="hybridctl-ray-dns", daemon=True)).start()
+    thread.join(timeout)
+    if "infos" not in found:
+        raise ConnectionError(f"{where}: unknown host {host!r}" + (
+            f" ({found['error'].strerror or found['error']})" if "error" in found else f": no DNS answer {limit}"))
+    reason = "no address"
+    for family, kind, proto, _, sockaddr in found["infos"]:
+        with socket.socket(family, kind, proto) as sock:
+            try:
+                sock.settimeout(max(1e-3, deadline - time.monotonic()))
+                sock.connect(sockaddr)
+            except OSError as exc:
+                reason = exc.strerror or str(exc) or type(exc).__name__
+                continue
+            if os.environ.get("RAY_USE_TLS", "0").lower() in ("1", "true"):
+                return                                   # TLS: no plain greeting to check
+            try:
+                sock.sendall(_HTTP2_HELLO)
+                sock.settimeout(max(1e-3, deadline - time.monotonic()))
+                hello = sock.recv(9)
+            except OSError:
+                hello = b""
+            if len(hello) >= 4 and hello[3] == 4:        # an HTTP/2 SETTINGS frame: a gRPC server
+                return
+            raise ConnectionError(f"{where} answers, but not as a Ray cluster: no gRPC greeting {limit}")
+    raise ConnectionError(f"{where} does not answer: {reason} (waited at most {timeout:g} s, limits.RAY_CONNECT_TIMEOUT_S)")
+
+
+def check_fits_cluster(ray: Any, task_resources: dict) -> None:
+    """ValueError naming the flag when one task asks for more CPUs (default 1), GPUs or memory than the cluster's
+    largest live node has (Ray would queue it forever; an autoscaler's future nodes do not count)."""
+    nodes = [n.get("Resources", {}) for n in ray.nodes() if n.get("Alive", True)] or [ray.cluster_resources()]
+    for key, resource, unit, scale in (("num_cpus", "CPU", "CPUs", 1), ("num_gpus", "GPU", "GPUs", 1),
+                                       ("memory", "memory", "GiB", 2**30)):
+        asked = task_resources.get(key, 1 if key == "num_cpus" else 0)
+        most = max(node.get(resource, 0) for node in nodes)
+        if asked > most:
+            given = "" if key in task_resources else " (the default)"
+            raise ValueError(f"{TASK_RESOURCE_FLAGS[key]} {asked / scale:g}{given}: one task asks for {asked / scale:g} "
+                             f"{unit}, the Ray cluster's largest node has {most / scale:g} {unit} (it would wait forever)")
 
 
 class RayBackend(SerialBackend):
@@ -354,7 +480,7 @@ class RayBackend(SerialBackend):
                                               else defaults.get("task_resources"))
         self._ray = ray
         self._started_here = not ray.is_initialized()
-        address = ray_address(address)
+        given, address = address, ray_address(address)
         if self._started_here:
             if address is None:
                 # a new local instance on loopback only; workers import what this process imports
@@ -363,8 +489,14 @@ class RayBackend(SerialBackend):
                 env["env_vars"] = {"PYTHONPATH": os.pathsep.join(p for p in sys.path if p), **env.get("env_vars", {})}
                 ray.init(address="local", num_cpus=workers, include_dashboard=False, log_to_driver=False,
                          _node_ip_address="127.0.0.1", runtime_env=env)
-            else:
+            else:              # an address that does not answer is refused before ray.init waits on it
+                check_ray_address(address, shown=address if given else f"RAY_ADDRESS={address}")
                 ray.init(address=address, log_to_driver=False, runtime_env=runtime_env)
+        try:
+            check_fits_cluster(ray, task_resources or {})
+        except ValueError:
+            self.close()
+            raise
         cluster_cpus = max(1, int(ray.cluster_resources().get("CPU", 1)))
         self.workers = workers or cluster_cpus
         self.task_resources = dict(task_resources or {})

@@ -115,7 +115,7 @@ def test_ray_options_are_checked_first():
     with pytest.raises(ValueError, match="task_resources key 'gpus'"):
         with ray_options(task_resources={"gpus": 1}):
             pass
-    with pytest.raises(ValueError, match=r"task_resources\['num_cpus'\] must be a finite number >= 0"):
+    with pytest.raises(ValueError, match=r"task_resources\['num_cpus'\] \(--task-cpus\) must be a finite number >= 0"):
         with ray_options(task_resources={"num_cpus": -1}):
             pass
     with pytest.raises(ValueError, match="runtime_env key 'pip_packages'"):
@@ -184,3 +184,173 @@ def test_finetune_cli_takes_the_shared_backend_flags_and_a_device(monkeypatch, t
     assert seen["config"].device == "cpu" and seen["config"].address == "auto" and seen["config"].chunk_size is None
     with pytest.raises(SystemExit, match="--address auto applies to --backend ray only"):
         main(["finetune", "pendulum", "--policy", "ssac:x", "--address", "auto", "--out", str(tmp_path / "g")])
+
+
+# ------------------------------------------------------------------ every wait has a stated limit (issue 47)
+UNREACHABLE = textwrap.dedent("""
+    import contextlib, io, json, socket, sys, threading, time
+    case = sys.argv[1]
+
+    def closed_port():
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            return s.getsockname()[1]
+
+    def listener(reply):
+        server = socket.socket()
+        server.bind(("127.0.0.1", 0))
+        server.listen()
+        def serve():
+            kept = []
+            while True:
+                conn, _ = server.accept()
+                if reply == "close":
+                    conn.close()
+                else:
+                    kept.append(conn)          # accepts and says nothing
+        threading.Thread(target=serve, daemon=True).start()
+        return server.getsockname()[1]
+
+    import hybridctl.parallel as parallel
+    address = {"closed": lambda: f"127.0.0.1:{closed_port()}", "unknown": lambda: "nohost.invalid:6379",
+               "client": lambda: f"ray://127.0.0.1:{closed_port()}", "env": lambda: None,
+               "not-ray": lambda: f"127.0.0.1:{listener('close')}", "silent": lambda: f"127.0.0.1:{listener('wait')}",
+               "cli": lambda: None}[case]()
+    parallel.RAY_CONNECT_TIMEOUT_S = 1.0       # the silent listener: refused after the (shortened) limit
+    import ray                                 # imports are not the wait measured
+    if case == "cli":
+        import hybridctl.cli
+    start = time.monotonic()
+    try:
+        if case == "cli":
+            from hybridctl.cli import main
+            err = io.StringIO()
+            with contextlib.redirect_stderr(err):
+                main(["balance-map", "pendulum", "--grid", "2", "--duration", "0.1", "--backend", "ray",
+                      "--address", "nohost.invalid:6379", "--out", sys.argv[2]])
+            out = {"error": None}
+        else:
+            parallel.make_backend("ray", address=address).close()
+            out = {"error": None}
+    except SystemExit as exc:
+        out = {"error": "SystemExit", "code": exc.code, "message": err.getvalue()}
+    except Exception as exc:
+        out = {"error": type(exc).__name__, "message": str(exc), "value_or_os": isinstance(exc, (ValueError, OSError))}
+    out["seconds"] = time.monotonic() - start
+    print(json.dumps(out))
+""")
+UNREACHABLE_CASES = ("closed", "unknown", "client", "env", "not-ray", "silent", "cli")
+
+
+@pytest.fixture(scope="module")
+def unreachable(tmp_path_factory):
+    """Each case's outcome (probe subprocesses run side by side: a regression waits, it does not hang the
+    session: each is stopped after 60 s and reported as such)."""
+    env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0", "RAY_ADDRESS": ""}
+    runs = {}
+    for case in UNREACHABLE_CASES:
+        case_env = {**env, "RAY_ADDRESS": "nohost.invalid:6379"} if case == "env" else env
+        runs[case] = subprocess.Popen([sys.executable, "-c", UNREACHABLE, case, str(tmp_path_factory.mktemp(case))],
+                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=case_env)
+    outcomes = {}
+    for case, run in runs.items():
+        try:
+            out, err = run.communicate(timeout=60)
+            outcomes[case] = json.loads(out.strip().splitlines()[-1]) if out.strip() else {"error": "crash", "stderr": err[-2000:]}
+        except subprocess.TimeoutExpired:
+            run.kill()
+            run.communicate()
+            outcomes[case] = {"error": "still waiting after 60 s"}
+    return outcomes
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("case, words", [
+    ("closed", ["127.0.0.1:", "refused"]), ("unknown", ["nohost.invalid", "unknown host"]),
+    ("client", ["ray://127.0.0.1:", "refused"]), ("env", ["RAY_ADDRESS", "nohost.invalid"]),
+    ("not-ray", ["not as a Ray cluster"]), ("silent", ["not as a Ray cluster", "1 s"]),
+])
+def test_an_unreachable_cluster_is_refused_in_one_line_within_the_stated_limit(unreachable, case, words):
+    """A closed port, an unknown host (the reserved .invalid TLD), a bogus RAY_ADDRESS, a port that is not a
+    Ray head: refused before ray.init, in one line naming the address (Ray itself waited 70 s or more)."""
+    out = unreachable[case]
+    assert out["error"] == "ConnectionError" and out["value_or_os"], out
+    assert "\n" not in out["message"] and all(w in out["message"] for w in words), out
+    assert out["seconds"] < 5, out
+
+
+@pytest.mark.timeout(120)
+def test_the_cli_refuses_an_unreachable_cluster_in_one_line(unreachable):
+    out = unreachable["cli"]
+    assert out["error"] == "SystemExit" and out["code"] == 2, out
+    assert out["message"].count("\n") == 1 and "nohost.invalid" in out["message"] and "Traceback" not in out["message"]
+    assert out["seconds"] < 10, out
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.xdist_group("ray")
+@pytest.mark.parametrize("resources, words", [
+    ({"num_cpus": 1000}, ["--task-cpus", "1000", "2 CPUs"]),
+    ({"num_gpus": 1}, ["--task-gpus", "1", "0 GPUs"]),
+    ({"memory": 1 << 45}, ["--task-memory", "32768 GiB"]),
+])
+def test_task_resources_above_the_clusters_are_refused_before_any_task_waits(local_ray, resources, words):
+    """Ray queues a task that no node can hold forever; the backend refuses it when made (the session's
+    instance has 2 CPUs, no GPU)."""
+    from hybridctl.parallel import make_backend, ray_options
+    start = time.monotonic()
+    with pytest.raises(ValueError) as refused:
+        with ray_options(task_resources=resources):
+            make_backend("ray")
+    message = str(refused.value)
+    assert "\n" not in message and all(w in message for w in words), message
+    assert time.monotonic() - start < 5
+
+
+@pytest.mark.parametrize("resources, words", [
+    ({"memory": 1e300}, ["task_resources['memory']", "--task-memory", "above its limit"]),
+    ({"memory": 10**30}, ["--task-memory", "above its limit"]),
+    ({"num_cpus": 1e6}, ["--task-cpus", "above its limit"]),
+    ({"num_gpus": 0.00001}, ["--task-gpus", "0.0001"]),
+    ({"num_cpus": True}, ["--task-cpus", "number"]),
+])
+def test_task_resources_are_checked_fully_before_ray_sees_them(resources, words):
+    from hybridctl.parallel import check_task_resources
+    with pytest.raises(ValueError) as refused:
+        check_task_resources(resources)
+    assert all(w in str(refused.value) for w in words), str(refused.value)
+
+
+@pytest.mark.parametrize("env, words", [
+    ({"env_vars": {"A": 1}}, ["runtime_env['env_vars']", "strings"]),
+    ({"env_vars": ["A=1"]}, ["runtime_env['env_vars']", "strings"]),
+    ({"pip": ["numpy"]}, ["'pip'", "pre-install"]),
+    ({"uv": ["numpy"]}, ["'uv'", "pre-install"]),
+    ({"conda": {"dependencies": ["numpy"]}}, ["'conda'", "pre-install"]),
+    ({"container": {"image": "x"}}, ["'container'", "pre-install"]),
+    ({"working_dir": 3}, ["runtime_env['working_dir']"]),
+    ({"working_dir": "/nonexistent/hybridctl-folder"}, ["runtime_env['working_dir']", "/nonexistent"]),
+    ({"py_modules": "mod"}, ["runtime_env['py_modules']", "list"]),
+    ({"excludes": [1]}, ["runtime_env['excludes']", "list"]),
+    ({"config": {"setup_timeout_seconds": "x"}}, ["setup_timeout_seconds"]),
+    ({"config": {"retries": 1}}, ["runtime_env['config']", "retries"]),
+])
+def test_runtime_env_values_are_checked_before_ray_sees_them(env, words):
+    from hybridctl.parallel import check_runtime_env
+    with pytest.raises(ValueError) as refused:
+        check_runtime_env(env)
+    message = str(refused.value)
+    assert "\n" not in message and all(w in message for w in words), message
+
+
+def test_runtime_env_well_formed_values_pass(tmp_path):
+    from hybridctl.parallel import check_runtime_env
+    env = {"working_dir": str(tmp_path), "py_modules": [str(tmp_path)], "env_vars": {"A": "1"}, "excludes": ["*.npz"],
+           "config": {"setup_timeout_seconds": 60, "eager_install": True}}
+    assert check_runtime_env(env) == env
+
+
+def test_cli_task_memory_overflow_is_one_line(cli_error):
+    """--task-memory 1e300 (GiB) used to overflow converting to bytes (OverflowError, a traceback)."""
+    err = cli_error(["balance-map", "pendulum", "--backend", "ray", "--task-memory", "1e300"])
+    assert "--task-memory" in err and "limit" in err

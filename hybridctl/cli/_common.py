@@ -240,19 +240,20 @@ def add_ray_task_flags(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--runtime-env", metavar="JSON|FILE.json",
                        help="Ray runtime environment of the tasks, a JSON object or a .json file of one (at most "
                             "64 KiB), e.g. '{\"working_dir\": \".\"}' to ship this folder's specs and models to "
-                            "a cluster; keys: working_dir, py_modules, pip, uv, conda, env_vars, excludes, "
-                            "image_uri, config")
+                            "a cluster; keys: working_dir, py_modules, env_vars, excludes, image_uri, config "
+                            "(pip, uv, conda, container are refused: pre-install packages on the cluster)")
 
 
 def ray_task_options(args: argparse.Namespace) -> dict:
     """``task_resources`` and ``runtime_env`` (each None when not given) from :func:`add_ray_task_flags`'
     flags, for :func:`hybridctl.parallel.ray_options`; ValueError naming the flag for a bad value."""
-    from ..parallel import MAX_RUNTIME_ENV_BYTES, check_runtime_env
+    from ..parallel import MAX_RUNTIME_ENV_BYTES, check_runtime_env, check_task_resources, task_memory_bytes
 
     resources = {key: value for key, value in (
         ("num_cpus", getattr(args, "task_cpus", None)), ("num_gpus", getattr(args, "task_gpus", None)),
-        ("memory", None if getattr(args, "task_memory", None) is None else int(args.task_memory * 2**30)))
+        ("memory", None if getattr(args, "task_memory", None) is None else task_memory_bytes(args.task_memory)))
         if value is not None}
+    check_task_resources(resources)         # the limits, before Ray sees them
     text, runtime_env = getattr(args, "runtime_env", None), None
     if text is not None:
         if not text.lstrip().startswith("{"):       # a file name
