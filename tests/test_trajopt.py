@@ -181,3 +181,93 @@ def test_a_bad_period_or_a_foreign_trajectory_is_refused(acrobot, pendulum, acro
         tracking_gains(acrobot, traj, period=-0.01, cache_dir=folder)
     with pytest.raises(ValueError, match="trajectory"):
         tracking_gains(pendulum, traj, cache_dir=folder)
+
+
+# ------------------------------------------------------------------ failures are one line (issue 47)
+STEP_TOO_SMALL = ("Error control wants to select step smaller than minimum allowed (1e-14)")
+
+
+def test_a_tvlqr_step_below_drakes_minimum_is_one_line_with_what_to_try(acrobot, acrobot_swingup, monkeypatch):
+    """The public pendubot's TVLQR ended in Drake's integrator RuntimeError (a traceback); the same message,
+    raised by the Riccati integration, is now a ValueError naming the system, the stage and what to try."""
+    from pydrake.systems import controllers
+
+    def fails(*args, **kwargs):
+        raise RuntimeError(STEP_TOO_SMALL + "\nmore lines of Drake's text")
+    monkeypatch.setattr(controllers, "FiniteHorizonLinearQuadraticRegulator", fails)
+    traj, _ = acrobot_swingup
+    with pytest.raises(ValueError) as failed:
+        tracking_gains(acrobot, traj, cache=False)
+    message = str(failed.value)
+    assert "\n" not in message and "acrobot" in message and "TVLQR" in message, message
+    assert "step smaller than minimum allowed" in message and "durations" in message, message
+
+
+@pytest.mark.parametrize("status", ["IterationLimit", "error: SNOPT threw"])
+def test_a_collocation_that_does_not_solve_is_one_line_with_what_to_try(pendulum, monkeypatch, tmp_path, status):
+    """The multibody cart's SNOPT iteration limit ended in a RuntimeError traceback; now a ValueError."""
+    def unsolved(system, settings, duration, *args):
+        if status.startswith("error"):
+            raise RuntimeError("SNOPT threw\nsecond line")
+        return None, "SNOPT", status
+    monkeypatch.setattr(trajopt, "_solve_fixed_duration", unsolved)
+    with pytest.raises(ValueError) as failed:
+        swingup_trajectory(pendulum, cache_dir=tmp_path, durations=(2.0, 3.0))
+    message = str(failed.value)
+    assert "\n" not in message and "pendulum" in message and "collocation" in message, message
+    assert "SNOPT" in message and "T = 3 s" in message and "durations" in message, message
+
+
+def test_the_cli_prints_a_trajopt_failure_in_one_line(cli_error, monkeypatch, tmp_path):
+    monkeypatch.setenv("HYBRIDCTL_CACHE", str(tmp_path))
+    monkeypatch.setattr(trajopt, "_solve_fixed_duration", lambda *a: (None, "SNOPT", "IterationLimit"))
+    err = cli_error(["simulate", "pendulum", "--controller", "trajopt", "--duration", "0.1", "--no-html",
+                     "--out", tmp_path / "out"])
+    assert "collocation" in err and "pendulum" in err
+
+
+def _forged_npz(path, real: dict, name: str, shape: tuple) -> None:
+    """``real``'s arrays, but ``name`` as an .npy whose header claims ``shape`` over a few bytes of data."""
+    import zipfile
+    with zipfile.ZipFile(path, "w") as z:
+        for key, value in real.items():
+            buffer = __import__("io").BytesIO()
+            if key == name:
+                np.lib.format.write_array_header_2_0(buffer, {"descr": "<f8", "fortran_order": False, "shape": shape})
+                buffer.write(b"\0" * 64)
+            else:
+                np.lib.format.write_array(buffer, np.asarray(value), allow_pickle=False)
+            z.writestr(f"{key}.npy", buffer.getvalue())
+
+
+@pytest.mark.timeout(60)
+def test_a_cache_entry_claiming_huge_gains_is_recomputed_without_allocating_them(acrobot, acrobot_swingup, tmp_path):
+    """A tracking entry whose ``K`` header claims 4e9 elements (29.8 GB) made np.load allocate them; every
+    size is now read from the headers and checked (limits.MAX_TRAJOPT_ROWS) first: one warning, recomputed."""
+    import tracemalloc
+    traj, folder = acrobot_swingup
+    gains = tracking_gains(acrobot, traj, cache_dir=folder)
+    real = dict(np.load(gains.path, allow_pickle=False))
+    forged = tmp_path / gains.path.name
+    _forged_npz(forged, real, "K", (1_000_000_000, 1, 4))
+    tracemalloc.start()
+    try:
+        with pytest.warns(UserWarning, match="cannot be used"):
+            again = tracking_gains(acrobot, traj, cache_dir=tmp_path)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert not again.cached and peak < 100e6
+    np.testing.assert_allclose(again.K, gains.K, rtol=1e-9, atol=1e-9)
+    assert tracking_gains(acrobot, traj, cache_dir=tmp_path).cached      # rewritten
+
+
+def test_a_tracking_table_above_its_row_limit_is_refused_before_allocating(acrobot, acrobot_swingup):
+    traj, folder = acrobot_swingup
+    with pytest.raises(ValueError, match="MAX_TRAJOPT_ROWS|limit"):
+        tracking_gains(acrobot, traj, period=1e-12, cache=False)
+
+
+def test_knots_above_their_limit_are_refused():
+    with pytest.raises(ValueError, match="knots"):
+        TrajoptSettings(knots=10**9)

@@ -21,7 +21,10 @@ per system as
 determines them: the spec's values, the Drake model, the settings, the period and Drake's version. The
 cache folder is ``$HYBRIDCTL_CACHE/trajopt`` when ``HYBRIDCTL_CACHE`` is set, else ``runs/trajopt`` in
 the working folder. A cache file that cannot be read, or does not hold what its name promises, is
-reported (a warning) and recomputed; it is never unpickled.
+reported (a warning) and recomputed; it is never unpickled, and the sizes in its array headers are checked
+(``limits.MAX_TRAJOPT_ROWS``) before anything is allocated. A swing-up that Drake cannot compute (SNOPT's
+iteration limit, the Riccati integration's step below Drake's minimum) is a :class:`TrajoptError`: one line
+naming the system, the stage and what to try.
 """
 
 from __future__ import annotations
@@ -40,6 +43,7 @@ import numpy as np
 from pydrake.systems.framework import Context, DiagramBuilder, DiscreteValues, LeafSystem
 
 from .. import io
+from ..limits import MAX_TRAJOPT_KNOTS, MAX_TRAJOPT_ROWS, check_at_most
 from ..systems import System, control
 from ..systems import plants as _plants
 
@@ -51,6 +55,10 @@ DEFAULT_CACHE = Path("runs") / "trajopt"
 
 CACHE_FORMAT = 1
 """Version of the cached arrays; part of every cache key, so a new layout never reads an old file."""
+
+
+class TrajoptError(ValueError):
+    """A swing-up Drake could not compute: one line naming the system, the stage, what to try (CLI: exit 2)."""
 
 
 SOLVE_FIELDS = ("knots", "durations", "input_margin", "cart_bound", "major_iterations", "minor_iterations")
@@ -113,6 +121,7 @@ class TrajoptSettings:
             if not (number(value) and float(value).is_integer() and value >= (3 if name == "knots" else 1)):
                 bad(name, value, "an integer >= 3" if name == "knots" else "an integer >= 1 or None")
             object.__setattr__(self, name, int(value))
+        check_at_most("TrajoptSettings.knots", self.knots, MAX_TRAJOPT_KNOTS, force_flag=None)
         durations = self.durations if isinstance(self.durations, (tuple, list)) else (self.durations,)
         if not durations or not all(number(d) and math.isfinite(d) and d > 0 for d in durations):
             bad("durations", self.durations, "a non-empty sequence of finite numbers > 0 (seconds)")
@@ -153,6 +162,11 @@ def _plant_diagram(system: System):
 
 def _has_cart(system: System) -> bool:
     return system.chain is not None and system.chain.has_cart
+
+
+def _has_prismatic(diagram) -> bool:   # a multibody cart: the collocation does not bound its travel
+    plants = [s for s in diagram.GetSystems() if hasattr(s, "GetJointIndices")]
+    return any(p.get_joint(i).type_name() == "prismatic" for p in plants for i in p.GetJointIndices())
 
 
 # ----------------------------------------------------------------------------------- the cache
@@ -198,6 +212,7 @@ def _load_npz(path: Path, key: str, shapes: dict[str, tuple]) -> dict | None:
     if not path.exists():
         return None
     try:
+        _check_npz_headers(path, shapes)      # sizes from the headers, before np.load allocates them
         with np.load(path, allow_pickle=False) as data:
             arrays = {name: np.asarray(data[name]) for name in (*shapes, "key")}
         if str(arrays["key"]) != key:
@@ -213,6 +228,23 @@ def _load_npz(path: Path, key: str, shapes: dict[str, tuple]) -> dict | None:
         reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         warnings.warn(f"trajopt cache {path} cannot be used ({reason}); recomputing it", stacklevel=3)
         return None
+
+
+def _check_npz_headers(path: Path, shapes: dict[str, tuple]) -> None:
+    """ValueError unless each array's .npy header in the zip ``path`` claims ``shapes`` (-1: any length up to
+    ``limits.MAX_TRAJOPT_ROWS``) and a plain dtype: read without reading (or allocating) any array data."""
+    with zipfile.ZipFile(path) as archive:
+        for name, shape in shapes.items():
+            with archive.open(f"{name}.npy") as f:      # KeyError when missing
+                version = np.lib.format.read_magic(f)
+                read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+                claimed, _, dtype = read(f)
+            if dtype.hasobject:
+                raise ValueError(f"array {name!r} holds Python objects")
+            if len(claimed) != len(shape) or any(s not in (-1, a) or a > MAX_TRAJOPT_ROWS
+                                                 for s, a in zip(shape, claimed)):
+                raise ValueError(f"array {name!r} has shape {claimed}, expected {shape} (-1: at most "
+                                 f"{MAX_TRAJOPT_ROWS:,}, limits.MAX_TRAJOPT_ROWS)")
 
 
 def _save_npz(path: Path, key: str, arrays: dict) -> None:
@@ -350,7 +382,7 @@ def solve_swingup(system: System, settings: TrajoptSettings) -> dict:
 
     Returns arrays ``times``, ``states``, ``derivatives``, ``inputs``, the whole ``solve_time`` (s), the
     ``solver`` and the attempts (``attempt_durations``, ``attempt_bounds``, ``attempt_solved``,
-    ``attempt_seconds``). RuntimeError naming every attempt when none succeeds.
+    ``attempt_seconds``). :class:`TrajoptError` naming every attempt and what to try when none succeeds.
     """
     diagram, context = _plant_diagram(system)
     limit, margin = system.action_limit, settings.input_margin * system.action_limit
@@ -358,7 +390,10 @@ def solve_swingup(system: System, settings: TrajoptSettings) -> dict:
 
     def attempt(duration, bound, guess=None):
         began = time.perf_counter()
-        arrays, solver, status = _solve_fixed_duration(system, settings, duration, diagram, context, bound, guess)
+        try:
+            arrays, solver, status = _solve_fixed_duration(system, settings, duration, diagram, context, bound, guess)
+        except RuntimeError as exc:      # Drake or the solver threw: this attempt failed, the next may solve
+            arrays, solver, status = None, "SNOPT", f"error: {(str(exc) or type(exc).__name__).splitlines()[0]}"
         attempts.append((duration, bound, arrays is not None, time.perf_counter() - began, status, solver))
         return arrays
 
@@ -371,8 +406,12 @@ def solve_swingup(system: System, settings: TrajoptSettings) -> dict:
             break
     if found is None:
         tried = ", ".join(f"T = {d:g} s, |u| <= {b:g}: {status} ({sec:.1f} s)" for d, b, _, sec, status, _ in attempts)
-        raise RuntimeError(f"{system.name}: the collocation swing-up did not solve with {attempts[-1][5]} ({tried}); "
-                           f"try other TrajoptSettings (durations, knots, input_margin, cart_bound)")
+        cart = (f", another cart_bound (now {settings.cart_bound:g} m)" if _has_cart(system) else
+                ", a chain spec for the cart (a multibody model's prismatic travel is not bounded here)"
+                if _has_prismatic(diagram) else "")
+        raise TrajoptError(f"{system.name}: the collocation swing-up did not solve with {attempts[-1][5]} ({tried}); "
+                           f"try longer durations (TrajoptSettings.durations, e.g. {2 * max(settings.durations):g} s), "
+                           f"more knots, more SNOPT iterations (major_iterations, minor_iterations){cart}")
     durations, bounds, solved, seconds, _, solvers = zip(*attempts)
     return dict(found, solve_time=time.perf_counter() - start, solver=solvers[-1],
                 attempt_durations=np.array(durations), attempt_bounds=np.array(bounds),
@@ -391,7 +430,7 @@ def swingup_trajectory(system: System, settings: TrajoptSettings | None = None, 
         cache: read and write the cache (False: always solve, write nothing).
         cache_dir: the cache folder (default :func:`cache_folder`).
 
-    Raises RuntimeError when the solver finds no trajectory.
+    Raises :class:`TrajoptError` (one line, what to try) when the solver finds no trajectory.
     """
     _check_system(system)
     settings = _settings(settings, overrides)
@@ -464,8 +503,13 @@ def solve_tracking(system: System, trajectory: SwingupTrajectory, period: float)
     options.Qf = system.lqr(Q, R)[1]
     options.input_port_index = diagram.get_input_port(0).get_index()
     start = time.perf_counter()
-    result = FiniteHorizonLinearQuadraticRegulator(diagram, context, float(trajectory.times[0]),
-                                                   float(trajectory.times[-1]), Q, R, options)
+    try:
+        result = FiniteHorizonLinearQuadraticRegulator(diagram, context, float(trajectory.times[0]),
+                                                       float(trajectory.times[-1]), Q, R, options)
+    except RuntimeError as exc:   # e.g. the Riccati integrator's "step smaller than minimum allowed"
+        first = (str(exc) or type(exc).__name__).splitlines()[0]
+        raise TrajoptError(f"{system.name}: the TVLQR along the {trajectory.duration:g} s swing-up failed ({first}); "
+                           "try longer TrajoptSettings.durations or more knots, or a larger R") from None
     # the block's update times over the trajectory; k * period, as Drake's periodic events fall
     steps = int(math.floor(trajectory.duration / period + 1e-9))
     times = np.minimum(trajectory.times[0] + period * np.arange(steps + 1), trajectory.times[-1])
@@ -484,6 +528,8 @@ def tracking_gains(system: System, trajectory: SwingupTrajectory, period: float 
     if not isinstance(trajectory, SwingupTrajectory) or trajectory.system.name != system.name:
         raise ValueError("trajectory must be the SwingupTrajectory of this system (from swingup_trajectory)")
     period = _check_period(system.control_period if period is None else period)
+    check_at_most(f"{system.name}: the tracking rows (duration {trajectory.duration:g} s / period {period:g} s)",
+                  trajectory.duration / period + 1, MAX_TRAJOPT_ROWS, force_flag=None, why="limits.MAX_TRAJOPT_ROWS")
     key = cache_key(system, {"Q": trajectory.settings.Q, "R": trajectory.settings.R}, what="tracking",
                     trajectory=trajectory.key, period=period)
     folder = Path(cache_dir) if cache_dir is not None else cache_folder()
