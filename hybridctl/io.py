@@ -24,7 +24,8 @@ from typing import Any, Callable, Iterator
 import numpy as np
 
 __all__ = ["atomic_write", "atomic_write_text", "write_json", "read_json", "to_jsonable", "atomic_directory",
-           "output_folder", "folder_argument", "locked_folder", "LOCK_FILE", "FileFormatError", "RunFolderError"]
+           "output_folder", "folder_argument", "locked_folder", "LOCK_FILE", "FileFormatError", "RunFolderError",
+           "OUTPUT_MARKER", "INPUT_FILES", "input_held", "check_output_folder", "command_folder"]
 
 
 class FileFormatError(ValueError):
@@ -172,6 +173,80 @@ def locked_folder(path: str | os.PathLike, name: str = "--out") -> Iterator[Path
     finally:
         _HELD.pop(key, None)
         os.close(fd)  # closing the last descriptor releases the flock
+
+
+OUTPUT_MARKER = ".hybridctl-output"
+"""The file :func:`command_folder` leaves in a folder it wrote: the commands that wrote it, one a line."""
+
+INPUT_FILES = (("*.toml", "a spec"), ("*.urdf", "a model file"), ("*.sdf", "a model file"),
+               ("*.xml", "a model file"), ("config.json", "a checkpoint"), ("model.pt", "a checkpoint"),
+               ("model.zip", "a model file"))
+"""Names of the inputs a command must never write beside (glob pattern, what such a file is): specs,
+robot descriptions, checkpoints. A folder holding one is someone's input, not an output folder."""
+
+
+def input_held(path: Path) -> str | None:
+    """What input ``path`` (a folder) holds, as "a spec acrobot.toml" (:data:`INPUT_FILES`); None if none."""
+    for pattern, what in INPUT_FILES:
+        for found in sorted(path.glob(pattern)):
+            if found.is_file():
+                return f"{what} {found.name}"
+    return None
+
+
+def _made_by(path: Path, command: str, own: tuple[str, ...]) -> bool:
+    """Whether ``command`` made the folder ``path``: its :data:`OUTPUT_MARKER` names it, or (a folder written
+    before there were markers) it holds every one of ``own``, the command's own record."""
+    marker = path / OUTPUT_MARKER
+    if marker.is_file() and marker.stat().st_size <= 4096:
+        if command in marker.read_text(errors="replace").split():
+            return True
+    return bool(own) and all((path / name).exists() for name in own)
+
+
+def check_output_folder(path: str | os.PathLike, command: str, outputs: tuple[str, ...] = (),
+                        own: tuple[str, ...] = (), name: str = "--out") -> Path:
+    """Refuse (:class:`RunFolderError`, one line naming the folder and what it holds) a folder ``command``
+    must not write into; return ``path`` as a Path (it need not exist yet).
+
+    Refused unless ``command`` made the folder (:func:`_made_by`: its marker, or its ``own`` record):
+    a folder holding an input (a spec, a model file, a checkpoint: :data:`INPUT_FILES`), and a folder
+    holding a file of ``command``'s ``outputs`` that it would replace. A file at ``path`` is a
+    NotADirectoryError; an empty ``path`` a RunFolderError (:func:`folder_argument`).
+    """
+    path = folder_argument(path, name)
+    if not path.exists():
+        return path
+    if not path.is_dir():
+        raise NotADirectoryError(f"{name} {path} is a file; outputs go into a folder")
+    if _made_by(path, command, own):
+        return path
+    held = input_held(path)
+    if held is not None:
+        raise RunFolderError(f"{name} {path} holds {held}, which hybridctl {command} did not write: outputs never go "
+                             f"beside an input; choose another {name} (e.g. {name} runs/NAME)")
+    clash = [o for o in outputs if (path / o).exists()]
+    if clash:
+        raise RunFolderError(f"{name} {path} holds {', '.join(clash)}, which hybridctl {command} did not write: it "
+                             f"would replace {'them' if len(clash) > 1 else 'it'}; choose another {name}")
+    return path
+
+
+@contextlib.contextmanager
+def command_folder(path: str | os.PathLike, command: str, outputs: tuple[str, ...] = (),
+                   own: tuple[str, ...] = (), name: str = "--out") -> Iterator[Path]:
+    """The output folder of one ``command`` run, checked (:func:`check_output_folder`), created and held
+    locked (:func:`locked_folder`: a second run into it, in another process, is refused at once) for
+    the ``with`` block, and marked (:data:`OUTPUT_MARKER`) as made by ``command`` so that a later run
+    of it may write there again. The check runs before the folder is made and again under the lock."""
+    check_output_folder(path, command, outputs, own, name)
+    with locked_folder(path, name) as folder:
+        check_output_folder(folder, command, outputs, own, name)
+        marker = folder / OUTPUT_MARKER
+        commands = marker.read_text(errors="replace").split() if marker.is_file() else []
+        if command not in commands:
+            atomic_write_text(marker, "".join(f"{c}\n" for c in [*commands[:20], command]))
+        yield folder
 
 
 def _fsync_file(path: Path) -> None:

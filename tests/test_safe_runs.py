@@ -555,3 +555,87 @@ def test_a_checkpoint_with_a_field_the_config_no_longer_has_loads_with_a_warning
     with pytest.warns(UserWarning, match=r"no longer has the recorded field\(s\) \['a_field_dropped_since'\]"):
         agent = getattr(learn, learner).load(old)
     assert not hasattr(agent.config, "a_field_dropped_since")
+
+
+# ==================================================================== output folders of simulate, balance-map, demo (issue 47)
+
+def _hold_lock(folder: str, ready) -> None:
+    """A lock holder in another process: lock ``folder``, say so, hold it until killed."""
+    from hybridctl import io
+    with io.locked_folder(folder):
+        ready.set()
+        time.sleep(120)
+
+
+@pytest.fixture
+def locked_out(tmp_path):
+    """``tmp_path/out`` held locked by another (forked) process, as a second run would find it."""
+    import multiprocessing
+
+    context = multiprocessing.get_context("fork")
+    ready = context.Event()
+    process = context.Process(target=_hold_lock, args=(str(tmp_path / "out"), ready), daemon=True)
+    process.start()
+    assert ready.wait(30), "the holder did not lock the folder"
+    yield tmp_path / "out", process.pid
+    process.kill()
+    process.join(10)
+
+
+SIMULATE = ["simulate", "acrobot", "--duration", "0.05", "--no-html"]
+BALANCE_MAP = ["balance-map", "acrobot", "--grid", "2", "--duration", "0.05", "--engine", "torch", "--quiet"]
+
+
+@pytest.mark.parametrize("argv", [SIMULATE, BALANCE_MAP, ["demo", "--grid", "2", "--quiet"]], ids=lambda a: a[0])
+@pytest.mark.parametrize("held, what", [("acrobot.toml", "a spec acrobot.toml"), ("robot.urdf", "a model file robot.urdf"),
+                                        ("config.json", "a checkpoint config.json"), ("model.pt", "a checkpoint model.pt")])
+def test_outputs_never_go_into_a_folder_that_holds_an_input(tmp_path, cli_error, argv, held, what):
+    out = tmp_path / "inputs"
+    out.mkdir()
+    (out / held).write_text("mine")
+    (out / "summary.json").write_text('{"mine": 1}')
+    err = cli_error([*argv, "--out", out])
+    assert f"--out {out} holds {what}, which hybridctl {argv[0]} did not write" in err, err
+    assert sorted(p.name for p in out.iterdir()) == sorted([held, "summary.json"])   # nothing written, no lock
+    assert (out / "summary.json").read_text() == '{"mine": 1}'
+
+
+def test_simulate_refuses_the_shipped_checkpoint_folder_and_a_summary_it_did_not_write(tmp_path, cli_error):
+    before = sorted(p.name for p in Path(PRETRAINED_ACROBOT).iterdir())
+    err = cli_error([*SIMULATE, "--out", PRETRAINED_ACROBOT])
+    assert "holds a checkpoint config.json" in err
+    assert sorted(p.name for p in Path(PRETRAINED_ACROBOT).iterdir()) == before
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "summary.json").write_text("{}")
+    assert "holds summary.json, which hybridctl simulate did not write: it would replace it" in \
+        cli_error([*SIMULATE, "--out", other])
+
+
+@pytest.mark.parametrize("argv", [SIMULATE, BALANCE_MAP], ids=lambda a: a[0])
+def test_a_second_run_into_a_folder_is_refused_by_the_lock(cli_error, locked_out, argv):
+    out, pid = locked_out
+    err = cli_error([*argv, "--out", out])
+    assert f"--out {out} is locked by pid {pid}: another run is writing it" in err, err
+    assert sorted(p.name for p in out.iterdir()) == [".hybridctl.lock"]
+
+
+@pytest.mark.parametrize("argv, written", [(SIMULATE, "summary.json"), (BALANCE_MAP, "balance_map.json")],
+                         ids=lambda a: a[0] if isinstance(a, list) else a)
+def test_a_folder_the_command_made_is_written_again(tmp_path, argv, written):
+    out = tmp_path / "out"
+    assert main([*argv, "--out", str(out)]) == 0
+    first = (out / written).stat().st_mtime_ns
+    assert main([*argv, "--out", str(out)]) == 0
+    assert (out / written).stat().st_mtime_ns >= first
+    legacy = tmp_path / "legacy"                                 # written before folders were marked
+    shutil.copytree(out, legacy, ignore=shutil.ignore_patterns(".hybridctl*"))
+    assert main([*argv, "--out", str(legacy)]) == 0
+
+
+def test_train_refuses_a_spec_folder(tmp_path, cli_error):
+    out = tmp_path / "specs"
+    out.mkdir()
+    (out / "acrobot.toml").write_text("mine")
+    err = cli_error(["train", "sac", "acrobot", "--steps", "8", *SAC_FLAGS, "--out", out])
+    assert f"--out {out} holds a spec acrobot.toml: a run never writes beside an input" in err

@@ -4,9 +4,8 @@ from __future__ import annotations
 
 import argparse
 
-from .. import io
 from ..experiments import balance_map
-from ..experiments.balance_map import ENGINES, check_balance_map, near_hanging_down
+from ..experiments.balance_map import ENGINES, check_balance_map, near_hanging_down, output_folder
 from ..systems import load
 from ._common import (add_backend_flags, add_debug_flag, add_force_flag, add_quiet_flag, add_system_argument,
                       check_backend_flags, cli_errors, limits_epilog, positive, ray_options_for)
@@ -50,13 +49,13 @@ def run_balance_map(args: argparse.Namespace) -> int:
     check_balance_map(system, args.grid, args.duration, args.engine, args.workers if args.backend != "ray" else None,
                       args.force, args.device)  # before --out is made
     axes, ranges = near_hanging_down(system, args.near) if args.near is not None else (None, None)
-    io.output_folder(args.out)  # a file at --out fails here, not after the simulations
-    with ray_options_for(args):   # --task-cpus/--task-gpus/--task-memory/--runtime-env for the Ray tasks
+    # --out is checked and locked before the simulations: a folder holding an input, or another run's, fails here
+    with output_folder(args.out), ray_options_for(args):  # ray: --task-cpus/-gpus/-memory, --runtime-env
         result = balance_map(system, args.controller, grid=args.grid, duration=args.duration, axes=axes,
-                             ranges=ranges, workers=args.workers, progress=not args.quiet, engine=args.engine, force=args.force,
-                             backend=args.backend, address=args.address, device=args.device)
-    result.meta["command"] = args.command_line
-    summary = result.save(args.out)
+                             ranges=ranges, workers=args.workers, progress=not args.quiet, engine=args.engine,
+                             force=args.force, backend=args.backend, address=args.address, device=args.device)
+        result.meta["command"] = args.command_line
+        summary = result.save(args.out)
     print(f"balanced_fraction: {summary['balanced_fraction']:.4f} "
           f"({summary['balanced_count']}/{args.grid * args.grid}), wall {result.wall_time:.1f} s ({args.engine}, {args.backend})")
     print(f"wrote {args.out}/balance_map.png, balance_map.json")

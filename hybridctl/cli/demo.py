@@ -6,9 +6,13 @@ import argparse
 
 from ..experiments import run_demo
 from ..experiments.demo import DEMO_GRID
+from ..io import command_folder
 from ..limits import MAX_GRID
 from ._common import add_debug_flag, add_quiet_flag, cli_errors, positive
 from .simulate import start_live_view
+
+DEMO_PARTS = ("acrobot", "balance_map", "cartpole", "cartpole_balance_map")
+"""The folders ``hybridctl demo`` writes into its --out (run_demo)."""
 
 
 def add_parser(sub) -> None:
@@ -27,8 +31,9 @@ def add_parser(sub) -> None:
 @cli_errors
 def run_demo_command(args: argparse.Namespace) -> int:
     """Run the demo, printing its account as it goes; exit 1 when the acrobot or the cart-pole did not balance."""
-    live = start_live_view() if args.meshcat else None
-    result = run_demo(args.out, grid=args.grid, meshcat=live, progress=not args.quiet, command=args.command_line)
+    with command_folder(args.out, "demo", DEMO_PARTS, own=DEMO_PARTS[:1]):  # locked; never beside an input
+        live = start_live_view() if args.meshcat else None
+        result = run_demo(args.out, grid=args.grid, meshcat=live, progress=not args.quiet, command=args.command_line)
     cartpole = result["cartpole"]
     ok = result["simulation"]["balanced"] and (cartpole is None or cartpole["simulation"]["balanced"])
     return 0 if ok else 1

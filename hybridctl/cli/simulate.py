@@ -10,6 +10,8 @@ import numpy as np
 
 from ..drake.simulate import check_duration
 from ..experiments import CONTROLLERS, simulate_and_write
+from ..experiments.simulation import OUTPUTS, OWN
+from ..io import check_output_folder
 from ..systems import System, load
 from ._common import add_system_argument, add_debug_flag, add_force_flag, cli_errors, limits_epilog, positive
 
@@ -75,6 +77,7 @@ def run_simulate(args: argparse.Namespace) -> int:
     system = load(args.system)
     x0 = parse_state(args.x0, system)
     check_duration(system, args.duration, args.force)  # before meshcat starts or anything is built
+    check_output_folder(args.out, "simulate", OUTPUTS, OWN)  # and --out (checked again under its lock)
     live = start_live_view() if args.meshcat else None
     summary = simulate_and_write(system, args.controller, args.out, x0=x0, duration=args.duration,
                                  html=not args.no_html, meshcat=live, command=args.command_line, force=args.force)

@@ -79,18 +79,31 @@ class BalanceMap:
         }
 
     def save(self, out_dir: str | Path) -> dict:
-        """Write ``balance_map.json`` and ``balance_map.png`` into ``out_dir``."""
+        """Write ``balance_map.json`` and ``balance_map.png`` into ``out_dir``, held locked and checked as
+        :func:`output_folder` does (a caller that holds it already, as ``hybridctl balance-map``, nests)."""
         import matplotlib.pyplot as plt
 
-        out = io.output_folder(out_dir)
-        summary = self.summary()
-        io.atomic_write_text(out / "balance_map.json", json.dumps(summary, indent=1))
-        fig = plot_balance_map(self.values1, self.values2, self.balanced, diverged=self.diverged,
-                               path=out / "balance_map.png",
-                               title=f"{self.system}, {display_name(self.controller)}, {self.duration:g} s",
-                               axis_labels=tuple(f"initial {name} [{unit}]" for name, unit in zip(self.axes, self.units)))
-        plt.close(fig)
+        with output_folder(out_dir) as out:
+            summary = self.summary()
+            io.atomic_write_text(out / "balance_map.json", json.dumps(summary, indent=1))
+            fig = plot_balance_map(self.values1, self.values2, self.balanced, diverged=self.diverged,
+                                   path=out / "balance_map.png",
+                                   title=f"{self.system}, {display_name(self.controller)}, {self.duration:g} s",
+                                   axis_labels=tuple(f"initial {name} [{unit}]"
+                                                     for name, unit in zip(self.axes, self.units)))
+            plt.close(fig)
         return summary
+
+
+OUTPUTS = ("balance_map.json", "balance_map.png")
+"""What :meth:`BalanceMapResult.save` writes; ``balance_map.json`` makes a folder a balance map's own."""
+
+
+def output_folder(out: str | Path):
+    """The ``with`` context of a balance map's folder ``out`` (:func:`hybridctl.io.command_folder`): locked
+    while held (a second run into it is refused), refused when it holds an input (a spec, a model, a
+    checkpoint) or a ``balance_map.json`` / ``.png`` that a balance map did not write."""
+    return io.command_folder(out, "balance-map", OUTPUTS, own=OUTPUTS[:1])
 
 
 def grid_axes(system: System, axes: tuple[int, int] | None = None,

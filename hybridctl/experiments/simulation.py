@@ -19,6 +19,11 @@ from ..systems import System, load
 from ..viz import plot_trajectory, replay_html
 from .controllers import build_named_diagram, display_name
 
+OUTPUTS = ("trajectory.npz", "summary.json", "plot.png", "replay.html")
+"""What :func:`simulate_and_write` writes into its folder."""
+OWN = ("trajectory.npz", "summary.json")
+"""The files that make a folder a simulation's own (one written before folders were marked)."""
+
 def simulate_and_write(system: System | str, controller: str = "energy", out: str | Path = "runs/simulate",
                        x0=None, duration: float | None = None, html: bool = True, meshcat=None,
                        command: str | None = None, force: bool = False) -> dict:
@@ -32,6 +37,9 @@ def simulate_and_write(system: System | str, controller: str = "energy", out: st
         duration: seconds (default: the spec's episode duration).
         meshcat: a running Meshcat (``viz.start_meshcat()``) to show the run live at real time.
         command: the command line that asked for the run, recorded in ``summary.json``.
+        out: the folder, held locked while the run writes it (:func:`hybridctl.io.command_folder`):
+            refused when another run holds it, or when it holds an input (a spec, a model, a
+            checkpoint) or files of these names that a simulation did not write.
         force: lift the stated cap on the steps of one run (not the memory limit); the duration
             is checked before anything is built or written (``drake.simulate.check_duration``).
 
@@ -45,20 +53,20 @@ def simulate_and_write(system: System | str, controller: str = "energy", out: st
     system = load(system) if isinstance(system, str) else system
     duration = check_duration(system, duration, force)
     start = system.nudged_nominal_state() if x0 is None else np.asarray(x0, dtype=float)
-    out = io.output_folder(out)
-    diagram = build_named_diagram(system, controller, meshcat=meshcat)
-    traj = simulate(diagram, start, duration, realtime_rate=1.0 if meshcat is not None else 0.0, force=force)
-    traj.meta["controller"] = controller
-    if command is not None:
-        traj.meta["command"] = command
-    summary = traj.save(out)
-    written = ["trajectory.npz", "summary.json"]
-    if len(traj.t) >= 2:  # else it diverged within the first step: nothing to draw, the summary says why
-        fig = plot_trajectory(traj.t, traj.x, traj.u, traj.gate, system, path=out / "plot.png",
-                              title=f"{system.name}, {display_name(controller)}: balanced={summary['balanced']}")
-        plt.close(fig)
-        written.append("plot.png")
-        if html:
-            replay_html(system, traj.t, traj.x, path=out / "replay.html")
-            written.append("replay.html")
-    return {**summary, "written": written}
+    with io.command_folder(out, "simulate", OUTPUTS, OWN) as out:
+        diagram = build_named_diagram(system, controller, meshcat=meshcat)
+        traj = simulate(diagram, start, duration, realtime_rate=1.0 if meshcat is not None else 0.0, force=force)
+        traj.meta["controller"] = controller
+        if command is not None:
+            traj.meta["command"] = command
+        summary = traj.save(out)
+        written = ["trajectory.npz", "summary.json"]
+        if len(traj.t) >= 2:  # else it diverged within the first step: nothing to draw, the summary says why
+            fig = plot_trajectory(traj.t, traj.x, traj.u, traj.gate, system, path=out / "plot.png",
+                                  title=f"{system.name}, {display_name(controller)}: balanced={summary['balanced']}")
+            plt.close(fig)
+            written.append("plot.png")
+            if html:
+                replay_html(system, traj.t, traj.x, path=out / "replay.html")
+                written.append("replay.html")
+        return {**summary, "written": written}

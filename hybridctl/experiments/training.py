@@ -181,6 +181,10 @@ def _check_out(out: str | Path, resume: bool, overwrite: bool, inputs: Mapping |
         what = "--resume continues the run folder that holds it" if resume else "a run goes into a folder of its own"
         raise RunFolderError(f"--out {out} {reason}: it is a checkpoint, not a run folder; {what} (e.g. --out "
                              f"{out.parent if out.name in CHECKPOINT_DIRS else 'runs/NAME'})")
+    held = io.input_held(out) if out.is_dir() and not _held_runs(out) else None  # a run's own model.zip is fine
+    if held is not None:
+        raise RunFolderError(f"--out {out} holds {held}: a run never writes beside an input; choose another --out "
+                             f"(e.g. --out runs/NAME)")
     return out
 
 
