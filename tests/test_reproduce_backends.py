@@ -18,9 +18,9 @@ PARALLEL = {"cartpole_record": [], "ch3_results": [], "ch6_finetune": ["finetune
             "hopper_error": [], "hopper_ulam": [], "matrix": ["run"], "papg_takeover_seeds": [], "table41": [],
             "table44": [],
             "table51": [], "table71": ["run"], "walker_seeds": []}
-# Stable-Baselines3 training and evaluation in this process (ch6_agents, ssac_baselines); Fig. 7.1's
+# Stable-Baselines3 training and evaluation in this process (ch6_agents, sb3_baselines); Fig. 7.1's
 # landscape and gradient norms of one population in this process (fig71)
-NOTHING_PARALLEL = {"ch6_agents": [], "fig71": [], "ssac_baselines": []}
+NOTHING_PARALLEL = {"ch6_agents": [], "fig71": [], "sb3_baselines": []}
 REPRODUCE = Path(importlib.import_module("hybridctl.reproduce").__file__).parent
 
 

@@ -10,7 +10,7 @@ Ch. 3, switched SAC:
 
 - :mod:`~hybridctl.reproduce.ch3_results`: Table 3.1's SSAC and SAC rows, the training curves and the
   balance maps (Figs. 3.4-3.6) of ``hybridctl train`` runs -> ``results/ch3/results.json``;
-- :mod:`~hybridctl.reproduce.ssac_baselines`: Table 3.1's Stable-Baselines3 rows and Fig. 3.3 (PPO, A2C,
+- :mod:`~hybridctl.reproduce.sb3_baselines`: Table 3.1's Stable-Baselines3 rows and Fig. 3.3 (PPO, A2C,
   TRPO, SAC, TD3 with the RL Zoo's settings) -> ``results/ch3/sb3_baselines/``;
 - :mod:`~hybridctl.reproduce.cartpole_record`: the shipped SSAC cart-poles in Drake and their balance
   maps -> ``results/ch3/cartpole/``, ``results/ch3/double_cartpole/``.

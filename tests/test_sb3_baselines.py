@@ -1,4 +1,4 @@
-"""hybridctl.reproduce.ssac_baselines: every algorithm for a tiny budget in two chunks, the resume that trains
+"""hybridctl.reproduce.sb3_baselines: every algorithm for a tiny budget in two chunks, the resume that trains
 only the difference, the VecNormalize .npz round trip, the report's JSON and figure, and bad input."""
 
 import contextlib
@@ -13,7 +13,7 @@ pytest.importorskip("sb3_contrib")
 
 
 # one xdist worker runs the module, so its module-scoped training fixture runs once, not once per worker
-pytestmark = [pytest.mark.usefixtures("one_torch_thread"), pytest.mark.xdist_group("ssac_baselines")]
+pytestmark = [pytest.mark.usefixtures("one_torch_thread"), pytest.mark.xdist_group("sb3_baselines")]
 
 # algo -> (first budget, chunk, second budget): two chunks, then a resume for the difference. On-policy
 # budgets are whole rollouts (n_envs * n_steps: PPO 16 * 256, TRPO 2 * 1024, A2C 16 * 5) so that every
@@ -23,9 +23,9 @@ BUDGETS = {"ppo": (8192, 4096, 12288), "trpo": (4096, 2048, 6144), "a2c": (160, 
 
 
 def _load_module():
-    from hybridctl.reproduce import ssac_baselines
+    from hybridctl.reproduce import sb3_baselines
 
-    return ssac_baselines
+    return sb3_baselines
 
 
 @pytest.fixture(scope="module")

@@ -31,19 +31,19 @@ with the observation normalisation frozen, into ``eval.json``.
 
     .venv/bin/pip install -c constraints.txt -e ".[sb3]"       # stable-baselines3 and sb3-contrib
     # the thesis budget for the on-policy algorithms, 4 seeds, resumable, 3 h per session:
-    python -m hybridctl.reproduce.ssac_baselines --algos ppo a2c trpo --time-budget-s 10800
+    python -m hybridctl.reproduce.sb3_baselines --algos ppo a2c trpo --time-budget-s 10800
     # SAC and TD3 at the largest budget the machine allows (here: 3e5 steps per seed):
-    python -m hybridctl.reproduce.ssac_baselines --algos sac td3 --steps 3e5 --time-budget-s 10800
+    python -m hybridctl.reproduce.sb3_baselines --algos sac td3 --steps 3e5 --time-budget-s 10800
     # the table, the curves and the figure:
-    python -m hybridctl.reproduce.ssac_baselines --report --out results/ch3/sb3_baselines/runs \\
+    python -m hybridctl.reproduce.sb3_baselines --report --out results/ch3/sb3_baselines/runs \\
         --report-out results/ch3/sb3_baselines/results.json
     # a smoke run:
-    python -m hybridctl.reproduce.ssac_baselines --algos a2c --seeds 0 --steps 2000 --out runs/sb3_smoke
+    python -m hybridctl.reproduce.sb3_baselines --algos a2c --seeds 0 --steps 2000 --out runs/sb3_smoke
 
 Measured on one core of the 2-core development VM (torch 1 thread, smoke runs): PPO ~3,600, A2C
 ~5,000, TRPO ~1,900 env steps/s (2e6 steps: 6-18 min per seed); SAC ~51 and TD3 ~53 env steps/s once
 learning (2e6 steps: ~11 h per seed), so SAC and TD3 get a smaller, explicit ``--steps``. Not run in
-CI beyond tiny budgets (tests/test_ssac_baselines.py).
+CI beyond tiny budgets (tests/test_sb3_baselines.py).
 """
 
 from __future__ import annotations
@@ -320,7 +320,7 @@ def versions() -> dict:
 
 def command_line(argv) -> str:
     """The command as it would be typed again."""
-    return common.command_line("hybridctl.reproduce.ssac_baselines", None if argv is None else list(map(str, argv)))
+    return common.command_line("hybridctl.reproduce.sb3_baselines", None if argv is None else list(map(str, argv)))
 
 
 # ------------------------------------------------------------------------------------------ training
@@ -656,7 +656,7 @@ def report(args, command: str) -> dict:
         raise UsageError(f"--out {args.out}: no run folders (<algo>-s<seed>/progress.json) to report on")
     out_path = args.report_out if args.report_out is not None else args.out / "results.json"
     png = out_path.with_suffix(".png")
-    document = {"benchmark": "ssac_baselines", "env": ENV_ID, "command": command,
+    document = {"benchmark": "sb3_baselines", "env": ENV_ID, "command": command,
                 "machine": machine_info(), "versions": versions(), "run_root": common.recorded_path(args.out),
                 "eval": {"episodes_seeded_from": f"{EVAL_SEED_BASE} + seed + k", "deterministic": True},
                 "stable_baselines3": summarise(runs), "hybridctl": hybridctl_runs(args.runs),
