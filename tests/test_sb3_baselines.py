@@ -88,7 +88,9 @@ def test_two_chunks_then_resume_trains_only_the_difference(sb, trained, algo):
     if algo in sb.ON_POLICY:
         assert (run / "vecnormalize.npz").is_file() and not (run / "replay_buffer.pkl").exists()
         with np.load(run / "vecnormalize.npz") as stats:
-            assert int(stats["steps"]) == b2 and float(stats["obs_count"]) > b2 / 2
+            assert int(stats["steps"]) == b2 and float(stats["count"]) > b2 / 2
+        from hybridctl.learn.sb3 import Normalizer       # the package's reader takes the file as it is
+        assert Normalizer.from_npz(run / "vecnormalize.npz").shape == model.observation_space.shape
     else:
         model.load_replay_buffer(run / "replay_buffer.pkl")
         assert model.replay_buffer.pos == b2 and not (run / "vecnormalize.npz").exists()
@@ -96,6 +98,7 @@ def test_two_chunks_then_resume_trains_only_the_difference(sb, trained, algo):
     evaluation = json.loads((run / "eval.json").read_text())
     assert evaluation["env_steps"] == b2 and evaluation["episodes"] == 2
     assert np.isfinite(evaluation["mean_return"]) and 0 <= evaluation["success_rate"] <= 1
+    assert (run / "curve.csv.xz").is_file() and not (run / "curve.csv").exists()   # packed at the budget
     rows = sb.read_curve(run / "curve.csv")
     assert np.all(np.diff(rows[:, 0]) >= 0) and (len(rows) == 0 or rows[-1, 0] <= b2)
     if algo in ("sac", "td3"):                            # one env: an episode every 50 steps, none lost
@@ -142,6 +145,13 @@ def test_curve_rows_past_the_checkpoint_are_dropped(sb, tmp_path):
     sb.append_curve(path, [(150, -1.0, 50, 0)])
     sb.truncate_curve(path, 100)
     np.testing.assert_array_equal(sb.read_curve(path), [[50, -3.0, 50, 0], [100, -2.5, 50, 1]])
+    sb.pack_curve(path)
+    assert not path.exists() and (tmp_path / "curve.csv.xz").is_file()
+    np.testing.assert_array_equal(sb.read_curve(path), [[50, -3.0, 50, 0], [100, -2.5, 50, 1]])
+    sb.unpack_curve(path)                                   # trained further: rows are appended again
+    sb.append_curve(path, [(150, -1.0, 50, 0)])
+    assert sb.read_curve(path).shape == (3, 4) and not (tmp_path / "curve.csv.xz").exists()
+    sb.truncate_curve(path, 100)
     curve = sb.binned_curve(sb.read_curve(path), 80)
     assert curve["env_steps"] == [80, 100] and curve["mean_return"] == [-3.0, -2.5] and curve["episodes"] == [1, 1]
 

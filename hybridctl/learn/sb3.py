@@ -214,6 +214,64 @@ class Normalizer:
             return cls.from_vecnormalize(pickle.load(f))
 
 
+TRAINING_NPZ_KEYS = ("ret_mean", "ret_var", "ret_count", "clip_reward", "gamma", "norm_reward")
+"""What a ``vecnormalize.npz`` holds beside the observation statistics (:data:`NPZ_KEYS`) when it was
+written to resume training (:func:`save_vecnormalize`): the return statistics and reward settings."""
+_OLD_KEYS = {"obs_mean": "mean", "obs_var": "var", "obs_count": "count"}
+"""Key names of the Table 3.1 driver's files before they shared this format (read, never written)."""
+
+
+def save_vecnormalize(vec_normalize, path: str | Path, steps: int | None = None) -> Path:
+    """A live SB3 ``VecNormalize``'s state to ``path`` (.npz, no pickle, atomic): the observation statistics
+    under the keys :meth:`Normalizer.from_npz` reads (so :func:`load_sb3` and fine-tuning use the file as it
+    is), the return statistics and settings a resumed training needs (:data:`TRAINING_NPZ_KEYS`), and
+    ``steps`` (the env steps the statistics are at) when given. :func:`load_vecnormalize` reads it back."""
+    obs = Normalizer.from_vecnormalize(vec_normalize)
+    arrays = {"mean": obs.mean, "var": obs.var, "count": np.float64(obs.count), "clip_obs": np.float64(obs.clip_obs),
+              "epsilon": np.float64(obs.epsilon), "norm_obs": np.bool_(obs.norm_obs),
+              "ret_mean": np.asarray(vec_normalize.ret_rms.mean, dtype=np.float64),
+              "ret_var": np.asarray(vec_normalize.ret_rms.var, dtype=np.float64),
+              "ret_count": np.float64(vec_normalize.ret_rms.count),
+              "clip_reward": np.float64(vec_normalize.clip_reward), "gamma": np.float64(vec_normalize.gamma),
+              "norm_reward": np.bool_(vec_normalize.norm_reward)}
+    if steps is not None:
+        arrays["steps"] = np.int64(steps)
+    return _io.atomic_write(path, lambda f: np.savez(f, **arrays))
+
+
+def load_vecnormalize(path: str | Path, venv, training: bool = True):
+    """A ``VecNormalize`` around ``venv`` with the state :func:`save_vecnormalize` wrote to ``path``;
+    ``(vec_normalize, steps)`` (``steps`` None when the file has none).
+
+    ``training=False`` freezes the statistics and leaves rewards unnormalised (evaluation). A file
+    without the return statistics (observation statistics only) is refused for training. Needs
+    stable-baselines3; nothing is unpickled.
+    """
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            d = {_OLD_KEYS.get(key, key): npz[key] for key in npz.files}
+    except Exception as exc:  # missing, BadZipFile, object arrays
+        raise CheckpointError(f"{path} is not a readable .npz of VecNormalize statistics: {exc}") from exc
+    obs = Normalizer(d.get("mean"), d.get("var"), d.get("count"), d.get("clip_obs"), d.get("epsilon"),
+                     d.get("norm_obs", True), source=str(path)) if all(k in d for k in NPZ_KEYS) else None
+    missing = [k for k in (*NPZ_KEYS, *(TRAINING_NPZ_KEYS if training else ())) if k not in d]
+    if obs is None or missing:
+        raise CheckpointError(f"{path} has no key {missing[0]!r}" + (" (a file to resume training from needs the "
+                              "return statistics too)" if training else ""))
+    vn = VecNormalize(venv, training=training, norm_obs=obs.norm_obs,
+                      norm_reward=bool(d.get("norm_reward", False)) and training, clip_obs=obs.clip_obs,
+                      clip_reward=float(d.get("clip_reward", 10.0)), gamma=float(d.get("gamma", 0.99)),
+                      epsilon=obs.epsilon)
+    vn.obs_rms.mean, vn.obs_rms.var, vn.obs_rms.count = obs.mean.copy(), obs.var.copy(), obs.count
+    if "ret_mean" in d:
+        vn.ret_rms.mean, vn.ret_rms.var = d["ret_mean"].copy(), d["ret_var"].copy()
+        vn.ret_rms.count = float(d["ret_count"])
+    return vn, (int(d["steps"]) if "steps" in d else None)
+
+
 # --- the policy --------------------------------------------------------------------------------------
 
 def _class_name(key: str, text: Any, where: str) -> str:

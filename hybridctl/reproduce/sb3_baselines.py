@@ -7,14 +7,15 @@ SAC and TD3 (the zoo has no continuous-action acrobot). They are written out in 
 with the zoo file and key of each; the zoo's ``n_timesteps`` is replaced by ``--steps``.
 
 Training is resumable and runs in chunks of ``--chunk-steps`` environment steps. After every chunk
-the run folder ``OUT/<algo>-s<seed>/`` receives, each written to a temporary name and moved into
-place with ``os.replace``:
+the run folder ``OUT/<algo>-s<seed>/`` receives, each written atomically (:func:`hybridctl.io.atomic_write`):
 
 * ``model.zip``          SB3's own save of the model;
 * ``replay_buffer.pkl``  SAC/TD3 only, ``model.save_replay_buffer``;
-* ``vecnormalize.npz``   PPO/A2C/TRPO only (zoo ``normalize: true``): the running obs/return statistics;
+* ``vecnormalize.npz``   PPO/A2C/TRPO only (zoo ``normalize: true``): the running obs/return statistics
+                         (:func:`hybridctl.learn.sb3.save_vecnormalize`: ``load_sb3`` and fine-tuning read it);
 * ``curve.csv``          one row per finished training episode: env_steps, return, length, success
-                         (the raw return, before reward normalisation; Fig. 3.3 is drawn from it);
+                         (the raw return, before reward normalisation; Fig. 3.3 is drawn from it), packed
+                         into ``curve.csv.xz`` (the same text) when the run reaches its budget;
 * ``progress.json``      steps done, wall time of each chunk and the machine it ran on, the commands,
                          the seed and the hyperparameters (written last: it marks the checkpoint).
 
@@ -50,8 +51,8 @@ from __future__ import annotations
 
 import argparse
 import csv
-import io
 import json
+import lzma
 import math
 import os
 import platform
@@ -60,11 +61,12 @@ import sys
 import time
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
-from hybridctl.learn.sb3 import silent_logger
+from hybridctl.io import atomic_write, write_json
+from hybridctl.learn.sb3 import load_vecnormalize, save_vecnormalize, silent_logger
 from hybridctl.reproduce import common
 
 ENV_ID = "hybridctl/AcrobotSwingup-v0"
@@ -208,60 +210,35 @@ def new_vecnormalize(venv, algo: str):
     return VecNormalize(venv, **kwargs)
 
 
-def atomic_write(path: Path, write: Callable[[io.BufferedWriter], None]) -> None:
-    """Write ``path`` through ``write(file)`` on a temporary name, fsync, then ``os.replace`` it into place."""
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        write(f)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-
-
-def write_json(path: Path, data: dict) -> None:
-    """Atomically write ``data`` as indented JSON."""
-    atomic_write(path, lambda f: f.write((json.dumps(data, indent=1) + "\n").encode()))
-
-
-def save_vecnormalize(vec_normalize, path: Path, steps: int) -> None:
-    """Save VecNormalize's statistics and settings to our own ``.npz`` (no pickle), stamped with ``steps``."""
-    def write(f):
-        np.savez(f, steps=np.int64(steps),
-                 obs_mean=vec_normalize.obs_rms.mean, obs_var=vec_normalize.obs_rms.var,
-                 obs_count=np.float64(vec_normalize.obs_rms.count),
-                 ret_mean=vec_normalize.ret_rms.mean, ret_var=vec_normalize.ret_rms.var,
-                 ret_count=np.float64(vec_normalize.ret_rms.count),
-                 clip_obs=np.float64(vec_normalize.clip_obs), clip_reward=np.float64(vec_normalize.clip_reward),
-                 gamma=np.float64(vec_normalize.gamma), epsilon=np.float64(vec_normalize.epsilon),
-                 norm_obs=np.bool_(vec_normalize.norm_obs), norm_reward=np.bool_(vec_normalize.norm_reward))
-    atomic_write(path, write)
-
-
-def load_vecnormalize(path: Path, venv, training: bool = True):
-    """A VecNormalize around ``venv`` with the statistics of ``path`` (written by :func:`save_vecnormalize`).
-
-    With ``training=False`` the statistics stay frozen and rewards are not normalised (evaluation).
-    Returns ``(vec_normalize, steps)``.
-    """
-    from stable_baselines3.common.vec_env import VecNormalize
-
-    with np.load(path, allow_pickle=False) as data:
-        d = {k: data[k] for k in data.files}
-    vn = VecNormalize(venv, training=training, norm_obs=bool(d["norm_obs"]),
-                      norm_reward=bool(d["norm_reward"]) and training, clip_obs=float(d["clip_obs"]),
-                      clip_reward=float(d["clip_reward"]), gamma=float(d["gamma"]), epsilon=float(d["epsilon"]))
-    vn.obs_rms.mean, vn.obs_rms.var, vn.obs_rms.count = d["obs_mean"].copy(), d["obs_var"].copy(), float(d["obs_count"])
-    vn.ret_rms.mean, vn.ret_rms.var, vn.ret_rms.count = d["ret_mean"].copy(), d["ret_var"].copy(), float(d["ret_count"])
-    return vn, int(d["steps"])
-
-
 def read_curve(path: Path) -> np.ndarray:
-    """Rows of ``curve.csv`` as an (n, 4) float array: env_steps, return, length, success."""
-    if not path.is_file():
+    """Rows of ``curve.csv`` (or of its compressed ``curve.csv.xz``, a finished run's) as an (n, 4) float array:
+    env_steps, return, length, success."""
+    packed = path.with_name(path.name + ".xz")
+    if not path.is_file() and packed.is_file():
+        text = lzma.decompress(packed.read_bytes()).decode()
+    elif path.is_file():
+        text = path.read_text()
+    else:
         return np.zeros((0, 4))
-    with open(path, newline="") as f:
-        rows = [r for r in csv.reader(f) if r and r[0] != CURVE_HEADER[0]]
+    rows = [r for r in csv.reader(text.splitlines()) if r and r[0] != CURVE_HEADER[0]]
     return np.array(rows, dtype=float).reshape(-1, 4)
+
+
+def pack_curve(path: Path) -> None:
+    """A finished run's ``curve.csv`` as ``curve.csv.xz`` (the same text, lzma; a ninth of the bytes in the
+    records tree): written atomically, then the plain file removed."""
+    if path.is_file():
+        atomic_write(path.with_name(path.name + ".xz"), lambda f: f.write(lzma.compress(path.read_bytes(), preset=9)))
+        path.unlink()
+
+
+def unpack_curve(path: Path) -> None:
+    """Back to a plain ``curve.csv`` (rows are appended to it) when a run is trained further from its
+    ``curve.csv.xz``."""
+    packed = path.with_name(path.name + ".xz")
+    if not path.is_file() and packed.is_file():
+        atomic_write(path, lambda f: f.write(lzma.decompress(packed.read_bytes())))
+        packed.unlink()
 
 
 def truncate_curve(path: Path, steps: int) -> None:
@@ -398,9 +375,9 @@ def save_checkpoint(run_dir: Path, algo: str, model, progress: dict, curve_rows:
     if algo not in ON_POLICY:
         atomic_write(run_dir / "replay_buffer.pkl", model.save_replay_buffer)
     if ZOO[algo]["normalize"]:
-        save_vecnormalize(model.get_vec_normalize_env(), run_dir / "vecnormalize.npz", model.num_timesteps)
+        save_vecnormalize(model.get_vec_normalize_env(), run_dir / "vecnormalize.npz", steps=model.num_timesteps)
     append_curve(run_dir / "curve.csv", curve_rows)
-    write_json(run_dir / "progress.json", progress)
+    write_json(run_dir / "progress.json", progress, indent=1)
 
 
 def read_progress(run_dir: Path) -> dict | None:
@@ -452,6 +429,7 @@ def train_run(algo: str, seed: int, budget: int, args, clock: Clock, command: st
             model = algorithm_class(algo)(ZOO[algo]["kwargs"]["policy"], venv, seed=seed, verbose=0, device="cpu",
                                           **model_kwargs(algo, venv.action_space.shape[0]))
         else:
+            unpack_curve(run_dir / "curve.csv")
             truncate_curve(run_dir / "curve.csv", steps_done)
             model = load_run(run_dir, algo, progress)
         progress["budget"] = budget
@@ -484,13 +462,14 @@ def train_run(algo: str, seed: int, budget: int, args, clock: Clock, command: st
                 return {**summary, "status": "paused (time budget)", "steps": int(model.num_timesteps)}
         model.get_env().close()
         steps_done = int(model.num_timesteps)
+    pack_curve(run_dir / "curve.csv")
     result = {**summary, "status": "done" if summary["steps_before"] < budget else "skipped (at budget)",
               "steps": steps_done}
     eval_path = run_dir / "eval.json"
     current = json.loads(eval_path.read_text()) if eval_path.is_file() else None
     if current is None or current.get("env_steps") != steps_done or current.get("episodes") != args.eval_episodes:
         current = evaluate_run(run_dir, algo, seed, args.eval_episodes)
-        write_json(eval_path, current)
+        write_json(eval_path, current, indent=1)
         result["evaluated"] = True
     result["eval"] = {k: current[k] for k in ("mean_return", "std_return", "success_rate")}
     return result
