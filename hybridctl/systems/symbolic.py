@@ -319,11 +319,26 @@ def _derive(request: ModelRequest, deadline: _Deadline) -> MultibodyModel:
     q, v = MakeVectorVariable(n, "q"), MakeVectorVariable(n, "v")
     symbolic.SetPositions(context, q)
     symbolic.SetVelocities(context, v)
+    size = [0]
+
+    def measured(new: list) -> list:
+        """``new``, its characters counted towards MAX_EXPRESSION_CHARS as Drake makes them: a large model is
+        refused before Drake's next, larger stage (a 12-joint chain's kinetic energy alone takes minutes)."""
+        for entry in new:
+            size[0] += len(entry.to_string())
+            if size[0] > MAX_EXPRESSION_CHARS:
+                raise ModelError(f"model file {request.source}: Drake's symbolic equations have {size[0]:,} "
+                                 f"characters, above the limit of {MAX_EXPRESSION_CHARS:,} (hybridctl.systems."
+                                 f"symbolic.MAX_EXPRESSION_CHARS): too large to generate code for; fewer joints or "
+                                 f"bodies would do")
+        deadline.check()
+        return list(new)
+
     M = symbolic.CalcMassMatrix(context)
     deadline.check()
-    entries = [M[i, k] for i in range(n) for k in range(i, n)]
-    entries += list(symbolic.CalcBiasTerm(context)) + list(symbolic.CalcGravityGeneralizedForces(context))
-    entries += [symbolic.CalcKineticEnergy(context), symbolic.CalcPotentialEnergy(context)]
+    entries = measured([M[i, k] for i in range(n) for k in range(i, n)])
+    entries += measured([*symbolic.CalcBiasTerm(context), *symbolic.CalcGravityGeneralizedForces(context)])
+    entries += measured([symbolic.CalcKineticEnergy(context), symbolic.CalcPotentialEnergy(context)])
     if request.tip_body is not None:
         if not symbolic.HasBodyNamed(request.tip_body):
             bodies = sorted(plant.get_body(_body_index(i)).name() for i in range(1, plant.num_bodies()))
@@ -332,7 +347,7 @@ def _derive(request: ModelRequest, deadline: _Deadline) -> MultibodyModel:
         body = symbolic.GetBodyByName(request.tip_body)
         point = np.asarray(request.tip_point, dtype=float).reshape(3, 1)
         tip = symbolic.CalcPointsPositions(context, body.body_frame(), point, symbolic.world_frame())
-        entries += [tip[k, 0] for k in range(3)]
+        entries += measured([tip[k, 0] for k in range(3)])
     # every moving body's origin in the world (drawings, view boxes) and its parent body
     moving = [plant.get_body(_body_index(i)) for i in range(1, plant.num_bodies())]
     moving = [b for b in moving if not _welded_to_world(plant, b)]
@@ -346,17 +361,8 @@ def _derive(request: ModelRequest, deadline: _Deadline) -> MultibodyModel:
     for body in moving:
         where = symbolic.CalcPointsPositions(context, symbolic.GetBodyByName(body.name()).body_frame(), origin,
                                              symbolic.world_frame())
-        entries += [where[k, 0] for k in range(3)]
-    deadline.check()
-    size = 0
-    for entry in entries:   # stops at the limit: a 12-joint chain's strings alone are gigabytes
-        size += len(entry.to_string())
-        if size > MAX_EXPRESSION_CHARS:
-            break
-    if size > MAX_EXPRESSION_CHARS:
-        raise ModelError(f"model file {request.source}: Drake's symbolic equations have {size:,} characters, above "
-                         f"the limit of {MAX_EXPRESSION_CHARS:,} (hybridctl.systems.symbolic.MAX_EXPRESSION_CHARS): "
-                         f"too large to generate code for; fewer joints or bodies would do")
+        entries += measured([where[k, 0] for k in range(3)])
+    size = size[0]
     s, c = sympy.symbols(f"s0:{n}"), sympy.symbols(f"c0:{n}")
     qs, vs = sympy.symbols(f"q0:{n}"), sympy.symbols(f"v0:{n}")
     memo = {**{q[i].get_id(): qs[i] for i in range(n)}, **{v[i].get_id(): vs[i] for i in range(n)}}
