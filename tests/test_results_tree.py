@@ -74,3 +74,72 @@ def test_the_index_lists_every_work_folder_with_checkpoints():
     unlisted = sorted({str(p.parent.relative_to(RESULTS)) for p in tracked() if p.suffix in CHECKPOINTS
                        and not any(str(p.relative_to(RESULTS)).startswith(f) for f in folders)})
     assert not unlisted, f"checkpoints in folders results/INDEX.md does not list: {unlisted}"
+
+
+# ------------------------------------------------------------------ the tree holds records, not run state
+# (ARCHITECTURE.md, "Records and run state")
+
+MAX_TRACKED_BYTES = 20_000_000
+"""The most the tracked results/ may hold: records and one checkpoint per run that something reads."""
+SMALL_BYTES = 1024
+"""Files below this may be equal by content alone (identity normalisation statistics, one-line logs)."""
+EQUAL_BY_RESULT = {
+    r"ch5/table51_runs/s\d+/(fractal|mesh-lower)/final/model\.pt":
+        "two post-processors that left a seed's continuation at the same weights (two runs, one outcome)",
+    r"your_robot/balance_map_furuta_(drake|torch)/balance_map\.png": "the Drake and torch engines draw the same map",
+    r"(matrix/maps|trajopt/maps)/[\w-]+/balance_map\.png":
+        "the same controller's map measured by the matrix and by the trajopt study (their JSON differ in timings)",
+    r"matrix/finetune/[\w-]+/before\.json": "one starting policy measured before two fine-tunings",
+    r"ch6/walker2d-ppo/(pretrained|finetuned)/vecnormalize\.npz": "fine-tuning keeps the normaliser frozen",
+}
+"""Groups of byte-identical records whose equality is itself a result, with the reason."""
+
+
+def _sizes_and_digests(files: list[Path]) -> tuple[int, dict[str, list[str]]]:
+    import hashlib
+
+    total, groups = 0, {}
+    for path in files:
+        data = path.read_bytes()
+        total += len(data)
+        if len(data) >= SMALL_BYTES:
+            groups.setdefault(hashlib.sha256(data).hexdigest(), []).append(str(path.relative_to(RESULTS)))
+    return total, groups
+
+
+def byte_copies(groups: dict[str, list[str]]) -> list[list[str]]:
+    """The groups of two or more equal files that no :data:`EQUAL_BY_RESULT` pattern explains."""
+    return [sorted(g) for g in groups.values() if len(g) > 1
+            and not any(all(re.fullmatch(pattern, p) for p in g) for pattern in EQUAL_BY_RESULT)]
+
+
+def run_state_twins(names: list[str]) -> list[str]:
+    """Runs holding checkpoint state twice: a ``final/`` beside a ``checkpoint*/`` of the same run folder."""
+    kinds: dict[str, set[str]] = {}
+    for name in names:
+        parts = name.split("/")
+        for i, part in enumerate(parts[:-1]):
+            if part == "final" or part.startswith("checkpoint"):
+                kinds.setdefault("/".join(parts[:i]), set()).add(part)
+                break
+    return sorted(run for run, found in kinds.items() if len(found) > 1)
+
+
+def test_the_tracked_tree_is_records_not_run_state():
+    files = tracked()
+    total, groups = _sizes_and_digests(files)
+    assert total <= MAX_TRACKED_BYTES, (f"tracked results/ holds {total / 1e6:.1f} MB, over {MAX_TRACKED_BYTES / 1e6:.0f} "
+                                        "MB: resumable state belongs in runs/ (ARCHITECTURE.md, 'Records and run state')")
+    copies = byte_copies(groups)
+    assert not copies, f"byte-identical copies under results/ (keep the one the code reads): {copies[:5]}"
+    twins = run_state_twins([str(p.relative_to(RESULTS)) for p in files])
+    assert not twins, f"runs with checkpoint state in both final/ and checkpoint*/ (keep final/): {twins[:5]}"
+
+
+def test_the_checks_find_copies_and_twins():
+    groups = {"a": ["s1/run/final/model.pt", "s1/run/checkpoint/model.pt"], "b": ["x.json"],
+              "c": ["your_robot/balance_map_furuta_drake/balance_map.png",
+                    "your_robot/balance_map_furuta_torch/balance_map.png"]}
+    assert byte_copies(groups) == [["s1/run/checkpoint/model.pt", "s1/run/final/model.pt"]]
+    assert run_state_twins(["a/r/final/model.pt", "a/r/checkpoint/model.pt", "b/final/model.pt",
+                            "c/run/checkpoint-3/x", "c/run/final/x"]) == ["a/r", "c/run"]

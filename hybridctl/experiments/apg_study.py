@@ -182,7 +182,8 @@ def _train_apg(method: str, system_name: str, seed: int, settings: StudySettings
     system = task_system(system_name)
     config = apg_config(method, system_name, seed, settings)
     agent = APG(system, config)
-    agent.learn(out=out / "run", progress=False, resume=(out / "run" / "checkpoint").exists())
+    agent.learn(out=out / "run", progress=False,
+                resume=any((out / "run" / name).exists() for name in ("checkpoint", "final")))
     x0 = held_out_starts(agent.system, settings.eval_episodes, settings.eval_seed)
     closed = agent.closed_loop_policy()
     metrics = rollout_metrics(agent.system, lambda x, h: closed(x, h if h is not None else closed.initial_state(len(x))),

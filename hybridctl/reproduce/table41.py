@@ -78,7 +78,8 @@ def train(env_id: str, seed: int, pretrain: int, more: int, runs: Path, backend:
     for post in ("identity", "mesh-lower", "mesh-upper"):
         out = root / post
         if not (out / "eval.json").is_file():
-            start = ["--resume"] if any(out.glob("checkpoint*")) else ["--init", str(root / "pretrain" / "final")]
+            resumable = any(out.glob("checkpoint*")) or (out / "final").is_dir()   # final/ alone resumes
+            start = ["--resume"] if resumable else ["--init", str(root / "pretrain" / "final")]
             subprocess.run([*hc, "train", "ars", env_id, *common, "--epochs", str(pretrain + more),
                             "--postprocess", post, "--out", str(out), *start], check=True)
     return root

@@ -90,7 +90,8 @@ def train_regime(hc: str, seed: int, work: Path, folder: str, kind: str, post: s
     base = train_pretrain(hc, seed, work, kind, pretrain, env, backend)
     out = work / f"s{seed}" / folder
     if not (out / "eval.json").is_file():
-        start = ["--resume"] if any(out.glob("checkpoint*")) else ["--init", str(base / "final")]
+        resumable = any(out.glob("checkpoint*")) or (out / "final").is_dir()   # final/ alone resumes
+        start = ["--resume"] if resumable else ["--init", str(base / "final")]
         subprocess.run([*ars_command(hc, seed, env, backend), *extra, "--epochs", str(pretrain + more),
                         "--postprocess", post, "--out", str(out), *start], check=True)
     return out / "final"
