@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from hybridctl.io import atomic_write_text
 from hybridctl import drake, experiments, systems
 from hybridctl.experiments import balance_map
 from hybridctl.reproduce.common import (RESULTS, add_backend_flags, backend_options, check_backend_flags, command_line,
@@ -80,7 +81,7 @@ def main(argv: list[str] | None = None):
         "machine": machine_info(),
         "date": time.strftime("%Y-%m-%d %H:%M:%S %z"),
     }
-    (out / "drake_record.json").write_text(json.dumps(record, indent=1))
+    atomic_write_text(out / "drake_record.json", json.dumps(record, indent=1))
     print(json.dumps(record, indent=1))
 
 

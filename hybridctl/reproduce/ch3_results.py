@@ -23,22 +23,14 @@ from __future__ import annotations
 import argparse
 import csv
 import json
-import os
-import platform
 import time
 from pathlib import Path
 
 import numpy as np
 
-from hybridctl.reproduce.common import RESULTS, add_backend_flags, backend_options, check_backend_flags, recorded_path
-
-
-def machine() -> dict:
-    """What the runs were measured on."""
-    import torch
-
-    return {"platform": platform.platform(), "python": platform.python_version(), "cpus": os.cpu_count(),
-            "torch": torch.__version__, "torch_threads_per_run": 1}
+from hybridctl.io import atomic_write_text
+from hybridctl.reproduce.common import (RESULTS, add_backend_flags, backend_options, check_backend_flags, machine_info,
+                                       recorded_path)
 
 
 def evaluate_stopped(folder: Path, reason: str) -> None:
@@ -121,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
     for name in args.evaluate_stopped:
         evaluate_stopped(Path(args.runs) / name, args.stopped_reason)
     folders = sorted(p.parent for p in Path(args.runs).glob("*/eval.json"))
-    fresh = [{**read_run(f), "machine": machine()} for f in folders]
+    fresh = [{**read_run(f), "machine": machine_info()} for f in folders]
     old = out / "results.json"
     previous = json.loads(old.read_text()) if old.is_file() else {}
     names = {r["run"] for r in fresh}
@@ -129,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
     for r in kept:  # runs collected before runs carried their own machine record
         r.setdefault("machine", {**previous.get("machine", {}), "note": "collected in an earlier session"})
     runs = sorted(kept + fresh, key=lambda r: (r["algorithm"], r["system"], r["seed"]))
-    record = {"machine": machine(), "collected": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+    record = {"machine": machine_info(), "collected": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
               "summary": summarize(runs), "runs": runs, "balance_maps": previous.get("balance_maps", {})}
     for spec in args.import_balance_map:
         name, sep, folder = spec.partition("=")
@@ -157,7 +149,7 @@ def main(argv: list[str] | None = None) -> int:
                                         "wall_time_s": result.wall_time, "folder": f"balance_map_{name}"}
         print(f"{name}: {summary['balanced_fraction']:.4f} balanced ({summary['balanced_count']}/"
               f"{args.grid ** 2}) in {result.wall_time:.0f} s")
-    (out / "results.json").write_text(json.dumps(record, indent=1) + "\n")
+    atomic_write_text(out / "results.json", json.dumps(record, indent=1) + "\n")
     print(json.dumps(record["summary"], indent=1))
     return 0
 

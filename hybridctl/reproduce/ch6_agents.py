@@ -37,9 +37,7 @@ import os
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import argparse  # noqa: E402
-import importlib.metadata  # noqa: E402
 import json  # noqa: E402
-import platform  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 import traceback  # noqa: E402
@@ -47,7 +45,9 @@ from pathlib import Path
 
 import numpy as np  # noqa: E402
 
-from hybridctl.learn.sb3 import silent_logger  # noqa: E402
+from hybridctl.io import atomic_write, write_json  # noqa: E402
+from hybridctl.learn.sb3 import Normalizer, silent_logger  # noqa: E402
+from hybridctl.reproduce import common  # noqa: E402
 from hybridctl.reproduce.common import RESULTS, recorded_path  # noqa: E402
 
 DEFAULT_OUT = Path("runs") / "finetune-agents"
@@ -238,66 +238,16 @@ def _algo_class(algo: str):
 
 # ---------------------------------------------------------------- files
 
-def _atomic_bytes(path: Path, write) -> None:
-    """``write(tmp_path)`` then os.replace onto ``path``."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp{path.suffix}")
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-
-
-def write_json(path: Path, data) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    _atomic_bytes(path, lambda tmp: tmp.write_text(json.dumps(data, indent=2, allow_nan=False) + "\n"))
-
-
-def save_obs_stats(path: Path, venv) -> None:
-    def write(tmp):
-        with open(tmp, "wb") as f:
-            np.savez(f, mean=np.asarray(venv.obs_rms.mean, dtype=np.float64),
-                     var=np.asarray(venv.obs_rms.var, dtype=np.float64),
-                     count=np.float64(venv.obs_rms.count), clip_obs=np.float64(venv.clip_obs),
-                     epsilon=np.float64(venv.epsilon), norm_obs=np.bool_(venv.norm_obs))
-    _atomic_bytes(path, write)
-
-
-def load_obs_stats(path: Path) -> dict:
-    with np.load(path) as z:
-        return {k: z[k] for k in z.files}
-
-
-def normalize_obs(obs, stats: dict | None):
-    """What a frozen VecNormalize does to one observation."""
-    if stats is None or not bool(stats["norm_obs"]):
-        return obs
-    clip = float(stats["clip_obs"])
-    return np.clip((obs - stats["mean"]) / np.sqrt(stats["var"] + float(stats["epsilon"])), -clip, clip).astype(
-        np.float32)
-
-
 def machine_info() -> dict:
-    import torch
-
-    def version(dist):
-        try:
-            return importlib.metadata.version(dist)
-        except importlib.metadata.PackageNotFoundError:
-            return None
-
-    return {"platform": platform.platform(), "cpu_count": os.cpu_count(),
-            "cpus_available": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
-            "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
-            "torch_threads": torch.get_num_threads(), "python": platform.python_version(),
-            "stable_baselines3": version("stable-baselines3"), "sb3_contrib": version("sb3-contrib"),
-            "torch": torch.__version__, "gymnasium": version("gymnasium"), "numpy": np.__version__}
+    """The machine record of every driver (:func:`hybridctl.reproduce.common.machine_info`) with the
+    Stable-Baselines3 versions the agents were trained with."""
+    return {**common.machine_info(), "stable_baselines3": common.package_version("stable-baselines3"),
+            "sb3_contrib": common.package_version("sb3-contrib")}
 
 
 # ---------------------------------------------------------------- training and evaluation
 
-def evaluate(model, env_id: str, stats: dict | None, episodes: int = EVAL_EPISODES,
+def evaluate(model, env_id: str, stats: Normalizer | None, episodes: int = EVAL_EPISODES,
              seed0: int = EVAL_SEED0) -> dict:
     """Deterministic return over ``episodes`` episodes reset with seeds seed0, seed0+1, ..."""
     import gymnasium as gym
@@ -309,7 +259,7 @@ def evaluate(model, env_id: str, stats: dict | None, episodes: int = EVAL_EPISOD
             obs, _ = env.reset(seed=seed0 + k)
             total, n, done = 0.0, 0, False
             while not done:
-                action, _ = model.predict(normalize_obs(obs, stats), deterministic=True)
+                action, _ = model.predict(stats(obs) if stats is not None else obs, deterministic=True)
                 obs, reward, terminated, truncated, _ = env.step(action)
                 total += float(reward)
                 n += 1
@@ -386,11 +336,11 @@ def train_agent(key, out: Path, seed: int, scale: float, command: list[str]) -> 
     wall = time.perf_counter() - t0
     steps = int(model.num_timesteps)
 
-    _atomic_bytes(directory / "model.zip", lambda tmp: model.save(tmp))
+    atomic_write(directory / "model.zip", model.save)
     stats = None
-    if env_cfg["normalize"]:
-        save_obs_stats(directory / "vecnormalize.npz", venv)
-        stats = load_obs_stats(directory / "vecnormalize.npz")
+    if env_cfg["normalize"]:    # the observation statistics, frozen, as load_sb3 and fine-tuning read them
+        Normalizer.from_vecnormalize(venv).save_npz(directory / "vecnormalize.npz")
+        stats = Normalizer.from_npz(directory / "vecnormalize.npz")
     t1 = time.perf_counter()
     evaluation = evaluate(model, env_id, stats)
     evaluation["wall_time_s"] = time.perf_counter() - t1
@@ -496,6 +446,7 @@ def main(argv: list[str] | None = None) -> dict:
         summary_path = Path(args.summary)
         merged = json.loads(summary_path.read_text()).get("agents", {}) if summary_path.exists() else {}
         merged.update(agents)
+        summary_path.parent.mkdir(parents=True, exist_ok=True)
         write_json(summary_path, {"source": "hybridctl/reproduce/ch6_agents.py", "out": recorded_path(out),
                                   "agents": dict(sorted(merged.items()))})
     report = {"out": recorded_path(out), "trained": done, "skipped": skipped, "failed": failed,

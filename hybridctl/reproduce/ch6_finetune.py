@@ -26,10 +26,11 @@ import numpy as np
 import torch
 
 from hybridctl import io
-from hybridctl.experiments.finetune import finetune_and_report, machine
+from hybridctl.experiments.finetune import finetune_and_report
 from hybridctl.learn.finetune import FineTuneConfig, wilson_interval
 from hybridctl.learn.sb3 import silent_logger
-from hybridctl.reproduce.common import RESULTS, add_backend_flags, backend_options, check_backend_flags, command_line
+from hybridctl.reproduce.common import (RESULTS, add_backend_flags, backend_options, check_backend_flags, command_line,
+                                       machine_info)
 
 AGENTS = Path("runs/finetune-agents")
 OUT = Path("runs/ch6")
@@ -128,7 +129,7 @@ def run_continue(agent: str, steps: int | None, cap_scale: float, command: str) 
     r = np.asarray(returns)
     record = {"kind": "continue", "agent": agent, "env": env_id, "algo": algo, "command": command,
               "env_steps_target": int(target), "env_steps": done_steps, "capped": done_steps < int(target),
-              "cap": cap, "train_wall_time_s": wall, "machine": machine(),
+              "cap": cap, "train_wall_time_s": wall, "machine": machine_info(),
               "notes": "replay buffers and reward-normalisation statistics were not saved with the agent: "
                        "off-policy learners start from an empty buffer, VecNormalize's return statistics afresh",
               "after": {"episodes": episodes, "seed": EVAL_SEED, "mean_return": float(r.mean()),

@@ -21,17 +21,19 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from hybridctl.io import atomic_write_text
 from hybridctl.parallel import add_backend_arguments, check_backend_arguments
 from hybridctl.systems.spec import DATA_DIR
 
-__all__ = ["RESULTS", "machine_info", "emit", "shipped_policy", "recorded_path", "command_line",
+__all__ = ["RESULTS", "machine_info", "package_version", "emit", "shipped_policy", "recorded_path", "command_line",
            "add_backend_flags", "check_backend_flags", "backend_options", "backend_cli_args"]
 
 # The records tree, one folder per chapter, relative to the working directory (the repository root).
 RESULTS = Path("results")
 
 
-def _version(dist: str) -> str | None:
+def package_version(dist: str) -> str | None:
+    """The installed version of the distribution ``dist`` (None when it is not installed)."""
     try:
         return importlib.metadata.version(dist)
     except importlib.metadata.PackageNotFoundError:
@@ -52,8 +54,8 @@ def machine_info() -> dict:
         "torch": torch.__version__,
         "torch_threads": torch.get_num_threads(),
         "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(),
-        "drake": _version("drake"),
-        "gymnasium": _version("gymnasium"),
+        "drake": package_version("drake"),
+        "gymnasium": package_version("gymnasium"),
     }
 
 
@@ -63,7 +65,7 @@ def emit(report: dict, out: Path | None) -> None:
     print(text)
     if out is not None:
         out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(text + "\n")
+        atomic_write_text(out, text + "\n")
 
 
 def shipped_policy(name: str) -> Path:

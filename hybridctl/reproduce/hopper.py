@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hybridctl.io import atomic_write_text
 from hybridctl.analysis import build_mesh, monte_carlo_mfpt, reachable_dimension
 from hybridctl.envs.sections import HopperApexMap, x_pushes
 from hybridctl.learn.ars import ARS
@@ -77,7 +78,7 @@ def main(argv: list[str] | None = None) -> int:
         row = {k: ("inf" if isinstance(v, float) and np.isinf(v) else v) for k, v in row.items()}  # JSON has no inf
         record["meshes"].append(row)
         print(json.dumps(row), flush=True)
-        Path(args.out).write_text(json.dumps(record, indent=1, allow_nan=False) + "\n")
+        atomic_write_text(Path(args.out), json.dumps(record, indent=1, allow_nan=False) + "\n")
     done = [r for r in record["meshes"] if r["complete"]]
     fine = [r for r in done if r["box_size"] <= args.dimension_max_box]
     if len(fine) >= 2:   # the coarsest meshes collapse onto a few boxes that never fail: not in the fit
@@ -87,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
             and earlier.get("pushes") == args.pushes):
         record["monte_carlo"] = earlier["monte_carlo"]
         record["wall_time_s"] = time.perf_counter() - start
-        Path(args.out).write_text(json.dumps(record, indent=1, allow_nan=False) + "\n")
+        atomic_write_text(Path(args.out), json.dumps(record, indent=1, allow_nan=False) + "\n")
         return 0
     t0 = time.perf_counter()
     mc = monte_carlo_mfpt(section, seeds, pushes, episodes=args.episodes, max_steps=args.max_hops, seed=1,
@@ -95,7 +96,7 @@ def main(argv: list[str] | None = None) -> int:
     record["monte_carlo"] = {**mc.summary(), "wall_time_s": time.perf_counter() - t0}
     print(json.dumps(record["monte_carlo"]), flush=True)
     record["wall_time_s"] = time.perf_counter() - start
-    Path(args.out).write_text(json.dumps(record, indent=1, allow_nan=False) + "\n")
+    atomic_write_text(Path(args.out), json.dumps(record, indent=1, allow_nan=False) + "\n")
     return 0
 
 

@@ -54,7 +54,7 @@ from hybridctl.analysis.markov import _krylov_solve
 from hybridctl.analysis.mesh import box_keys
 from hybridctl.analysis.reachable import ReachableMesh
 from hybridctl.envs.sections import HopperApexMap, x_pushes
-from hybridctl.io import atomic_write
+from hybridctl.io import atomic_write, atomic_write_text
 from hybridctl.learn.ars import ARS
 from hybridctl.reproduce.common import (RESULTS, add_backend_flags, backend_options, check_backend_flags, command_line,
                                        machine_info, recorded_path, shipped_policy)
@@ -281,7 +281,7 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(record["rows"][-1]), flush=True)
         record["rows"] = sorted(kept + [r for r in record["rows"] if r not in kept], key=lambda r: -r["box_size"])
         record["wall_time_s"] = time.perf_counter() - start
-        Path(args.out).write_text(json.dumps(record, indent=1, allow_nan=False) + "\n")
+        atomic_write_text(Path(args.out), json.dumps(record, indent=1, allow_nan=False) + "\n")
     plot(record, Path(args.out).with_suffix(".png"))
     return 0
 

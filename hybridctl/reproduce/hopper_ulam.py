@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from hybridctl.io import atomic_write_text
 from hybridctl.analysis import build_mesh
 from hybridctl.envs.sections import HopperApexMap, x_pushes
 from hybridctl.learn.ars import ARS
@@ -128,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
         record["rows"] = [r for r in record["rows"] if (r["box_size"], r["samples_per_box"]) != (d, k)] + [row]
         record["rows"].sort(key=lambda r: (-r["box_size"], r["samples_per_box"]))
         record["wall_time_s"] = record.get("wall_time_s", 0.0) + time.perf_counter() - t0
-        out.write_text(json.dumps(record, indent=1) + "\n")
+        atomic_write_text(out, json.dumps(record, indent=1) + "\n")
         plot(record, out.with_suffix(".png"))
         print(json.dumps(row), flush=True)
     return 0

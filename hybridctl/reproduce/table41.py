@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hybridctl.io import atomic_write_text
 from hybridctl.analysis import mesh_dimension
 from hybridctl.analysis.postprocess import MIN_POINTS
 from hybridctl.learn import failure_rates
@@ -170,7 +171,7 @@ def main(argv: list[str] | None = None) -> int:
         record["table44"][env_id] = table
         print(env_id, json.dumps(table), flush=True)
     record["wall_time_s"] = time.perf_counter() - start
-    Path(args.out).write_text(json.dumps(record, indent=1, allow_nan=False) + "\n")
+    atomic_write_text(Path(args.out), json.dumps(record, indent=1, allow_nan=False) + "\n")
     print(json.dumps(record["table41"], indent=1))
     print(f"wrote {args.out} in {record['wall_time_s']:.0f} s")
     return 0

@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from hybridctl.io import atomic_write_text
 from hybridctl.analysis import build_mesh
 from hybridctl.envs.sections import HopperApexMap, x_pushes
 from hybridctl.learn.ars import ARS
@@ -176,10 +177,10 @@ def main(argv: list[str] | None = None) -> int:
                         "train_wall_time_s": progress["wall_time"]})
             record["runs"][key] = {"seed": seed, "regime": regime, **row}
             print(json.dumps(record["runs"][key]), flush=True)
-            out.write_text(json.dumps(record, indent=1) + "\n")
+            atomic_write_text(out, json.dumps(record, indent=1) + "\n")
     record["table"] = table(record)
     record["paired"] = paired(record)
-    out.write_text(json.dumps(record, indent=1) + "\n")
+    atomic_write_text(out, json.dumps(record, indent=1) + "\n")
     plot(record, out.with_suffix(".png"))
     return 0
 

@@ -27,6 +27,7 @@ import json
 import sys
 from pathlib import Path
 
+from hybridctl.io import atomic_write_text
 from hybridctl.reproduce.common import (RESULTS, add_backend_flags, backend_cli_args, check_backend_flags, command_line,
                                        machine_info)
 from hybridctl.reproduce import table51
@@ -81,7 +82,7 @@ def main(argv: list[str] | None = None) -> int:
               "ars": {"env": ENV, "settings": table51.ARS_SETTINGS[ENV]},
               "machine": machine_info(), "min_return": args.min_return, "seeds": seeds,
               "walking": [s for s, r in seeds.items() if r["walks"]]}
-    Path(args.out).write_text(json.dumps(record, indent=1) + "\n")
+    atomic_write_text(Path(args.out), json.dumps(record, indent=1) + "\n")
     for s, r in seeds.items():
         print(f"seed {s}: {r['epochs']} epochs, {r['env_steps']:.2e} steps, {r['train_wall_time_s']:.0f} s, "
               f"return {r['return']:.0f}, episode steps {r['episode_steps']}, walks: {r['walks']}")
