@@ -762,3 +762,14 @@ def test_cli_simulate_of_a_hostile_model_is_one_line(tmp_path, model_cache, cli_
     err = cli_error(["simulate", folder / "wheel_spec.toml", "--controller", "zero", "--duration", "0.1",
                      "--out", tmp_path / "run"])
     assert "is a FIFO, not a regular file" in err and _one_line(err), err
+
+
+@pytest.mark.timeout(30, method="thread")
+@pytest.mark.parametrize("template", ["/etc/passwd", "../../../../etc/passwd.sdf", "/dev/zero"])
+def test_a_cart_pole_template_is_one_of_the_packages_models(template):
+    """``model.drake = "multibody:FILE.sdf"`` names a template in models/ by its bare name, nothing else."""
+    from hybridctl import systems
+    system = systems.load("cartpole", model__drake=f"multibody:{template}")
+    with pytest.raises(ValueError, match="must name an .sdf template in the package's models/ folder") as raised:
+        system.drake_plant()
+    assert _one_line(str(raised.value))

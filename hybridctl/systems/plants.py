@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
+from pathlib import Path
 from string import Template
 from typing import TYPE_CHECKING, Callable
 
@@ -20,6 +21,8 @@ from pydrake.multibody.parsing import Parser
 from pydrake.multibody.plant import AddMultibodyPlantSceneGraph, MultibodyPlant
 from pydrake.systems.framework import Context, DiagramBuilder, InputPort, OutputPort, System
 
+from ..limits import MAX_MODEL_BYTES
+from . import model_files
 from .spec import MODELS_DIR
 
 if TYPE_CHECKING:
@@ -53,8 +56,14 @@ def render_model(system: "HybridSystem") -> str:
         fields[f"half_length_{i}"] = repr(float(p.link_length[i]) / 2)
         fields[f"link_com_{i}"] = repr(float(p.link_com[i]))
         fields[f"link_inertia_{i}"] = repr(max(float(p.link_inertia[i]), _POINT_MASS_INERTIA))
+    # a template is one of the package's own models (the rendered text's meshes resolve nowhere else):
+    # a bare file name, a regular file of bounded size (never a path out of models/, a FIFO or a device)
+    if Path(filename).name != filename or not filename.endswith(".sdf"):
+        raise ValueError(f"{system.spec.path}: 'model.drake' = {kind!r} must name an .sdf template in the "
+                         f"package's models/ folder by its bare file name")
+    text = model_files.read_bounded(MODELS_DIR / filename, MAX_MODEL_BYTES, f"models/{filename}").decode()
     try:
-        return Template((MODELS_DIR / filename).read_text()).substitute(fields)
+        return Template(text).substitute(fields)
     except KeyError as exc:
         raise ValueError(f"models/{filename} uses field {exc} that the spec {system.spec.path} does not provide") from exc
 
