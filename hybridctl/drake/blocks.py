@@ -286,8 +286,8 @@ class ModeSwitch(LeafSystem):
 
     A Python feedthrough block: Drake evaluates it at every derivative evaluation.
     ``build_hybrid_diagram`` uses Drake's C++ ``PortSwitch`` driven by the gate's
-    ``selector`` instead; this block is its ``switch="python"`` option (the loop before
-    issue 15, kept to measure against in ``benchmarks/dynamics.py``).
+    ``selector`` instead; this block is its ``switch="python"`` option (the loop the C++
+    ``PortSwitch`` replaced for speed, kept to measure against in ``benchmarks/dynamics.py``).
     """
 
     def __init__(self, n_actions: int, name: str = "switch"):

@@ -1,4 +1,4 @@
-"""Where the hopper mesh's MFPT error comes from (issue 16, item 3): an error decomposition.
+"""Where the hopper mesh's MFPT error comes from: an error decomposition.
 
 ``hopper.json`` has the mesh MFPT at half the Monte Carlo value (58.4 at box size 0.35
 against 114.6 [101.7, 127.5]). The mesh differs from the true apex map in three ways:

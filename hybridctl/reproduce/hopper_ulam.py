@@ -1,4 +1,4 @@
-"""Hopper mesh MFPT with several samples per box (Ulam's method with arrival samples), issue 16 item 3.
+"""Hopper mesh MFPT with several samples per box (Ulam's method with arrival samples).
 
 ``hopper_error.json`` located the mesh's error: the representative of a box fails about as often
 as the states the true process visits there, but the chain built from one representative per box

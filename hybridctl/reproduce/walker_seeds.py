@@ -1,4 +1,4 @@
-"""Walker2d-v5 ARS seeds for Table 4.4 (issue 16 item 4: it needs >= 4 seeds that move): train them,
+"""Walker2d-v5 ARS seeds for Table 4.4 (the table needs >= 4 seeds that move): train them,
 and record which walk. Serves :mod:`hybridctl.reproduce.table44` (``--env Walker2d-v5``).
 
 At Chapter 4's reduced scale (N 8 / b 4, 100 epochs; ``hybridctl.reproduce.table41 --train``) no seed walked, so these use
