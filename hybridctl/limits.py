@@ -42,6 +42,14 @@ MAX_HIDDEN_UNITS = 65_536
 """Units of one hidden layer of a learner's network (``--hidden-size``); memory is checked too."""
 MAX_NUM_ENVS = 1_000_000
 """Environments of one batched torch env (``--num-envs``); memory is checked too."""
+MAX_UPDATES = 10_000_000
+"""Updates, epochs or iterations of one training run (``--epochs``, ``--updates``, ``apg_iterations``):
+the thesis' longest runs take thousands (ARS on Hopper: 1e3 to 1e4 epochs)."""
+MAX_EVAL_EPISODES = 1_000_000
+"""Episodes of one evaluation (``--eval-episodes``); the thesis evaluates on 100 to 1,000."""
+MAX_CONFIG_INTEGER = 2 ** 53
+"""Any other integer setting of a learner's config (buffer sizes, batch sizes, cadences): the largest
+integer a float64 (JSON, a checkpoint) holds exactly; above it a value is a typo, not a setting."""
 MIN_DT = 1e-6
 """The smallest time step a spec may set (``dt``, ``control.period``): one microsecond."""
 
@@ -119,6 +127,17 @@ MAX_NAME_CHARS = 255
 MAX_CACHE_INTEGER = 1 << 53
 """Largest magnitude of an integer read from a cache file as a number: every integer up to it is
 a float exactly (a larger one could overflow, or round)."""
+
+MAX_CHECKPOINT_FILE_BYTES = 4 << 30
+"""Bytes of one file a checkpoint names or holds (``model.pt``, ``replay.pt``, a file a field points to):
+SSAC's replay buffer at its default size is about 0.5 GB; the file must also be a regular file."""
+MAX_NETWORK_PARAMETERS = 1 << 30
+"""Parameters of one network a checkpoint describes (widths x depths, summed over its layers): 4 GiB of
+float32; the memory budget is checked too."""
+MAX_CHECKPOINT_STRING = 4096
+"""Characters of one string a checkpoint records (a name, a path, a setting)."""
+MAX_SPEC_FILES = 1_000
+"""Spec files read from one ``$HYBRIDCTL_SYSTEMS`` folder."""
 
 MEMORY_FRACTION = 0.5
 """The share of the machine's memory one allocation we can size in advance may take."""

@@ -69,6 +69,32 @@ CLI_CASES = [
      "--updates: must be a finite number > 0"),
     (["finetune", "acrobot", "--policy", "ssac:models/policies/ssac-acrobot", "--select", "critic"],
      "--select: invalid choice"),
+    # issue 47: only cpu and cuda[:N] reach torch; counts are integral, finite and bounded (hybridctl.limits)
+    *[(["balance-map", "acrobot", "--grid", "2", "--engine", "torch", "--device", device],
+       rf"--device must be a torch device hybridctl runs on \(cpu, cuda or cuda:N\), got '{device}'")
+      for device in ("meta", "mps", "xla", "cpu:3")],
+    (["train", "sac", "acrobot", "--device", "meta", "--steps", "16"], r"SACConfig.device must be a torch device "
+     r"hybridctl runs on \(cpu, cuda or cuda:N\)"),
+    (["train", "ce-apg", "cartpole", "--device", "mps", "--epochs", "1"], r"APGConfig.device must be a torch device "
+     r"hybridctl runs on \(cpu, cuda or cuda:N\)"),
+    (["finetune", "acrobot", "--policy", "ssac:models/policies/ssac-acrobot", "--device", "xla"],
+     "FineTuneConfig.device must be a torch device hybridctl runs on \\(cpu, cuda or cuda:N\\), got 'xla'"),
+    (["train", "sac", "acrobot", "--steps", "1e30"],
+     r"--steps/--total-steps: must be an integer in \[1, 10,000,000,000\] \(env steps of one training run\)"),
+    (["train", "ssac", "acrobot", "--total-steps", "99999999999999999999"],
+     r"must be an integer in \[1, 10,000,000,000\]"),
+    (["train", "sac", "acrobot", "--set", "total_steps=100000000000000000000000000000"],
+     r"SACConfig.total_steps \(--total-steps\) is .* above its limit of 10,000,000,000"),
+    (["train", "sac", "acrobot", "--steps", "inf"], "--steps/--total-steps: invalid int value"),
+    (["train", "ars", "Pendulum-v1", "--epochs", "1e9"], r"--epochs: must be an integer in \[1, 10,000,000\]"),
+    (["train", "sac", "acrobot", "--exploration-steps", "1e20"],
+     r"--exploration-steps: must be an integer at most 10,000,000,000"),
+    (["train", "sac", "acrobot", "--buffer-size", "1e30"],
+     r"SACConfig.buffer_size \(--buffer-size\) is .* above its limit"),
+    (["finetune", "acrobot", "--policy", "ssac:models/policies/ssac-acrobot", "--updates", "100000000000"],
+     r"FineTuneConfig.updates \(--updates\) is 100,000,000,000, above its limit of 10,000,000"),
+    (["finetune", "acrobot", "--policy", "ssac:models/policies/ssac-acrobot", "--eval-episodes", "100000000000"],
+     r"FineTuneConfig.eval_episodes \(--eval-episodes\) is .* above its limit of 1,000,000"),
 ]
 
 

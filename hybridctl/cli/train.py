@@ -23,6 +23,7 @@ from ..analysis.postprocess import KINDS as POSTPROCESS_KINDS
 from ..experiments import ALGORITHMS, SSAC_VARIANTS, train_and_evaluate
 from ..experiments.resume import RESUME_APPLIED
 from ..learn.apg import METHODS as APG_METHODS
+from ..learn.config_check import FIELD_LIMITS
 from ..learn.apg import OBSERVATIONS as APG_OBSERVATIONS
 from ..learn.apg import PRESETS as APG_PRESETS
 from ..systems.spec import CH7_REWARD_KINDS
@@ -166,6 +167,18 @@ def _positive_or_none(parse: Callable[[str], Any]) -> Callable[[str], Any]:
     return parse_positive
 
 
+def _at_most(parse: Callable[[str], Any], limit: int, why: str, low: int | None) -> Callable[[str], Any]:
+    """``parse``, rejecting a value above ``limit`` (hybridctl.limits; None passes) with the accepted range."""
+    def parse_bounded(text: str):
+        value = parse(text)
+        if isinstance(value, int) and value > limit:
+            shown = f"in [{low}, {limit:,}]" if low is not None else f"at most {limit:,}"
+            raise argparse.ArgumentTypeError(f"must be an integer {shown} ({why}), got {text}")
+        return value
+    parse_bounded.__name__ = parse.__name__
+    return parse_bounded
+
+
 def field_default(f: dataclasses.Field) -> Any:
     """A dataclass field's default value (its factory's product; MISSING when required)."""
     if f.default is not dataclasses.MISSING:
@@ -218,6 +231,9 @@ def add_config_flags(parser: argparse.ArgumentParser, algorithm: str) -> set[str
             parse, metavar = value_parser(hint)
             if f.name in POSITIVE_FIELDS:
                 parse = _positive_or_none(parse)
+            if f.name in FIELD_LIMITS and int in (hint, *typing.get_args(hint)):
+                limit, why = FIELD_LIMITS[f.name]
+                parse = _at_most(parse, limit(), why, 1 if f.name in POSITIVE_FIELDS else None)
             kwargs["type"] = parse
             if f.name in CHOICES:
                 # an optional field (``reward: str | None``) also takes "none", which parses to None

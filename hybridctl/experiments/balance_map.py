@@ -33,7 +33,7 @@ from ..drake import energy_swingup, simulate
 from ..drake.simulate import check_duration
 from ..envs import SwitchedVectorEnv
 from ..envs.switched import switched_decision
-from ..learn.config_check import check_device_available
+from ..learn.config_check import check_device as check_torch_device, check_device_available
 from ..limits import MAX_GRID, MAX_TOTAL_STEPS, check_at_most, check_fits_memory, cpu_count
 from ..parallel import BACKENDS, make_backend
 from ..systems import System, control, load
@@ -189,12 +189,7 @@ def check_device(engine: str, device: str | torch.device | None) -> torch.device
         return None
     if engine != "torch":
         raise ValueError(f"--device {device} applies to --engine torch only (the {engine} engine simulates on the CPU)")
-    try:
-        device = torch.device(device)
-    except (RuntimeError, TypeError):
-        raise ValueError(f"--device {device!r} is not a torch device (e.g. cpu, cuda, cuda:0)") from None
-    check_device_available("--device", device)
-    return device
+    return check_torch_device("--device", device)
 
 
 def check_balance_map(system: System, grid: int, duration: float | None, engine: str = "drake",

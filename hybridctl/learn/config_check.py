@@ -20,7 +20,8 @@ import typing
 import numpy as np
 import torch
 
-from ..limits import MAX_HIDDEN_UNITS, MAX_NUM_ENVS, check_at_most, check_fits_memory, cpu_count
+from ..limits import (MAX_CONFIG_INTEGER, MAX_EVAL_EPISODES, MAX_HIDDEN_UNITS, MAX_NUM_ENVS, MAX_SIMULATION_STEPS,
+                      MAX_TOTAL_STEPS, MAX_UPDATES, check_at_most, check_fits_memory, cpu_count)
 
 __all__ = ["check_types", "check_limits", "check_fields", "checkpoint_minutes", "describe_type", "MAX_SEED"]
 
@@ -35,8 +36,17 @@ FIELD_LIMITS: dict[str, tuple[typing.Callable[[], int], str]] = {
     "num_envs": (lambda: MAX_NUM_ENVS, "environments of one batched env"),
     "hidden_size": (lambda: MAX_HIDDEN_UNITS, "units of one hidden layer"),
     "seed": (lambda: MAX_SEED, "the largest 64-bit seed"),
+    "total_steps": (lambda: MAX_TOTAL_STEPS, "env steps of one training run"),
+    "exploration_steps": (lambda: MAX_TOTAL_STEPS, "env steps of one training run"),
+    "epochs": (lambda: MAX_UPDATES, "epochs of one training run"),
+    "updates": (lambda: MAX_UPDATES, "updates of one training run"),
+    "apg_iterations": (lambda: MAX_UPDATES, "iterations of one epoch"),
+    "eval_episodes": (lambda: MAX_EVAL_EPISODES, "episodes of one evaluation"),
+    "episode_steps": (lambda: MAX_SIMULATION_STEPS, "time steps of one episode"),
+    "horizon": (lambda: MAX_SIMULATION_STEPS, "time steps of one episode"),
 }
-"""Upper limits by config field name (every learner's config): (limit(), what it bounds)."""
+"""Upper limits by config field name (every learner's config): (limit(), what it bounds). Every other
+integer field is at most MAX_CONFIG_INTEGER."""
 
 
 def describe_type(hint) -> str:
@@ -99,9 +109,10 @@ def check_limits(config) -> None:
     memory budget), or ValueError for a Ray address with a local backend. Fields a config does
     not have, and values of the wrong type (reported by :func:`check_types`), are skipped."""
     values = {f.name: getattr(config, f.name) for f in dataclasses.fields(config)}
-    for name, (limit, why) in FIELD_LIMITS.items():
-        if _integer(values.get(name)):
-            check_at_most(field_name(config, name), int(values[name]), limit(), why=why, force_flag=None)
+    for name, value in values.items():
+        if _integer(value):
+            limit, why = FIELD_LIMITS.get(name, (lambda: MAX_CONFIG_INTEGER, "an integer setting"))
+            check_at_most(field_name(config, name), int(value), limit(), why=why, force_flag=None)
     for name, widths in values.items():
         if name.split("_")[-1] == "hidden" and isinstance(widths, (tuple, list)) and all(map(_integer, widths)):
             for width in widths:
@@ -166,14 +177,26 @@ def check_device_available(name: str, device: torch.device) -> None:
                          f"device(s): use 'cuda:0' to 'cuda:{torch.cuda.device_count() - 1}'")
 
 
-def check_device_field(config, available: bool = True) -> torch.device:
-    """``config.device`` as a torch device; ValueError naming ``Config.device`` for a name torch does
-    not know, and (``available``) for a CUDA device this machine lacks (:func:`check_device_available`)."""
-    name = f"{type(config).__name__}.device"
+DEVICE_TYPES = ("cpu", "cuda")
+"""The torch device types hybridctl runs on; torch knows more (meta, mps, xla, ...), which fail deep inside."""
+
+
+def check_device(name: str, value, available: bool = True) -> torch.device:
+    """``value`` (a name such as "cuda:1", or a torch.device) as a torch device: the one check of every
+    ``--device`` flag and config ``device`` field. ValueError naming ``name`` unless it is cpu, cuda or
+    cuda:N (:data:`DEVICE_TYPES`), and (``available``) for a CUDA device this machine lacks
+    (:func:`check_device_available`)."""
     try:
-        device = torch.device(config.device)
-    except (RuntimeError, TypeError):
-        raise ValueError(f"{name} must be a torch device such as 'cpu' or 'cuda:0', got {config.device!r}") from None
+        device = value if isinstance(value, torch.device) else torch.device(value)
+    except (RuntimeError, TypeError, ValueError):
+        device = None
+    if device is None or device.type not in DEVICE_TYPES or (device.type == "cpu" and device.index not in (None, 0)):
+        raise ValueError(f"{name} must be a torch device hybridctl runs on (cpu, cuda or cuda:N), got {value!r}")
     if available:
         check_device_available(name, device)
     return device
+
+
+def check_device_field(config, available: bool = True) -> torch.device:
+    """``config.device`` as a torch device (:func:`check_device`, the message naming ``Config.device``)."""
+    return check_device(f"{type(config).__name__}.device", config.device, available)
