@@ -13,6 +13,11 @@ Offline replay of a trajectory (simulation or torch rollout)::
 
 Meshcat must be used from the thread that created it (Drake raises SystemExit
 otherwise, which ``except Exception`` does not catch).
+
+A replay page embeds the bytes of every mesh the model draws. A multibody model's plant is built
+only through ``systems.symbolic.parse_plant``, which checks every file the model names first
+(``systems.model_files``: regular files of bounded size in the model's folder or ``package://drake/``),
+so no other local file reaches a page, and no device or FIFO is opened.
 """
 
 from __future__ import annotations
