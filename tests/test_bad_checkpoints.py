@@ -98,6 +98,17 @@ CONFIG_CASES = [
     ("papg", "config.json", "config", None, r"config\.json: 'config' must be an object"),
     ("papg", "config.json", "policy.hidden", "x", r"config\.json: 'policy\.hidden' must be a list"),
     ("papg", "normalization.json", "mean", [NAN], r"normalization\.json: 'mean' must be a list of finite numbers"),
+    # issue 47: sizes are checked against stated limits before anything is allocated
+    ("ssac", "config.json", "config.hidden_size", 65536,
+     r"config\.json: 'obs_dim', 'action_dim', 'config\.hidden_layers' x 'config\.hidden_size' describe a network of "
+     r"[\d,]+ parameters .*MAX_NETWORK_PARAMETERS"),
+    ("ssac", "config.json", "obs_dim", 2 ** 52, r"config\.json: .* describe a network of [\d,]+ parameters"),
+    ("ssac", "config.json", "gate.hidden", [65536] * 64, r"config\.json: 'obs_dim', 'gate\.hidden' describe a network"),
+    ("ssac", "config.json", "system.recorded", "x" * 5000,
+     r"config\.json: 'system\.recorded' is a string of 5,000 characters, above the limit of 4,096"),
+    ("papg", "config.json", "policy.hidden", [65536] * 64,
+     r"config\.json: 'policy\.obs_dim', 'policy\.hidden', 'policy\.act_dim' describe a network"),
+    ("papg", "config.json", "policy.n_params", 2 ** 40, r"config\.json: 'policy\.n_params' describe a network"),
 ]
 LOADERS = {"ssac": ("load", "load_controller", "parts"), "papg": ("load", "parts")}
 
@@ -281,3 +292,75 @@ def test_a_run_within_exploration_steps_says_it_makes_no_gradient_step():
     with pytest.warns(UserWarning, match=r"16 env steps are no more than exploration_steps \(400\)"):
         agent.learn(total=16, progress=False)
     assert agent.num_gradient_steps == 0
+
+
+# ------------------------------------------------ issue 47: sizes, files and env settings from a checkpoint
+def test_a_network_of_64_layers_of_65536_units_is_refused_before_it_is_built(tmp_path, cli_error):
+    path = copy_of("ssac", tmp_path)
+    meta = json.loads((path / "config.json").read_text())
+    meta["config"].update(hidden_layers=64, hidden_size=65536)
+    (path / "config.json").write_text(json.dumps(meta))
+    err = cli_error(["simulate", "acrobot", "--controller", f"ssac:{path}", "--duration", "0.1",
+                     "--out", tmp_path / "out"])
+    assert "describe a network of 270,587,592,706 parameters" in err and len(err.strip().splitlines()) == 1, err
+
+
+@pytest.mark.parametrize("what", ["device", "fifo", "folder"])
+def test_a_checkpoint_file_that_is_not_a_regular_file_is_never_opened(tmp_path, what):
+    from hybridctl.learn.checkpoint import load_tensors, read_json
+    import os
+    path = copy_of("ssac", tmp_path)
+    for name in ("progress.json", "model.pt"):
+        (path / name).unlink()
+        if what == "device":
+            (path / name).symlink_to("/dev/zero")
+        elif what == "fifo":
+            os.mkfifo(path / name)
+        else:
+            (path / name).mkdir()
+    with pytest.raises(CheckpointError, match=r"progress\.json is not a regular file \(a device, a FIFO or a folder\)"):
+        read_json(path / "progress.json")
+    with pytest.raises(CheckpointError, match=r"model\.pt is not a regular file"):
+        load_tensors(path / "model.pt")
+    with pytest.raises(CheckpointError):
+        SSAC.load(path)
+
+
+def test_a_model_file_above_its_limit_is_refused_before_it_is_read(tmp_path, monkeypatch):
+    import hybridctl.learn.checkpoint as ckpt
+    path = copy_of("ssac", tmp_path)
+    monkeypatch.setattr(ckpt, "MAX_CHECKPOINT_FILE_BYTES", 1000)
+    with pytest.raises(CheckpointError, match=r"model\.pt has [\d,]+ bytes, above the limit of 1,000"):
+        ckpt.load_tensors(path / "model.pt")
+
+
+ENV_KWARGS_CASES = [
+    ({"render_mode": "human"}, r"system\.kwargs\.'render_mode' is \"human\"; a recorded env renders as null or "
+                               r"'rgb_array' only"),
+    ({"render_mode": 3}, r"'render_mode' is 3"),
+    ({"autoreset": True}, r"'autoreset': not a keyword argument a recorded env may set"),
+    ({"max_episode_steps": 10 ** 12}, r"'max_episode_steps' is 1000000000000, not a value gymnasium.make accepts"),
+    ({"xml_file": "/dev/zero"}, r"'xml_file' is \"/dev/zero\", not a regular file"),
+    ({"ctrl_cost_weight": {"nested": 1}}, r"'ctrl_cost_weight' must be null, true/false, a finite number"),
+    ({"ctrl_cost_weight": NAN}, r"'ctrl_cost_weight' must be null"),
+    ({f"k{i}": 1 for i in range(65)}, r"has 65 keyword arguments, above the limit of 64"),
+]
+
+
+@pytest.mark.parametrize("kwargs, message", ENV_KWARGS_CASES, ids=[str(k)[:40] for k, _ in ENV_KWARGS_CASES])
+def test_recorded_env_kwargs_are_known_keys_and_plain_values(kwargs, message):
+    from hybridctl.learn.rollouts import recorded_env_kwargs
+    with pytest.raises(CheckpointError, match=message):
+        recorded_env_kwargs(kwargs, "config.json", "system.kwargs")
+    assert recorded_env_kwargs({"render_mode": "rgb_array", "ctrl_cost_weight": 1e-3}, "c", "k") is not None
+    assert recorded_env_kwargs(None, "c", "k") is None
+
+
+def test_ars_init_from_a_checkpoint_asking_for_a_window_is_refused_in_one_line(tmp_path, cli_error):
+    pytest.importorskip("mujoco")
+    init = tmp_path / "ars-hopper"
+    shutil.copytree(ROOT / "models" / "policies" / "ars-hopper", init, ignore=shutil.ignore_patterns("*.md"))
+    edit_json(init / "config.json", "env_kwargs", {"render_mode": "human"})
+    err = cli_error(["train", "ars", "Hopper-v5", "--init", init, "--epochs", "1", "--out", tmp_path / "run"])
+    assert "'render_mode' is \"human\"; a recorded env renders as null or 'rgb_array' only" in err, err
+    assert len(err.strip().splitlines()) == 1

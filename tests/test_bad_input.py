@@ -13,6 +13,7 @@ import dataclasses
 import math
 import sys
 import typing
+import warnings
 
 import numpy as np
 import pytest
@@ -188,6 +189,22 @@ def test_a_bad_spec_file_is_one_line_naming_the_file(tmp_path, name, content, me
     with pytest.raises(SpecError, match=message) as info:
         systems.load(str(path))
     assert str(path) in str(info.value) and "\n" not in str(info.value)
+
+
+def test_a_spec_file_whose_name_is_no_system_name_is_skipped_with_a_warning(tmp_path, monkeypatch, cli_error):
+    """Issue 47: ``a b;rm -rf.toml`` in $HYBRIDCTL_SYSTEMS breaks no command; asked for by name it is unknown."""
+    folder = tmp_path / "specs"
+    folder.mkdir()
+    (folder / "a b;rm -rf.toml").write_bytes(_acrobot_spec())
+    monkeypatch.setenv("HYBRIDCTL_SYSTEMS", str(folder))
+    monkeypatch.setattr("hybridctl.systems.spec._WARNED", set())
+    with pytest.warns(UserWarning, match=r"skipped spec file .*a b;rm -rf\.toml: 'a b;rm -rf' is not a system name"):
+        assert "a b;rm -rf" not in systems.known_systems()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert main(["simulate", "acrobot", "--duration", "0.05", "--no-html", "--out", str(tmp_path / "out")]) == 0
+        assert main(["systems"]) == 0
+        assert "unknown system 'a b;rm -rf'" in cli_error(["simulate", "a b;rm -rf", "--out", tmp_path / "o2"])
 
 
 SPEC_CLI_CASES = [  # issue 29: the same through the command line (exit 2, one line, no traceback)

@@ -557,7 +557,7 @@ def test_a_checkpoint_with_a_field_the_config_no_longer_has_loads_with_a_warning
     assert not hasattr(agent.config, "a_field_dropped_since")
 
 
-# ==================================================================== output folders of simulate, balance-map, demo (issue 47)
+# ============================================== output folders of simulate, balance-map, demo (issue 47)
 
 def _hold_lock(folder: str, ready) -> None:
     """A lock holder in another process: lock ``folder``, say so, hold it until killed."""
@@ -587,8 +587,10 @@ BALANCE_MAP = ["balance-map", "acrobot", "--grid", "2", "--duration", "0.05", "-
 
 
 @pytest.mark.parametrize("argv", [SIMULATE, BALANCE_MAP, ["demo", "--grid", "2", "--quiet"]], ids=lambda a: a[0])
-@pytest.mark.parametrize("held, what", [("acrobot.toml", "a spec acrobot.toml"), ("robot.urdf", "a model file robot.urdf"),
-                                        ("config.json", "a checkpoint config.json"), ("model.pt", "a checkpoint model.pt")])
+@pytest.mark.parametrize("held, what", [("acrobot.toml", "a spec acrobot.toml"),
+                                        ("robot.urdf", "a model file robot.urdf"),
+                                        ("config.json", "a checkpoint config.json"),
+                                        ("model.pt", "a checkpoint model.pt")])
 def test_outputs_never_go_into_a_folder_that_holds_an_input(tmp_path, cli_error, argv, held, what):
     out = tmp_path / "inputs"
     out.mkdir()

@@ -42,6 +42,7 @@ import dataclasses
 import os
 import pickle
 import platform
+import stat
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -51,11 +52,11 @@ import numpy as np
 import torch
 
 from .. import io as _io
-from ..limits import MAX_JSON_BYTES
+from ..limits import MAX_CHECKPOINT_FILE_BYTES, MAX_JSON_BYTES
 # the file format's constants and schemas, and the system record, are part of this module's interface
 from .checkpoint_schema import (CONFIG_FILE, FORCE_HINT, FORMAT_VERSION, MODEL_FILE, NORMALIZATION_FILE,  # noqa: F401
                                 PROGRESS_FILE, REPLAY_FILE, REQUIRED_FILES, SCHEMAS, CheckpointError, _shown_short,
-                                check_schema, require_keys)
+                                check_env_kwargs, check_schema, require_keys)
 from .plant_record import (GATE_SECTION, TRAINING_ONLY_SECTIONS, check_plant, env_record,  # noqa: F401
                            plant_differences, recorded_system, spec_hash, system_record)
 
@@ -83,9 +84,7 @@ def read_json(path: Path) -> dict:
     :data:`~hybridctl.limits.MAX_JSON_BYTES` are refused before reading.
     """
     path = Path(path)
-    if path.is_file() and path.stat().st_size > MAX_JSON_BYTES:
-        raise CheckpointError(f"{path} has {path.stat().st_size:,} bytes, above the limit of {MAX_JSON_BYTES:,} "
-                              f"for a JSON file (hybridctl.limits.MAX_JSON_BYTES)")
+    check_regular_file(path, MAX_JSON_BYTES, "MAX_JSON_BYTES", "a JSON file")
     try:
         doc = _io.read_json(path)
     except _io.FileFormatError as exc:
@@ -125,6 +124,26 @@ def resolve_checkpoint_dir(path: str | os.PathLike) -> Path:
     return target
 
 
+def check_regular_file(path: Path, limit: int | None = None,
+                       limit_name: str = "MAX_CHECKPOINT_FILE_BYTES", what: str = "a checkpoint file") -> None:
+    """Raise :class:`CheckpointError` naming ``path`` unless it is a regular file (a link to one counts) of at
+    most ``limit`` bytes (default MAX_CHECKPOINT_FILE_BYTES): checked with ``os.stat`` before it is opened, so a device (``/dev/zero``), a FIFO or
+    a folder is never read, and a file too large for its kind is refused before a byte is read."""
+    try:
+        info = os.stat(path)
+    except FileNotFoundError:
+        raise CheckpointError(f"{path}: no such file") from None
+    except OSError as exc:
+        raise CheckpointError(f"{path}: cannot be read ({exc.strerror or exc})") from None
+    if not stat.S_ISREG(info.st_mode):
+        raise CheckpointError(f"{path} is not a regular file (a device, a FIFO or a folder): {what} is never read "
+                              f"from one")
+    limit = MAX_CHECKPOINT_FILE_BYTES if limit is None else limit
+    if info.st_size > limit:
+        raise CheckpointError(f"{path} has {info.st_size:,} bytes, above the limit of {limit:,} for {what} "
+                              f"(hybridctl.limits.{limit_name})")
+
+
 def load_tensors(path: Path, device: str | torch.device = "cpu") -> dict:
     """``torch.load(path, weights_only=True)`` with the file named in errors.
 
@@ -132,6 +151,7 @@ def load_tensors(path: Path, device: str | torch.device = "cpu") -> dict:
     containers of them) is refused, never unpickled; a floating-point tensor holding NaN or
     Inf is refused naming the tensor (:func:`check_finite_tensors`).
     """
+    check_regular_file(path)
     try:
         content = torch.load(path, map_location=device, weights_only=True)
     except Exception as exc:  # noqa: BLE001 - re-raised with the file name, without torch's advice

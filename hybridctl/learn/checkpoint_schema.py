@@ -10,11 +10,14 @@ from __future__ import annotations
 import json
 import math
 import numbers
+import os
+import stat
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
 from ..io import to_jsonable
-from ..limits import MAX_HIDDEN_UNITS, MAX_NUM_ENVS
+from ..limits import (MAX_CHECKPOINT_STRING, MAX_HIDDEN_UNITS, MAX_NETWORK_PARAMETERS, MAX_NUM_ENVS,
+                      MAX_SIMULATION_STEPS, MAX_SPEC_BYTES, memory_budget)
 from ..systems.spec import SYSTEM_NAME
 
 MODEL_FILE = "model.pt"
@@ -177,6 +180,86 @@ def check_schema(path: Path, doc: Any) -> None:
             value = _lookup(doc, key)
             if value is not _ABSENT and not test(value):
                 raise CheckpointError(f"{path}: {key!r} must be {wants}, got {_shown_short(value)}")
+    _check_strings(path, doc)
+    if Path(path).name == CONFIG_FILE:
+        _check_networks(path, doc, algorithm)
+
+
+BYTES_PER_PARAMETER = 4
+"""Bytes of one float32 weight."""
+NETWORK_COPIES = {"SAC": 5, "SSAC": 5}
+"""Copies of a recorded network a loader may hold at once (SAC's actor, two critics, their two targets)."""
+
+
+def _integer(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def network_parameters(n_in: int, widths: Iterable[int], n_out: int, per_layer: int = 1) -> int:
+    """Weights and biases of the fully connected network n_in -> widths -> n_out (``per_layer`` times
+    each hidden layer's, e.g. 3 for a GRU's gates); exact Python integers, so no size overflows."""
+    sizes = [n_in, *widths, n_out]
+    return sum(per_layer * (a + 1) * b for a, b in zip(sizes, sizes[1:]))
+
+
+def _recorded_networks(doc: dict, algorithm) -> list[tuple[str, int, int]]:
+    """(the keys that size it, parameters, copies) of each network config.json ``doc`` describes."""
+    config = doc.get("config") if isinstance(doc.get("config"), dict) else {}
+    dims = [doc.get(k) for k in ("obs_dim", "action_dim")]
+    n_obs, n_act = (d if _integer(d) and d > 0 else 1 for d in dims)
+    out = []
+    layers, width = config.get("hidden_layers"), config.get("hidden_size")
+    if algorithm in NETWORK_COPIES and _integer(layers) and _integer(width) and layers >= 0 and width > 0:
+        out.append(("'obs_dim', 'action_dim', 'config.hidden_layers' x 'config.hidden_size'",
+                    network_parameters(n_obs + n_act, [width] * layers, 2 * n_act), NETWORK_COPIES[algorithm]))
+    gate = doc.get("gate") if isinstance(doc.get("gate"), dict) else {}
+    if isinstance(gate.get("hidden"), list) and all(_integer(w) and w > 0 for w in gate["hidden"]):
+        out.append(("'obs_dim', 'gate.hidden'", network_parameters(n_obs + 1, gate["hidden"], 2), 1))
+    policy = doc.get("policy") if isinstance(doc.get("policy"), dict) else {}
+    hidden = policy.get("hidden")
+    if isinstance(hidden, list) and all(_integer(w) and w > 0 for w in hidden):
+        p_in, p_out = (policy.get(k) if _integer(policy.get(k)) and policy.get(k) > 0 else 1
+                       for k in ("obs_dim", "act_dim"))
+        out.append(("'policy.obs_dim', 'policy.hidden', 'policy.act_dim'",
+                    network_parameters(p_in, hidden, p_out, per_layer=3 if policy.get("kind") == "gru" else 1), 1))
+    if _integer(policy.get("n_params")):
+        out.append(("'policy.n_params'", policy["n_params"], 1))
+    return out
+
+
+def _check_networks(path: Path, doc: dict, algorithm) -> None:
+    """Refuse a config.json whose recorded networks would be too large to build, before any is allocated:
+    parameters above MAX_NETWORK_PARAMETERS, or their copies' bytes above the memory budget."""
+    budget = memory_budget()
+    for keys, parameters, copies in _recorded_networks(doc, algorithm):
+        nbytes = parameters * copies * BYTES_PER_PARAMETER
+        if parameters > MAX_NETWORK_PARAMETERS or nbytes > budget:
+            raise CheckpointError(f"{path}: {keys} describe a network of {parameters:,} parameters "
+                                  f"({nbytes / 2**30:.3g} GiB for {copies} cop{'ies' if copies > 1 else 'y'}); "
+                                  f"the limit is "
+                                  f"{MAX_NETWORK_PARAMETERS:,} parameters (hybridctl.limits.MAX_NETWORK_PARAMETERS) "
+                                  f"within {budget / 2**30:.3g} GiB of memory")
+
+
+def _check_strings(path: Path, doc: Any) -> None:
+    """Refuse a string (a value or a key) longer than MAX_CHECKPOINT_STRING anywhere in ``doc``, naming where."""
+    stack = [("", doc)]
+    while stack:
+        where, value = stack.pop()
+        if isinstance(value, str) and len(value) > MAX_CHECKPOINT_STRING:
+            raise CheckpointError(f"{path}: {where or 'the document'!r} is a string of {len(value):,} characters, "
+                                  f"above the limit of {MAX_CHECKPOINT_STRING:,} "
+                                  "(hybridctl.limits.MAX_CHECKPOINT_STRING)")
+        if isinstance(value, dict):
+            for key, item in value.items():
+                name = f"{where}.{key}" if where else str(key)
+                if len(str(key)) > MAX_CHECKPOINT_STRING:
+                    raise CheckpointError(f"{path}: a key of {where or 'the document'!r} has {len(str(key)):,} "
+                                          f"characters, above the limit of {MAX_CHECKPOINT_STRING:,} "
+                                          "(hybridctl.limits.MAX_CHECKPOINT_STRING)")
+                stack.append((name, item))
+        elif isinstance(value, list):
+            stack.extend((f"{where}[{i}]", item) for i, item in enumerate(value))
 
 
 def require_keys(found: Path, meta: dict, algorithm: str) -> None:
@@ -199,3 +282,75 @@ def _kind(value) -> str:
 def _shown_short(value) -> str:
     text = json.dumps(to_jsonable(value)) if not isinstance(value, float) else repr(value)
     return text if len(text) <= 60 else text[:57] + "..."
+
+
+# ============================================================================ recorded env keyword arguments
+RENDER_MODES = (None, "rgb_array")
+"""The render modes a recorded env may ask for: none, or frames as arrays; never a window ("human")."""
+GYM_MAKE_KEYS = {"max_episode_steps": lambda v: _integer(v) and 1 <= v <= MAX_SIMULATION_STEPS,
+                 "disable_env_checker": lambda v: isinstance(v, bool)}
+"""The keywords of ``gymnasium.make`` itself a record may set (with their test); the others it takes
+(``autoreset``, ``apply_api_compatibility``, ...) change what the env is and are refused."""
+REFUSED_KEYS = ("autoreset", "apply_api_compatibility", "order_enforce", "kwargs", "id")
+MAX_ENV_KWARGS = 64
+"""Keyword arguments of one recorded env."""
+
+
+def _plain_value(value) -> bool:
+    """A scalar setting (None, a bool, a finite number, a short string) or a short list of finite numbers."""
+    if value is None or isinstance(value, bool) or _is_number(value):
+        return True
+    if isinstance(value, str):
+        return len(value) <= MAX_CHECKPOINT_STRING
+    return isinstance(value, list) and len(value) <= 1000 and all(_is_number(v) for v in value)
+
+
+def check_env_kwargs(value: Any, file, key: str = "env_kwargs") -> dict | None:
+    """``value`` (``file``'s ``key``: an env's keyword arguments) if every one is safe to hand to
+    ``gymnasium.make``; else :class:`CheckpointError` naming the file, the key and the rule.
+
+    Accepted: None, or an object of at most :data:`MAX_ENV_KWARGS` string keys whose values are plain
+    settings (:func:`_plain_value`); ``render_mode`` one of :data:`RENDER_MODES` (never "human": a window
+    the run would wait on, or abort in GLFW without a display); of ``gymnasium.make``'s own keywords
+    only :data:`GYM_MAKE_KEYS`; a keyword naming a file (``*_file``, ``*_path``) only a regular file of
+    at most MAX_SPEC_BYTES, checked with ``os.stat`` before anything opens it.
+    """
+    if value is None:
+        return None
+    if not isinstance(value, dict) or not all(isinstance(k, str) for k in value):
+        raise CheckpointError(f"{file}: {key!r} must be null or an object of keyword arguments, got "
+                              f"{_kind(value)} {_shown_short(value)}")
+    if len(value) > MAX_ENV_KWARGS:
+        raise CheckpointError(f"{file}: {key!r} has {len(value)} keyword arguments, above the limit of "
+                              f"{MAX_ENV_KWARGS}")
+    for name, item in value.items():
+        where = f"{file}: {key}.{name[:60]!r}"
+        if name == "render_mode":
+            if item not in RENDER_MODES:
+                raise CheckpointError(f"{where} is {_shown_short(item)}; a recorded env renders as null or "
+                                      f"'rgb_array' only (never 'human': a window)")
+        elif name in GYM_MAKE_KEYS:
+            if not GYM_MAKE_KEYS[name](item):
+                raise CheckpointError(f"{where} is {_shown_short(item)}, not a value gymnasium.make accepts here")
+        elif name in REFUSED_KEYS or not name.isidentifier():
+            raise CheckpointError(f"{where}: not a keyword argument a recorded env may set")
+        elif not _plain_value(item):
+            raise CheckpointError(f"{where} must be null, true/false, a finite number, a string of at most "
+                                  f"{MAX_CHECKPOINT_STRING:,} characters or a list of finite numbers, got "
+                                  f"{_shown_short(item)}")
+        elif name.endswith(("_file", "_path")) and item is not None:
+            _check_named_file(where, item)
+    return value
+
+
+def _check_named_file(where: str, item) -> None:
+    """A keyword's file: a regular file of at most MAX_SPEC_BYTES (os.stat before any open)."""
+    try:
+        info = os.stat(item) if isinstance(item, str) else None
+    except OSError:
+        info = None
+    if info is None or not stat.S_ISREG(info.st_mode):
+        raise CheckpointError(f"{where} is {_shown_short(item)}, not a regular file")
+    if info.st_size > MAX_SPEC_BYTES:
+        raise CheckpointError(f"{where} names a file of {info.st_size:,} bytes, above the limit of "
+                              f"{MAX_SPEC_BYTES:,} (hybridctl.limits.MAX_SPEC_BYTES)")

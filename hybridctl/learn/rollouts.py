@@ -99,16 +99,12 @@ def recorded_env_id(value: Any, file: str | Path, key: str = "env") -> str:
 
 
 def recorded_env_kwargs(value: Any, file: str | Path, key: str = "env_kwargs") -> dict | None:
-    """``value`` (``file``'s ``key``) if it is None or an object with string keys (the env's keyword arguments).
+    """``value`` (``file``'s ``key``) if it is None or safe keyword arguments of an env
+    (:func:`hybridctl.learn.checkpoint_schema.check_env_kwargs`).
 
     Raises :class:`~hybridctl.learn.checkpoint.CheckpointError` naming the file and the key otherwise.
     """
-    if value is None:
-        return None
-    if not isinstance(value, dict) or not all(isinstance(k, str) for k in value):
-        raise ckpt.CheckpointError(f"{file}: {key!r} must be null or an object of keyword arguments, got "
-                                   f"{type(value).__name__} {_shown_value(value)}")
-    return value
+    return ckpt.check_env_kwargs(value, file, key)   # known keys, plain values, render_mode never "human"
 
 
 def make_env(env: str | Callable[[], gym.Env], env_kwargs: dict | None = None,

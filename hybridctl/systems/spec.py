@@ -13,6 +13,7 @@ import numbers
 import os
 import re
 import tomllib
+import warnings
 from importlib import resources
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from ..limits import MAX_SIMULATION_STEPS, MAX_SPEC_BYTES, MIN_DT
+from ..limits import MAX_SIMULATION_STEPS, MAX_SPEC_BYTES, MAX_SPEC_FILES, MIN_DT
 
 # Specs and robot models ship inside the package (``hybridctl/data``; the repository's top-level
 # ``systems/`` and ``models/`` are links to them), so an installed wheel finds them.
@@ -78,7 +79,10 @@ def spec_dirs() -> list[Path]:
 
 
 def spec_path(name: str) -> Path | None:
-    """The spec file of system ``name`` (the first found in :func:`spec_dirs`), or None."""
+    """The spec file of system ``name`` (the first found in :func:`spec_dirs`), or None (also for a ``name``
+    that is not a system name: :func:`known_systems` skips such files)."""
+    if not SYSTEM_NAME.fullmatch(name):
+        return None
     for folder in spec_dirs():
         path = folder / f"{name}.toml"
         if path.is_file():
@@ -98,7 +102,33 @@ def known_systems(strict: bool = True) -> list[str]:
         if strict:
             raise
         folders = [SPEC_DIR]
-    return sorted({p.stem for folder in folders for p in folder.glob("*.toml")})
+    return sorted({name for folder in folders for name in _spec_names(folder)})
+
+
+_WARNED: set[Path] = set()
+"""Spec files :func:`_spec_names` has warned about (one warning each per process)."""
+
+
+def _spec_names(folder: Path) -> list[str]:
+    """The system names of the ``*.toml`` files in ``folder``: a file whose stem is not a system name
+    (:data:`SYSTEM_NAME`, e.g. ``a b;rm -rf.toml``) is skipped with one warning, so that it breaks no
+    other system's command (asked for by its path, the spec's own check names it); at most
+    MAX_SPEC_FILES files are read from one folder."""
+
+    names = []
+    for count, path in enumerate(sorted(folder.glob("*.toml"))):
+        if count >= MAX_SPEC_FILES:
+            warnings.warn(f"{folder} holds more than {MAX_SPEC_FILES:,} spec files; only the first "
+                          f"{MAX_SPEC_FILES:,} (by name) are known systems (hybridctl.limits.MAX_SPEC_FILES)",
+                          stacklevel=3)
+            break
+        if SYSTEM_NAME.fullmatch(path.stem):
+            names.append(path.stem)
+        elif path not in _WARNED:
+            _WARNED.add(path)
+            warnings.warn(f"skipped spec file {path}: {path.stem!r} is not a system name ([a-z0-9][a-z0-9_-], "
+                          f"at most 64 characters)", stacklevel=3)
+    return names
 
 
 def parse_number(raw: Any, where: str) -> float:
