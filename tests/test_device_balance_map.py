@@ -86,7 +86,7 @@ def test_torch_engine_checks_workers_and_devices():
         check_balance_map(system, 3, None, "torch", workers=cpu_count() + 1)
     with pytest.raises(ValueError, match="applies to --engine torch only"):
         balance_map("pendulum", grid=2, device="cpu", progress=False)
-    with pytest.raises(ValueError, match="not a torch device"):
+    with pytest.raises(ValueError, match="must be a torch device hybridctl runs on"):
         balance_map("pendulum", grid=2, engine="torch", device="gpu0", progress=False)
     if not torch.cuda.is_available():
         with pytest.raises(ValueError, match="CUDA is not available"):
