@@ -197,7 +197,6 @@ def test_a_spec_file_whose_name_is_no_system_name_is_skipped_with_a_warning(tmp_
     folder.mkdir()
     (folder / "a b;rm -rf.toml").write_bytes(_acrobot_spec())
     monkeypatch.setenv("HYBRIDCTL_SYSTEMS", str(folder))
-    monkeypatch.setattr("hybridctl.systems.spec._WARNED", set())
     with pytest.warns(UserWarning, match=r"skipped spec file .*a b;rm -rf\.toml: 'a b;rm -rf' is not a system name"):
         assert "a b;rm -rf" not in systems.known_systems()
     with warnings.catch_warnings():

@@ -79,8 +79,7 @@ def spec_dirs() -> list[Path]:
 
 
 def spec_path(name: str) -> Path | None:
-    """The spec file of system ``name`` (the first found in :func:`spec_dirs`), or None (also for a ``name``
-    that is not a system name: :func:`known_systems` skips such files)."""
+    """The spec file of system ``name`` (the first found in :func:`spec_dirs`), or None (also for no system name)."""
     if not SYSTEM_NAME.fullmatch(name):
         return None
     for folder in spec_dirs():
@@ -105,30 +104,14 @@ def known_systems(strict: bool = True) -> list[str]:
     return sorted({name for folder in folders for name in _spec_names(folder)})
 
 
-_WARNED: set[Path] = set()
-"""Spec files :func:`_spec_names` has warned about (one warning each per process)."""
-
-
 def _spec_names(folder: Path) -> list[str]:
-    """The system names of the ``*.toml`` files in ``folder``: a file whose stem is not a system name
-    (:data:`SYSTEM_NAME`, e.g. ``a b;rm -rf.toml``) is skipped with one warning, so that it breaks no
-    other system's command (asked for by its path, the spec's own check names it); at most
-    MAX_SPEC_FILES files are read from one folder."""
-
-    names = []
-    for count, path in enumerate(sorted(folder.glob("*.toml"))):
-        if count >= MAX_SPEC_FILES:
-            warnings.warn(f"{folder} holds more than {MAX_SPEC_FILES:,} spec files; only the first "
-                          f"{MAX_SPEC_FILES:,} (by name) are known systems (hybridctl.limits.MAX_SPEC_FILES)",
-                          stacklevel=3)
-            break
-        if SYSTEM_NAME.fullmatch(path.stem):
-            names.append(path.stem)
-        elif path not in _WARNED:
-            _WARNED.add(path)
-            warnings.warn(f"skipped spec file {path}: {path.stem!r} is not a system name ([a-z0-9][a-z0-9_-], "
-                          f"at most 64 characters)", stacklevel=3)
-    return names
+    """The system names of the first MAX_SPEC_FILES ``*.toml`` files in ``folder``; a file whose stem is not a
+    system name (``a b;rm -rf.toml``) is skipped with a warning, so it breaks no other system's command."""
+    paths = sorted(folder.glob("*.toml"))[:MAX_SPEC_FILES]
+    for path in (p for p in paths if not SYSTEM_NAME.fullmatch(p.stem)):   # warnings shows each message once
+        warnings.warn(f"skipped spec file {path}: {path.stem!r} is not a system name ([a-z0-9][a-z0-9_-], at "
+                      f"most 64 characters)", stacklevel=3)
+    return [p.stem for p in paths if SYSTEM_NAME.fullmatch(p.stem)]
 
 
 def parse_number(raw: Any, where: str) -> float:
