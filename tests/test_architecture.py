@@ -201,3 +201,95 @@ def test_the_path_check_finds_them():
     assert len(_path_hacks("import sys\nsys.path.insert(0, 'x')\nsys.path.append('y')\n")) == 2
     assert len(_path_hacks("import importlib.util\nimportlib.util.spec_from_file_location('t', 'a/t.py')\n")) == 1
     assert _path_hacks("from hybridctl.reproduce import table51\n") == []
+
+
+# ============================================================================ import cycles
+
+def import_graph(modules: dict[str, str]) -> dict[str, set[str]]:
+    """module -> the hybridctl modules it imports, from ``modules`` (name -> source). Every import
+    counts, also those inside functions and under ``TYPE_CHECKING``: a cycle a type checker needs
+    is still two modules that cannot be read or moved one without the other. ``from X import name``
+    is an edge to ``X.name`` where that is a module, else to ``X``."""
+    graph = {}
+    for name, source in modules.items():
+        edges = set()
+        for _, target in imported_modules(source, name, name in PACKAGES):
+            while target and target not in modules:
+                target = target.rpartition(".")[0]
+            if target and target != name:
+                edges.add(target)
+        graph[name] = edges
+    return graph
+
+
+def import_cycles(graph: dict[str, set[str]]) -> list[frozenset[str]]:
+    """The strongly connected groups of more than one module (Tarjan's algorithm, iterative)."""
+    index, low, on_stack, stack, found, counter = {}, {}, set(), [], [], 0
+    for start in sorted(graph):
+        if start in index:
+            continue
+        work = [(start, iter(sorted(graph[start])))]
+        index[start] = low[start] = counter = counter + 1
+        stack.append(start)
+        on_stack.add(start)
+        while work:
+            node, children = work[-1]
+            child = next(children, None)
+            if child is not None:
+                if child not in index:
+                    index[child] = low[child] = counter = counter + 1
+                    stack.append(child)
+                    on_stack.add(child)
+                    work.append((child, iter(sorted(graph[child]))))
+                elif child in on_stack:
+                    low[node] = min(low[node], index[child])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[node])
+            if low[node] == index[node]:
+                group = set()
+                while True:
+                    member = stack.pop()
+                    on_stack.discard(member)
+                    group.add(member)
+                    if member == node:
+                        break
+                if len(group) > 1:
+                    found.append(frozenset(group))
+    return found
+
+
+PACKAGES = {module_name(p) for p in all_modules() if p.name == "__init__.py"}
+
+# Cycles still in the code, each with why; the list may only shrink (a listed cycle that is gone fails too).
+KNOWN_CYCLES = {
+    # systems/control.py and systems/plants.py name System in annotations (under TYPE_CHECKING) while System
+    # calls them; control.py belonged to another change when the check came in
+    frozenset({"hybridctl.systems", "hybridctl.systems.control", "hybridctl.systems.plants"}),
+}
+
+
+def test_no_two_modules_import_each_other():
+    """No module imports another that imports it back, directly or around a longer cycle."""
+    modules = {module_name(p): p.read_text() for p in all_modules()}
+    cycles = set(import_cycles(import_graph(modules)))
+    new = [sorted(c) for c in cycles - KNOWN_CYCLES]
+    assert not new, "modules that import each other (directly or through a cycle):\n" + "\n".join(map(str, new))
+    gone = [sorted(c) for c in KNOWN_CYCLES - cycles]
+    assert not gone, f"cycles listed in KNOWN_CYCLES are gone; remove them from the list: {gone}"
+
+
+def test_the_cycle_check_finds_them():
+    modules = {
+        "hybridctl.learn": "",
+        "hybridctl.learn.base": "from .run import Run\n",
+        "hybridctl.learn.run": "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from .base import Learner\n",
+        "hybridctl.learn.a": "def f():\n    from . import b\n",
+        "hybridctl.learn.b": "from .c import x\n",
+        "hybridctl.learn.c": "from hybridctl.learn.a import f\n",
+        "hybridctl.learn.d": "from .run import Run\nfrom . import base\n",
+    }
+    cycles = import_cycles(import_graph(modules))
+    assert sorted(map(sorted, cycles)) == [["hybridctl.learn.a", "hybridctl.learn.b", "hybridctl.learn.c"],
+                                           ["hybridctl.learn.base", "hybridctl.learn.run"]]

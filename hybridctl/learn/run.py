@@ -1,7 +1,9 @@
 """One training run in progress: the run context, the loop of update-counting learners, guards.
 
 A learner (:class:`hybridctl.learn.base.Learner`) writes only its algorithm, inside
-:func:`training_run` (which its base ``learn`` opens); this module gives the run:
+:func:`training_run` (which its base ``learn`` opens); this module gives the run (it knows the
+learner only as :class:`LearnerInTraining`, what a run reads and writes on it, so ``base``
+imports ``run`` and never the other way round):
 
 * :func:`training_run` -- the context of one ``learn`` call: the folder lock, torch threads,
   ``resume`` (newest checkpoint in ``out``; another algorithm's or plant's, an incomplete one
@@ -25,7 +27,7 @@ import time
 import warnings
 from collections.abc import Iterable
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, Iterator
+from typing import Any, Callable, Iterator, Protocol
 
 import numpy as np
 import torch
@@ -37,13 +39,31 @@ from .checkpoint import PROGRESS_FILE, CheckpointError
 from .config_check import checkpoint_minutes
 from .runlog import RunLog
 
-if TYPE_CHECKING:
-    from .base import Learner
-
-__all__ = ["Run", "training_run", "EvalResult", "check_finite", "seeded", "set_torch_threads", "EVAL_SEED"]
+__all__ = ["Run", "training_run", "LearnerInTraining", "EvalResult", "check_finite", "seeded", "set_torch_threads", "EVAL_SEED"]
 
 EVAL_SEED = 12345
 """The seed of every learner's held-out evaluation (``evaluate``), apart from the training seeds."""
+
+
+class LearnerInTraining(Protocol):
+    """What a run reads and writes on its learner (:class:`hybridctl.learn.base.Learner` and its subclasses)."""
+
+    config: Any
+    log_key: str
+    log_columns: tuple[str, ...]
+    log_int_columns: tuple[str, ...]
+    log_float_format: str | None
+    log_rows: list[dict]
+    history: list[dict]                 # rows of the update-counting learners (Run.updates)
+    wall_time: float
+    checkpointer: Any
+
+    @property
+    def progress_count(self) -> int: ...
+
+    def plot_curves(self, log: RunLog) -> None: ...
+
+    def _checkpoint_with_data(self) -> bool: ...
 
 
 # ============================================================================ seeding and threads
@@ -158,7 +178,7 @@ CURVES_EVERY_S = 30.0
 
 
 @contextlib.contextmanager
-def training_run(learner: "Learner", out: str | Path | None, resume: bool, progress: bool, callback, total: int,
+def training_run(learner: LearnerInTraining, out: str | Path | None, resume: bool, progress: bool, callback, total: int,
                  unit: str = "step", desc: str | None = None, force: bool = False) -> Iterator["Run"]:
     """The context of one ``learn`` call (see :class:`Run`).
 
@@ -190,7 +210,7 @@ def training_run(learner: "Learner", out: str | Path | None, resume: bool, progr
             torch.set_num_threads(previous_threads)
 
 
-def _training_run(learner: "Learner", out: Path | None, resume: bool, progress: bool, callback, total: int,
+def _training_run(learner: LearnerInTraining, out: Path | None, resume: bool, progress: bool, callback, total: int,
                   unit: str, desc: str | None, force: bool, minutes: float) -> Iterator["Run"]:
     """The body of :func:`training_run` in its locked log folder (a generator: it yields the :class:`Run` once)."""
     run = None
@@ -222,7 +242,7 @@ def _training_run(learner: "Learner", out: Path | None, resume: bool, progress: 
             run.close()
 
 
-def check_budget(learner: "Learner", found: Path, total: int, unit: str) -> None:
+def check_budget(learner: LearnerInTraining, found: Path, total: int, unit: str) -> None:
     """Refuse a resume whose checkpoint counted more than the run's budget ``total`` allows (one
     round of ``num_envs`` env steps over it is a finished run): it would "finish" untrained."""
     slack = int(getattr(learner.config, "num_envs", 1) or 1) if learner.log_key == "env_steps" else 0
@@ -240,7 +260,7 @@ class Run:
     ``log_dir/checkpoint``; ``stopped`` turns True when a callback returned False.
     """
 
-    def __init__(self, learner: "Learner", log_dir: Path | None, log: RunLog | None, callbacks: CallbackList, bar,
+    def __init__(self, learner: LearnerInTraining, log_dir: Path | None, log: RunLog | None, callbacks: CallbackList, bar,
                  checkpoint_seconds: float = 0.0):
         self.learner, self.log_dir, self.logger, self.callbacks, self.bar = learner, log_dir, log, callbacks, bar
         self.stopped = False
