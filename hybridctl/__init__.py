@@ -42,3 +42,10 @@ def lazy_exports(package: str, homes: dict[str, tuple[str, ...]]):
         return sorted(set(namespace) | set(home_of))
 
     return __getattr__, __dir__, sorted(home_of)
+
+
+__getattr__, __dir__, _lazy_names = lazy_exports(__name__, {
+    "systems.switched": ("SwitchedController", "closed_loop_rollout"),
+})
+"""``from hybridctl import SwitchedController``: the switched controller (:mod:`hybridctl.systems.switched`),
+loaded on first use, so ``import hybridctl`` stays free of torch."""

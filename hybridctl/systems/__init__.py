@@ -27,9 +27,13 @@ from .multibody import GeneratedDynamics, ModelError, MultibodyModel
 from .spec import (OPTIONAL_DEFAULTS, GateSection, InitialStateSection, SpecError, Spec, SuccessSection, SwingupSection, known_systems,
                    read_spec, spec_from_document, typed_sections, validate_shapes)
 from .spec import _require_in_range as require_in_range
+from .switched import (AlwaysGate, CostToGoGate, EnergySwingup, Gate, LearnedGate, NeverGate, Rollout, SwitchedController,
+                       TrajoptSwingup, ZeroSwingup, closed_loop_rollout)
 
 __all__ = ["System", "load", "from_drake", "known_systems", "SpecError", "ModelError", "Spec", "check_array", "control",
-           "GateSection", "SuccessSection", "InitialStateSection", "SwingupSection"]
+           "GateSection", "SuccessSection", "InitialStateSection", "SwingupSection", "SwitchedController",
+           "closed_loop_rollout", "Rollout", "Gate", "LearnedGate", "CostToGoGate", "AlwaysGate", "NeverGate",
+           "EnergySwingup", "ZeroSwingup", "TrajoptSwingup"]
 
 PHYSICS_KEYS = ("params.", "model.file")
 """Prefixes of the spec keys that are the physics: overriding one (a ``params.`` key, or the model

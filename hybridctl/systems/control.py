@@ -18,13 +18,14 @@ torch-vs-Drake equality tests therefore test one formula.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Any
 
 import numpy as np
 import torch
 
-if TYPE_CHECKING:  # pragma: no cover
-    from . import System
+System = Any
+"""A :class:`hybridctl.systems.System` (not imported: the package imports this module, and an import back,
+even under ``TYPE_CHECKING``, would make the two a cycle)."""
 
 __all__ = ["DIVERGENCE_BOUND", "wrap_angle", "wrap_angles", "lqr_command", "cost_to_go", "hysteresis", "saturate",
            "is_diverged", "CostToGoGate", "lqr_rollouts_balanced", "lqr_basin_level"]
@@ -101,7 +102,7 @@ class CostToGoGate(torch.nn.Module):
     ln(1/off) * scale. Works on numpy single states (the Drake ``Gate``) and torch batches.
     """
 
-    def __init__(self, system: "System", scale: float | None = None, S: np.ndarray | None = None):
+    def __init__(self, system: System, scale: float | None = None, S: np.ndarray | None = None):
         super().__init__()
         self.system = system
         self.scale = float(system.gate.cost_scale if scale is None else scale)
@@ -131,7 +132,7 @@ class CostToGoGate(torch.nn.Module):
         return self.numpy_forward(x)
 
 
-def lqr_rollouts_balanced(system: "System", x0, horizon: float, eps: float | None = None,
+def lqr_rollouts_balanced(system: System, x0, horizon: float, eps: float | None = None,
                           lookback: int | None = None, K: np.ndarray | None = None,
                           chunk: int = 65536, device: str | torch.device | None = None) -> np.ndarray:
     """Run the saturated LQR (acting every ``dt``) from each row of ``x0`` in batched torch.
@@ -175,7 +176,7 @@ def lqr_rollouts_balanced(system: "System", x0, horizon: float, eps: float | Non
     return np.concatenate(out)
 
 
-def lqr_basin_level(system: "System", n_samples: int = 20000, horizon: float | None = None,
+def lqr_basin_level(system: System, n_samples: int = 20000, horizon: float | None = None,
                     spread: np.ndarray | None = None, seed: int = 0, K: np.ndarray | None = None,
                     S: np.ndarray | None = None, device: str | torch.device | None = None) -> dict:
     """Estimate the cost-to-go level V* below which the saturated LQR balances.
