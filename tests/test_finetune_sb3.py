@@ -90,7 +90,7 @@ def test_selection_all_perturbs_the_value_net_too(ppo_zip):
 
 def test_a_normalised_agent_round_trips_through_the_hybridctl_checkpoint(ppo_zip, tmp_path):
     """An agent with vecnormalize.npz: FineTune.load(final/) and the written-back zip + npz act alike."""
-    from hybridctl.learn.sb3 import Normalizer
+    from hybridctl.learn.sb3_normalizer import Normalizer
 
     folder = tmp_path / "agent"
     folder.mkdir()

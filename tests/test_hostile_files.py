@@ -404,7 +404,8 @@ class _Checked(pickle.Unpickler):
 
 
 def test_a_planted_payload_is_not_written_and_does_not_run_when_sb3_loads_our_output(ppo_zip, tmp_path):
-    from hybridctl.learn.sb3 import OPTIMIZER_ENTRIES, load_sb3
+    from hybridctl.learn.sb3 import load_sb3
+    from hybridctl.learn.sb3_zip import OPTIMIZER_ENTRIES
 
     marker = tmp_path / "ran"
     hostile = _planted_zip(ppo_zip, tmp_path / "hostile.zip", marker)

@@ -16,7 +16,10 @@ import pytest
 import torch
 
 from hybridctl.learn.checkpoint import CheckpointError
-from hybridctl.learn.sb3 import OPTIMIZER_ENTRIES, SB3_ALGORITHMS, SELECTIONS, Normalizer, load_sb3
+from hybridctl.learn.sb3 import load_sb3
+from hybridctl.learn.sb3_normalizer import Normalizer
+from hybridctl.learn.sb3_policy import SELECTIONS
+from hybridctl.learn.sb3_zip import OPTIMIZER_ENTRIES, SB3_ALGORITHMS
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

@@ -89,7 +89,7 @@ def test_two_chunks_then_resume_trains_only_the_difference(sb, trained, algo):
         assert (run / "vecnormalize.npz").is_file() and not (run / "replay_buffer.pkl").exists()
         with np.load(run / "vecnormalize.npz") as stats:
             assert int(stats["steps"]) == b2 and float(stats["count"]) > b2 / 2
-        from hybridctl.learn.sb3 import Normalizer       # the package's reader takes the file as it is
+        from hybridctl.learn.sb3_normalizer import Normalizer       # the package's reader takes the file as it is
         assert Normalizer.from_npz(run / "vecnormalize.npz").shape == model.observation_space.shape
     else:
         model.load_replay_buffer(run / "replay_buffer.pkl")

@@ -26,7 +26,9 @@ from .run import EvalResult, check_finite
 from .runlog import RunLog
 from .sac import SAC, SACConfig
 from .robustness import failure_rates
-from .sb3 import Normalizer, SB3Agent, SB3Policy, load_sb3, silent_logger
+from .sb3 import SB3Agent, load_sb3, silent_logger
+from .sb3_normalizer import Normalizer
+from .sb3_policy import SB3Policy
 from ..parallel import ProcessBackend, RayBackend, SerialBackend, make_backend
 from .ssac import SSAC, GateDataset, SSACConfig
 

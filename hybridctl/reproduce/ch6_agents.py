@@ -46,7 +46,8 @@ from pathlib import Path
 import numpy as np  # noqa: E402
 
 from hybridctl.io import atomic_write, write_json  # noqa: E402
-from hybridctl.learn.sb3 import Normalizer, silent_logger  # noqa: E402
+from hybridctl.learn.sb3 import silent_logger  # noqa: E402
+from hybridctl.learn.sb3_normalizer import Normalizer  # noqa: E402
 from hybridctl.reproduce import common  # noqa: E402
 from hybridctl.reproduce.common import RESULTS, recorded_path  # noqa: E402
 

@@ -12,7 +12,7 @@ the run folder ``OUT/<algo>-s<seed>/`` receives, each written atomically (:func:
 * ``model.zip``          SB3's own save of the model;
 * ``replay_buffer.pkl``  SAC/TD3 only, ``model.save_replay_buffer``;
 * ``vecnormalize.npz``   PPO/A2C/TRPO only (zoo ``normalize: true``): the running obs/return statistics
-                         (:func:`hybridctl.learn.sb3.save_vecnormalize`: ``load_sb3`` and fine-tuning read it);
+                         (:func:`hybridctl.learn.sb3_normalizer.save_vecnormalize`: ``load_sb3`` and fine-tuning read it);
 * ``curve.csv``          one row per finished training episode: env_steps, return, length, success
                          (the raw return, before reward normalisation; Fig. 3.3 is drawn from it), packed
                          into ``curve.csv.xz`` (the same text) when the run reaches its budget;
@@ -66,7 +66,8 @@ from typing import Any
 import numpy as np
 
 from hybridctl.io import atomic_write, write_json
-from hybridctl.learn.sb3 import load_vecnormalize, save_vecnormalize, silent_logger
+from hybridctl.learn.sb3 import silent_logger
+from hybridctl.learn.sb3_normalizer import load_vecnormalize, save_vecnormalize
 from hybridctl.reproduce import common
 
 ENV_ID = "hybridctl/AcrobotSwingup-v0"
