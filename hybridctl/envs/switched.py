@@ -16,7 +16,10 @@ import torch
 
 from ..systems import System, control
 from ..systems.compiled import LazyCompiled
+from ..systems.switched import SwitchedController, as_gate, closed_loop_rollout, switched_decision
 from .vector import TorchVectorEnv
+
+__all__ = ["SwitchedVectorEnv", "switched_decision"]
 
 
 class SwitchedVectorEnv(TorchVectorEnv):
@@ -31,28 +34,43 @@ class SwitchedVectorEnv(TorchVectorEnv):
             Replace it at any time with :meth:`set_gate` (SSAC refits it).
         K: LQR gain (m, n); default ``system.lqr()``.
         gate_on, gate_off: hysteresis thresholds (default: the spec's 0.9 / 0.5).
+        controller: a :class:`~hybridctl.systems.SwitchedController` whose gate, K and thresholds the env
+            uses in place of ``gate``, ``K``, ``gate_on`` and ``gate_off`` (its swing-up is the agent's).
         compile: ``"off"`` (default), ``"on"`` or ``"auto"``: run each decision (the gate, the
             LQR and the dynamics of every substep) as one ``torch.compile``-d function
             (:mod:`hybridctl.systems.compiled`; ~13x faster at batch 32, equal to ~1e-15).
 
-    Extra ``infos`` per step: ``"lqr_fraction"`` (N,) share of this decision's
+    Each decision is one step of :func:`hybridctl.systems.closed_loop_rollout` of :attr:`controller`
+    (swing-up: the agent's actions; a diverged row ends at its last finite state and the autoreset restarts
+    it). Extra ``infos`` per step: ``"lqr_fraction"`` (N,) share of this decision's
     control periods in which the LQR acted, ``"lqr_at_start"`` (N,) bool, the
     gate mode when the decision began (SSAC's gate data are the states of
     LQR-active decisions), and ``"decision_start"`` (N, n) the state the agent saw.
     """
 
-    def __init__(self, system: str | System, num_envs: int, gate: torch.nn.Module, K=None,
-                 gate_on: float | None = None, gate_off: float | None = None, **kwargs):
+    def __init__(self, system: str | System, num_envs: int, gate: torch.nn.Module | None = None, K=None,
+                 gate_on: float | None = None, gate_off: float | None = None,
+                 controller: SwitchedController | None = None, **kwargs):
         super().__init__(system, num_envs, **kwargs)
         sys_ = self.system
-        self.gate_on = sys_.gate.on if gate_on is None else float(gate_on)
-        self.gate_off = sys_.gate.off if gate_off is None else float(gate_off)
-        if not 0.0 < self.gate_off < self.gate_on < 1.0:
-            raise ValueError(f"need 0 < gate_off < gate_on < 1, got off={self.gate_off}, on={self.gate_on}")
+        if controller is not None:
+            if gate is not None or K is not None or gate_on is not None or gate_off is not None:
+                raise ValueError("give either controller or gate / K / gate_on / gate_off, not both")
+            gate, K, gate_on, gate_off = controller.gate, controller.K, controller.gate_on, controller.gate_off
+            goal, gate_period = controller.goal, controller.gate_period
+        elif gate is None:
+            raise TypeError("gate must be a torch module or callable (or give a controller), got None")
+        else:
+            goal, gate_period = sys_.goal, sys_.control_period
         K = sys_.lqr()[0] if K is None else np.atleast_2d(np.asarray(K, dtype=float))
+        self.controller = SwitchedController(
+            swingup=None, gate=as_gate(gate), K=K, goal=goal, decision_period=self.decision_period,
+            gate_on=sys_.gate.on if gate_on is None else gate_on, gate_off=sys_.gate.off if gate_off is None else gate_off,
+            gate_period=gate_period)
+        self.gate_on, self.gate_off = self.controller.gate_on, self.controller.gate_off
         self._K = torch.as_tensor(K, dtype=self.dtype, device=self.device)
-        ratio = sys_.control_period / sys_.dt
-        self.gate_stride = max(1, int(round(ratio)))
+        self.gate_stride = self.controller.gate_stride(sys_)
+        self.gate = gate      # what was given (SSAC refits its GateNet in place); the controller holds it typed
         self.set_gate(gate)
         N = self.num_envs
         self._mode = torch.zeros(N, dtype=torch.bool, device=self.device)
@@ -68,6 +86,10 @@ class SwitchedVectorEnv(TorchVectorEnv):
             raise TypeError(f"gate must be a torch module or callable, got {type(gate).__name__}")
         if isinstance(gate, torch.nn.Module):
             gate.to(self.device)
+        if gate is not self.gate:
+            # a new gate gets a new typed wrapper (the same one keeps its own: a compiled decision keeps its graph)
+            self.controller.gate = as_gate(gate)
+        self.controller.gate.to(self.device)
         self.gate = gate
 
     def lqr(self, x: torch.Tensor) -> torch.Tensor:
@@ -85,17 +107,13 @@ class SwitchedVectorEnv(TorchVectorEnv):
     def _advance(self, u: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         start_mode = self._mode.clone()
         with torch.no_grad():
-            x, diverged, self._mode, lqr_steps = self._decision_fn(
-                self.system, self.gate, self._state, u, self._mode, self._K, self.substeps, self.gate_stride,
-                self._gate_dtype(), self.gate_on, self.gate_off)
-        self._infos = {"lqr_fraction": lqr_steps / self.substeps, "lqr_at_start": start_mode,
+            run = closed_loop_rollout(self.system, self.controller, self._state, 1, actions=u[:, None],
+                                      mode=self._mode, on_divergence="continue", record=False, dtype=self.dtype,
+                                      decision=self._decision_fn)
+        self._mode = run.mode
+        self._infos = {"lqr_fraction": run.lqr_steps[:, 0] / self.substeps, "lqr_at_start": start_mode,
                        "decision_start": self._state.clone()}
-        return x, diverged
-
-    def _gate_dtype(self) -> torch.dtype:
-        for tensor in getattr(self.gate, "parameters", lambda: [])():
-            return tensor.dtype
-        return self.dtype
+        return run.final, run.diverged[:, 0]
 
     def _step_infos(self) -> dict[str, torch.Tensor]:
         return self._infos
@@ -104,33 +122,3 @@ class SwitchedVectorEnv(TorchVectorEnv):
     def mode(self) -> torch.Tensor:
         """Current gate modes (N,) bool: True where the LQR is in control (a copy)."""
         return self._mode.clone()
-
-
-def switched_decision(system: System, gate, x0: torch.Tensor, u: torch.Tensor, mode: torch.Tensor, K: torch.Tensor,
-                      substeps: int, gate_stride: int, gate_dtype: torch.dtype, gate_on: float, gate_off: float):
-    """One decision of the switched controller from states ``x0`` (B, n) with the held swing-up
-    action ``u`` (B, m) and gate modes ``mode`` (B,) bool (True: LQR).
-
-    Every ``gate_stride`` integration steps the gate classifies the state and the hysteresis
-    updates the mode; the command (LQR or ``u``, saturated) is held until the next gate
-    evaluation. A row that diverges (:func:`~hybridctl.systems.control.is_diverged`) is put back
-    to its start state. Returns ``(x, diverged, mode, lqr_steps)``: the states after the decision,
-    the diverged rows, the final modes and the number of integration steps the LQR acted.
-    A pure function (no env state), so ``torch.compile`` can fuse it whole.
-    """
-    limit = system.action_limit
-    x = x0
-    diverged = torch.zeros(x0.shape[0], dtype=torch.bool, device=x0.device)
-    lqr_steps = torch.zeros(x0.shape[0], dtype=x0.dtype, device=x0.device)
-    command = u
-    for k in range(substeps):
-        if k % gate_stride == 0:
-            p = gate(x.to(gate_dtype)).reshape(-1).to(x0.dtype)
-            mode = control.hysteresis(p, mode, gate_on, gate_off)
-            lqr = control.lqr_command(system.state_error(x), K)
-            command = control.saturate(torch.where(mode[:, None], lqr, u), limit)
-        lqr_steps = lqr_steps + mode.to(x0.dtype)
-        x = system.step_unchecked(x, command)
-        diverged = diverged | control.is_diverged(x)
-        x = torch.where(diverged[:, None], x0, x)
-    return x, diverged, mode, lqr_steps
