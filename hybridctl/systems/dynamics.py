@@ -32,11 +32,11 @@ nonzero coefficients are kept, so each entry costs a handful of elementwise
 operations on (batch,) columns, and M is inverted in closed form for n_q <= 3
 (Cramer's rule on the symmetric 1x1, 2x2, 3x3 matrix) instead of a batched LU.
 
-The functions below take an array namespace (numpy or torch) so the Drake
-controller blocks (numpy, one state: evaluated on Python floats) and the
+The functions below take an array namespace (numpy or torch; :mod:`hybridctl.systems.array_namespace`)
+so the Drake controller blocks (numpy, one state: evaluated on Python floats) and the
 training fast path (torch, batched, differentiable) share one formula. A third
-"namespace", ``_CodeWriter``, runs the same formula on symbols and records it as
-straight-line Python over floats (``ChainDynamics.scalar``): one state then costs a few
+"namespace", ``_CodeWriter`` (:mod:`hybridctl.systems.generated_code`), runs the same formula on
+symbols and records it as straight-line Python over floats (``ChainDynamics.scalar``): one state then costs a few
 microseconds per step instead of tens of torch calls (``System.step`` on one float64
 state, ``System.step_single``, ``SwingupEnv``). ``_TorchCodeWriter`` records the torch
 namespace's calls the same way (``ChainDynamics.torch_step``, what ``System.step`` runs on
@@ -46,11 +46,13 @@ batches): bit for bit the table-driven result, without its Python bookkeeping pe
 from __future__ import annotations
 
 import math
-import re
 from dataclasses import dataclass
 
 import numpy as np
 import torch
+
+from .array_namespace import NUMPY_NAMESPACE, ArrayNamespace, solve_symmetric
+from .generated_code import scalar_source, shared_function, torch_source
 
 
 @dataclass(frozen=True)
@@ -106,442 +108,6 @@ class ChainParams:
         return J
 
 
-class _Namespace:
-    """The few array operations the chain formula needs, for numpy or torch.
-
-    The formula works on "columns": arrays of the batch shape (0-d for a single
-    state), one per state coordinate or intermediate quantity, or plain floats
-    for quantities that do not depend on the state (those cost no array call).
-    Elementwise work on (batch,) columns beats (batch, n, n) tensor algebra here
-    because the matrices are at most 3x3: each torch call costs microseconds of
-    dispatch, so the number of calls matters more than the arithmetic.
-    """
-
-    def __init__(self, like):
-        self.torch = isinstance(like, torch.Tensor)
-        self.dtype, self.device = (like.dtype, like.device) if self.torch else (None, None)
-        self._consts: dict[float, torch.Tensor] = {}
-        self._generated: dict = {}
-
-    def columns(self, a):
-        """The last axis of ``a`` as a list of arrays of the batch shape (views)."""
-        # unbind is one torch call however many columns there are. A single numpy
-        # state becomes scalars (Python floats for float64, then math.sin/cos), whose
-        # arithmetic is many times faster than that of 0-d arrays.
-        if self.torch:
-            return list(a.unbind(-1))
-        if a.ndim == 1:
-            return a.tolist() if a.dtype == np.float64 else list(a)
-        return [a[..., i] for i in range(a.shape[-1])]
-
-    def solve(self, A, b):
-        if self.torch:
-            return torch.linalg.solve(A, b.unsqueeze(-1)).squeeze(-1)
-        return np.linalg.solve(A, b[..., None])[..., 0]
-
-    def consts_for(self, fn) -> list:
-        """The cached 0-d constants generated torch code ``fn`` refers to as ``K[i]``."""
-        cached = self._generated.get(fn)
-        if cached is None:
-            cached = self._generated[fn] = [self.const(v) for v in fn.constants]
-        return cached
-
-    def cos(self, a):
-        if self.torch:
-            return torch.cos(a)
-        return math.cos(a) if isinstance(a, float) else np.cos(a)
-
-    def sin(self, a):
-        if self.torch:
-            return torch.sin(a)
-        return math.sin(a) if isinstance(a, float) else np.sin(a)
-
-    def cumsum(self, a):
-        return torch.cumsum(a, dim=-1) if self.torch else np.cumsum(a, axis=-1)
-
-    def const(self, value: float):
-        """``value`` as a 0-d tensor of the namespace's dtype and device (cached), or a float.
-
-        Passing Python floats to torch calls costs a scalar-to-tensor conversion
-        per call (two in float32); cached 0-d tensors avoid it.
-        """
-        if not self.torch:
-            return value
-        if value not in self._consts:
-            self._consts[value] = torch.tensor(value, dtype=self.dtype, device=self.device)
-        return self._consts[value]
-
-    def lincomb(self, const: float, terms):
-        """const + sum of coef * f1 [* f2] over terms (coef, f1) or (coef, f1, f2) of columns.
-
-        In torch every term is exactly one call, ``add(alpha=)`` or ``addcmul(value=)``,
-        the first one starting from the cached constant. Returns ``const`` when
-        there are no terms.
-        """
-        if not self.torch:
-            out = const
-            for t in terms:
-                out = out + (t[0] * t[1] if len(t) == 2 else t[0] * t[1] * t[2])
-            return out
-        out = None
-        for t in terms:
-            if out is None and const == 0.0 and t[0] == 1.0 and len(t) == 2:
-                out = t[1]              # a bare column: no call at all
-                continue
-            base = self.const(const) if out is None else out
-            out = torch.add(base, t[1], alpha=t[0]) if len(t) == 2 else torch.addcmul(base, t[1], t[2], value=t[0])
-        return const if out is None else out
-
-    def products(self, terms):
-        """sum of coef * x * y over terms (coef, x, y) whose factors are columns or floats."""
-        const, arrays = 0.0, []
-        for coef, x, y in terms:
-            if isinstance(x, float) and isinstance(y, float):
-                const += coef * x * y
-            elif isinstance(x, float) or isinstance(y, float):
-                arrays.append((coef * x, y) if isinstance(x, float) else (coef * y, x))
-            else:
-                arrays.append((coef, x, y))
-        return self.lincomb(const, arrays)
-
-    def stack(self, cols, like):
-        """Columns (arrays or floats) -> one array (..., len(cols)); floats are broadcast
-        to ``like``, a column that gives the batch shape, dtype and device."""
-        if not self.torch:
-            dtype = np.result_type(like, *cols)
-            dtype = dtype if dtype.kind == "f" else np.dtype(float)
-            shapes = {getattr(c, "shape", ()) for c in [like, *cols]}
-            if shapes == {()}:
-                return np.array(cols, dtype=dtype)      # one state: numpy scalars and floats
-            out = np.empty(np.broadcast_shapes(*shapes) + (len(cols),), dtype=dtype)
-            for i, col in enumerate(cols):
-                out[..., i] = col
-            return out
-        cols = [torch.full_like(like, c) if isinstance(c, float) else c for c in cols]
-        if len({c.shape for c in cols}) > 1:
-            cols = torch.broadcast_tensors(*cols)
-        if (cols[0].numel() >= 1024 and not any(c.requires_grad for c in cols)
-                and all(c.dtype == cols[0].dtype for c in cols)):
-            # torch.stack on the last axis is a slow strided cat for large batches
-            # (~20 us at 4096 x 4); copying column by column into the interleaved
-            # result is about twice as fast there (and slower for small batches).
-            out = cols[0].new_empty(cols[0].shape + (len(cols),))
-            for dst, src in zip(out.unbind(-1), cols):
-                dst.copy_(src)
-            return out
-        return torch.stack(cols, dim=-1)
-
-
-_NUMPY = _Namespace(np.zeros(0))
-
-
-def _solve_symmetric(xp, m, r):
-    """Solve M qdd = r for symmetric M (n <= 3) in closed form (Cramer's rule / adjugate).
-
-    ``m[i][k]`` (i <= k) and ``r[i]`` are columns or floats, so this is batched
-    and differentiable wherever the namespace is. Mass matrices are symmetric
-    positive definite and well conditioned, where the explicit inverse is as
-    accurate as LU (the Drake comparison holds to 1e-9).
-    """
-    n = len(r)
-    if n == 1:
-        return [r[0] / m[0][0]]
-    if n == 2:
-        (a, b), d = m[0], m[1][1]
-        det = xp.products([(1.0, a, d), (-1.0, b, b)])
-        return [xp.products([(1.0, d, r[0]), (-1.0, b, r[1])]) / det,
-                xp.products([(1.0, a, r[1]), (-1.0, b, r[0])]) / det]
-    (a, b, c), (d, e), f = m[0], m[1][1:], m[2][2]
-    # Cofactors of [[a, b, c], [b, d, e], [c, e, f]] (the adjugate is symmetric too).
-    A = [[xp.products([(1.0, d, f), (-1.0, e, e)]), xp.products([(1.0, c, e), (-1.0, b, f)]),
-          xp.products([(1.0, b, e), (-1.0, c, d)])],
-         [None, xp.products([(1.0, a, f), (-1.0, c, c)]), xp.products([(1.0, b, c), (-1.0, a, e)])],
-         [None, None, xp.products([(1.0, a, d), (-1.0, b, b)])]]
-    det = xp.products([(1.0, a, A[0][0]), (1.0, b, A[0][1]), (1.0, c, A[0][2])])
-    return [xp.products([(1.0, A[min(i, k)][max(i, k)], r[k]) for k in range(3)]) / det
-            for i in range(3)]
-
-
-# ------------------------------------------------------------ one state, plain floats
-class _Sym:
-    """A named float of generated code: arithmetic on it writes one line to its _CodeWriter."""
-
-    __slots__ = ("writer", "name")
-
-    def __init__(self, writer: "_CodeWriter", name: str):
-        self.writer, self.name = writer, name
-
-    def __add__(self, other):
-        return self.writer.binary(self, "+", other)
-
-    def __radd__(self, other):
-        return self.writer.binary(other, "+", self)
-
-    def __sub__(self, other):
-        return self.writer.binary(self, "-", other)
-
-    def __rsub__(self, other):
-        return self.writer.binary(other, "-", self)
-
-    def __mul__(self, other):
-        return self.writer.binary(self, "*", other)
-
-    def __rmul__(self, other):
-        return self.writer.binary(other, "*", self)
-
-    def __truediv__(self, other):
-        return self.writer.binary(self, "/", other)
-
-    def __rtruediv__(self, other):
-        return self.writer.binary(other, "/", self)
-
-
-class _CodeWriter:
-    """A namespace for the chain formula that writes straight-line Python instead of computing.
-
-    Running ``ChainDynamics._accelerations`` on :class:`_Sym` inputs records every
-    operation of the numpy path on Python floats, in the same order, as one line of
-    source each (``t7 = t3 + -0.5*t5``). Compiled once, that source evaluates one
-    state with ``math.sin``/``math.cos`` and float arithmetic only: no array or
-    tensor call, no table lookups. Floats that do not depend on the state (the
-    folded constants) are written as literals (``repr`` round-trips exactly).
-    """
-
-    torch = False
-
-    def __init__(self):
-        self.lines: list[str] = []
-        self._count = 0
-
-    @staticmethod
-    def _text(a) -> str:
-        return a.name if isinstance(a, _Sym) else repr(float(a))
-
-    def assign(self, expression: str) -> _Sym:
-        name = f"t{self._count}"
-        self._count += 1
-        self.lines.append(f"{name} = {expression}")
-        return _Sym(self, name)
-
-    def binary(self, a, op: str, b):
-        return self.assign(f"{self._text(a)} {op} {self._text(b)}")
-
-    def sin(self, a):
-        return self.assign(f"_sin({self._text(a)})") if isinstance(a, _Sym) else math.sin(a)
-
-    def cos(self, a):
-        return self.assign(f"_cos({self._text(a)})") if isinstance(a, _Sym) else math.cos(a)
-
-    def lincomb(self, const: float, terms):
-        """As ``_Namespace.lincomb`` on floats: const + c1*f1[*g1] + ..., left to right.
-
-        ``(c*f)*g`` is written as ``f*g`` for c = 1 and subtracted as ``|c|*f*g`` for
-        c < 0, which IEEE arithmetic computes exactly as the general form.
-        """
-        if not terms:
-            return const
-        if all(not isinstance(f, _Sym) for t in terms for f in t[1:]):
-            return _NUMPY.lincomb(const, terms)
-        expression = None if const == 0.0 else repr(float(const))
-        for t in terms:
-            coef, factors = t[0], [self._text(f) for f in t[1:]]
-            product = "*".join(factors if abs(coef) == 1.0 else [repr(abs(coef))] + factors)
-            if expression is None:
-                expression = product if coef > 0 else f"-{product}" if coef == -1.0 else f"{coef!r}*{'*'.join(factors)}"
-            else:
-                expression += (" + " if coef > 0 else " - ") + product
-        return self.assign(expression)
-
-    products = _Namespace.products
-
-    def solve(self, A, b):
-        raise NotImplementedError("no closed-form solve for more than 3 joint coordinates")
-
-    stack = solve
-
-
-def _scalar_source(dynamics: "ChainDynamics", name: str, dt: float, integrator: str | None,
-                   bound: float | None) -> str:
-    """Python source of one-state functions over plain floats (see ``ChainDynamics.scalar``).
-
-    ``integrator`` None: ``name(x, u)`` returns dx/dt as a list. Otherwise
-    ``name(x, u, steps)`` takes ``steps`` steps of ``dt`` (``euler``: x + dt f(x, u);
-    ``runge_kutta2``: x + (0.5 dt)(k1 + k2), k2 = f(x + dt k1, u), the operation order of
-    ``System.step_unchecked``) and returns the state as a list, or None as soon as a
-    coordinate leaves [-bound, bound] or turns NaN (when ``bound`` is given).
-    """
-    n_q, n_u = dynamics.p.n_q, dynamics.p.actuation.shape[1]
-    writer = _CodeWriter()
-    state = [f"x{i}" for i in range(2 * n_q)]
-    inputs = [f"u{i}" for i in range(n_u)]
-
-    def stage(names):
-        """Emit the accelerations at the state named ``names``; return their texts."""
-        syms = [_Sym(writer, s) for s in names]
-        acc = dynamics._accelerations(writer, syms[:n_q], syms[n_q:], [_Sym(writer, s) for s in inputs])
-        return [writer._text(a) for a in acc]
-
-    head = [f"{', '.join(state)}, = x", f"{', '.join(inputs)}, = u"]
-    if integrator is None:
-        acc = stage(state)
-        body = writer.lines + [f"return [{', '.join(state[n_q:] + acc)}]"]
-        return "\n".join([f"def {name}(x, u):"] + ["    " + line for line in head + body]) + "\n"
-    return step_loop_source(name, head, state, n_q, writer.lines, stage, dt, integrator, bound)
-
-
-def step_loop_source(name: str, head: list[str], state: list[str], n_q: int, lines: list[str], stage,
-                     dt: float, integrator: str, bound: float | None) -> str:
-    """Source of ``name(x, u, steps)``: ``head`` unpacks x and u into the names ``state`` and the
-    inputs, ``stage(names)`` appends to ``lines`` the code of the accelerations at the state named
-    ``names`` and returns their texts; the loop takes ``steps`` integrator steps (``euler``:
-    x + dt f; ``runge_kutta2``: x + (dt/2)(k1 + k2), k2 = f(x + dt k1)) and returns the state as a
-    list, or None as soon as a coordinate leaves [-bound, bound] or turns NaN (``bound`` given).
-    Shared by the chain family and the generated multibody code."""
-    k1 = state[n_q:] + stage(state)
-    if integrator == "euler":
-        new = [f"{s} + {dt!r}*{k}" for s, k in zip(state, k1)]
-    elif integrator == "runge_kutta2":
-        mid = [f"m{i}" for i in range(2 * n_q)]
-        lines += [f"{m} = {s} + {dt!r}*{k}" for m, s, k in zip(mid, state, k1)]
-        k2 = mid[n_q:] + stage(mid)
-        new = [f"{s} + {0.5 * dt!r}*({a} + {b})" for s, a, b in zip(state, k1, k2)]
-    else:
-        raise ValueError(f"integrator must be 'euler' or 'runge_kutta2', got {integrator!r}")
-    loop = lines + [f"n{i} = {e}" for i, e in enumerate(new)]
-    if bound is not None:
-        inside = " and ".join(f"{-bound!r} <= n{i} <= {bound!r}" for i in range(2 * n_q))
-        loop += [f"if not ({inside}):", "    return None"]
-    loop += [f"{', '.join(state)} = {', '.join(f'n{i}' for i in range(2 * n_q))}"]
-    return "\n".join([f"def {name}(x, u, steps):"] + ["    " + line for line in head]
-                     + ["    for _ in range(steps):"] + ["        " + line for line in loop]
-                     + [f"    return [{', '.join(state)}]"]) + "\n"
-
-
-class _TorchCodeWriter(_CodeWriter):
-    """As :class:`_CodeWriter`, but records the torch namespace's calls (``_Namespace`` with
-    ``torch=True``): the same ``add(alpha=)`` / ``addcmul(value=)`` chains from cached 0-d
-    constants, the same operators, the same stack. The generated function therefore computes
-    bit for bit what the table-driven torch path computes (batched, differentiable), without
-    its Python bookkeeping (dict lookups, term loops) at every call.
-    """
-
-    torch = True
-
-    def __init__(self):
-        super().__init__()
-        self.constants: list[float] = []
-
-    def const(self, value: float) -> str:
-        if value not in self.constants:
-            self.constants.append(value)
-        return f"K[{self.constants.index(value)}]"
-
-    def sin(self, a):
-        return self.assign(f"_torch.sin({self._text(a)})")
-
-    def cos(self, a):
-        return self.assign(f"_torch.cos({self._text(a)})")
-
-    def lincomb(self, const: float, terms):
-        out = None
-        for t in terms:
-            if out is None and const == 0.0 and t[0] == 1.0 and len(t) == 2:
-                out = t[1]
-                continue
-            base = self.const(const) if out is None else self._text(out)
-            factors = ", ".join(self._text(f) for f in t[1:])
-            out = self.assign(f"_torch.add({base}, {factors}, alpha={t[0]!r})" if len(t) == 2
-                              else f"_torch.addcmul({base}, {factors}, value={t[0]!r})")
-        return const if out is None else out
-
-
-def _torch_source(dynamics: "ChainDynamics", dt: float | None, integrator: str | None, columns: bool = False):
-    """(source, constants) of ``f(x, u, xp, K)``: the batched torch derivatives (``integrator``
-    None) or one integrator step, as ``System.step`` computes it (see ``ChainDynamics.torch_step``).
-    ``columns``: states (n, batch) and inputs (m, batch), one contiguous row per coordinate."""
-    axis = 0 if columns else -1
-    n_q, n_u = dynamics.p.n_q, dynamics.p.actuation.shape[1]
-    writer = _TorchCodeWriter()
-
-    def derivative(state: str, tag: str) -> str:
-        """Lines computing dx/dt at tensor ``state`` into ``d{tag}``; returns its name."""
-        names = [f"{tag}{i}" for i in range(2 * n_q)]
-        writer.lines.append(f"{', '.join(names)}, = {state}.unbind({axis})")
-        syms = [_Sym(writer, s) for s in names]
-        acc = dynamics._accelerations(writer, syms[:n_q], syms[n_q:], [_Sym(writer, f"u{i}") for i in range(n_u)])
-        cols = names[n_q:] + [writer._text(a) for a in acc]
-        writer.lines.append(f"d{tag} = _torch.stack([{', '.join(cols)}], 0)" if columns
-                            else f"d{tag} = xp.stack([{', '.join(cols)}], {names[0]})")
-        return f"d{tag}"
-
-    writer.lines.append(f"{', '.join(f'u{i}' for i in range(n_u))}, = u.unbind({axis})")
-    integrator_lines(writer.lines, derivative, dt, integrator)
-    source = "def torch_step(x, u, xp, K):\n" + "".join(f"    {line}\n" for line in free_early(writer.lines))
-    return source, writer.constants
-
-
-def integrator_lines(lines: list[str], derivative, dt: float | None, integrator: str | None) -> None:
-    """Append to ``lines`` the batched step's integrator: ``derivative(state, tag)`` appends the code of
-    dx/dt at the tensor named ``state`` and returns its name; the code returns dx/dt (``integrator``
-    None), x + dt k1 (``euler``) or x + (dt/2)(k1 + k2), k2 at m = x + dt k1 (``runge_kutta2``).
-    Shared by the chain family and the generated multibody code."""
-    k1 = derivative("x", "a")
-    if integrator is None:
-        lines.append(f"return {k1}")
-    elif integrator == "euler":
-        lines.append(f"return x + {dt!r} * {k1}")
-    elif integrator == "runge_kutta2":
-        lines.append(f"m = x + {dt!r} * {k1}")
-        k2 = derivative("m", "b")
-        lines.append(f"return x + {0.5 * dt!r} * ({k1} + {k2})")
-    else:
-        raise ValueError(f"integrator must be 'euler' or 'runge_kutta2', got {integrator!r}")
-
-
-def free_early(lines: list[str]) -> list[str]:
-    """``lines`` with ``del`` of each temporary ``tN`` right after its last use: straight-line code
-    would otherwise keep every intermediate (batch,) tensor alive to the end (hundreds for the
-    double cart-pole), which at large batches leaves the cache and slows every operation."""
-    names = [re.findall(r"\bt\d+\b", line) for line in lines]
-    last = {}
-    for i, used in enumerate(names):
-        for name in used:
-            last[name] = i
-    out = []
-    for i, line in enumerate(lines):
-        out.append(line)
-        dead = sorted({n for n in names[i] if last[n] == i and not line.lstrip().startswith("return")},
-                      key=lambda n: int(n[1:]))
-        if dead:
-            out.append(f"del {', '.join(dead)}")
-    return out
-
-
-# Generated functions, shared by every dynamics object whose generated source (and constants) match.
-# Why: torch.compile guards on the code object of each function it traces, so a function generated
-# afresh for every System (as every training run loads its own) made a compiled rollout recompile per
-# run; after torch._dynamo's recompile limit (8 graphs) it silently ran eager, 5-10x slower (measured:
-# the 3rd and 4th APG runs of one double cart-pole study process took 1614-1811 s, the first two 182-333 s).
-SHARED_FUNCTIONS_LIMIT = 256     # distinct generated functions kept (oldest dropped first)
-_SHARED_FUNCTIONS: dict = {}
-
-
-def shared_function(source: str, name: str, scope: dict, filename: str, constants: list | tuple = ()):
-    """The function ``name`` defined by generated ``source`` (built from numbers only, never from a
-    file's text) executed in a copy of ``scope``, one object per (source, name, constants) in this
-    process; it carries ``.source`` and ``.constants``."""
-    key = (source, name, tuple(constants))
-    function = _SHARED_FUNCTIONS.get(key)
-    if function is None:
-        namespace = dict(scope)
-        exec(compile(source, filename, "exec"), namespace)  # noqa: S102 - our own generated code
-        function = namespace[name]
-        function.source, function.constants = source, list(constants)
-        while len(_SHARED_FUNCTIONS) >= SHARED_FUNCTIONS_LIMIT:
-            _SHARED_FUNCTIONS.pop(next(iter(_SHARED_FUNCTIONS)))
-        _SHARED_FUNCTIONS[key] = function
-    return function
-
 
 class ChainDynamics:
     """Manipulator terms and time derivatives of a planar chain, for numpy or torch arrays."""
@@ -558,14 +124,14 @@ class ChainDynamics:
         self._torch_code: dict = {}
         self._lengths = [float(v) for v in params.link_length]
 
-    def _xp(self, like) -> _Namespace:
+    def _xp(self, like) -> ArrayNamespace:
         """The namespace for ``like`` (one per torch dtype and device, so constants are cached)."""
         if not isinstance(like, torch.Tensor):
-            return _NUMPY
+            return NUMPY_NAMESPACE
         key = (like.dtype, like.device)
         xp = self._namespaces.get(key)
         if xp is None:
-            xp = self._namespaces[key] = _Namespace(like)
+            xp = self._namespaces[key] = ArrayNamespace(like)
         return xp
 
     def scalar(self, dt: float | None = None, integrator: str | None = None, bound: float | None = None):
@@ -585,8 +151,8 @@ class ChainDynamics:
         key = (dt, integrator, bound)
         fn = self._scalar.get(key)
         if fn is None:
-            source = _scalar_source(self, "scalar_step", dt, integrator, bound) if integrator is not None \
-                else _scalar_source(self, "scalar_derivatives", 0.0, None, None)
+            source = scalar_source(self, "scalar_step", dt, integrator, bound) if integrator is not None \
+                else scalar_source(self, "scalar_derivatives", 0.0, None, None)
             fn = self._scalar[key] = shared_function(
                 source, "scalar_step" if integrator is not None else "scalar_derivatives",
                 {"_sin": math.sin, "_cos": math.cos}, f"<hybridctl.systems.dynamics scalar {key}>")
@@ -598,7 +164,7 @@ class ChainDynamics:
         key = (dt, integrator)
         if key not in self._torch_code:
             try:
-                source, constants = _torch_source(self, dt, integrator)
+                source, constants = torch_source(self, dt, integrator)
             except NotImplementedError:
                 fn = None
             else:
@@ -620,7 +186,7 @@ class ChainDynamics:
         key = ("columns", dt, integrator)
         fn = self._torch_code.get(key)
         if fn is None:
-            source, constants = _torch_source(self, dt, integrator, columns=True)
+            source, constants = torch_source(self, dt, integrator, columns=True)
             fn = self._torch_code[key] = shared_function(source, "torch_step", {"_torch": torch},
                                                          f"<hybridctl.systems.dynamics torch {key}>", constants)
         xp = self._xp(x)
@@ -758,7 +324,7 @@ class ChainDynamics:
         m = self._mass_entries(xp, cols)
         r = [self._evaluate(xp, 0.0, row, cols) for row in self._rhs_rows]
         if n_q <= 3:
-            return _solve_symmetric(xp, [[m.get((i, k)) for k in range(n_q)] for i in range(n_q)], r)
+            return solve_symmetric(xp, [[m.get((i, k)) for k in range(n_q)] for i in range(n_q)], r)
         # Longer chains: a batched LU solve of the assembled matrix.
         return xp.columns(xp.solve(self._matrix(xp, m, q[0]), xp.stack(r, q[0])))
 

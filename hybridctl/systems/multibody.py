@@ -34,7 +34,7 @@ import numpy as np
 import torch
 
 from ..limits import MAX_CACHE_INTEGER, MAX_MODEL_BODIES, MAX_NAME_CHARS
-from .dynamics import free_early, integrator_lines, shared_function, step_loop_source
+from .generated_code import free_early, integrator_lines, shared_function, step_loop_source
 
 MAX_TERMS = 20_000
 """Most polynomial terms (all entries of M, C v, tau_g and the energies together) a model may

@@ -12,7 +12,7 @@ import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from string import Template
-from typing import TYPE_CHECKING, Callable
+from typing import Any, Callable
 
 import numpy as np
 from pydrake.examples import (AcrobotGeometry, AcrobotParams, AcrobotPlant, PendulumGeometry, PendulumParams,
@@ -25,8 +25,9 @@ from ..limits import MAX_MODEL_BYTES
 from . import model_files
 from .spec import MODELS_DIR
 
-if TYPE_CHECKING:
-    from . import System as HybridSystem
+HybridSystem = Any
+"""A :class:`hybridctl.systems.System` (not imported: the package imports this module when a plant is asked
+for, and an import back, even under ``TYPE_CHECKING``, would make the two a cycle)."""
 
 # sdformat rejects exactly-zero inertias; 1e-20 kg m^2 stands in for a point mass.
 _POINT_MASS_INERTIA = 1e-20
@@ -44,7 +45,7 @@ class PlantHandle:
     apply_parameters: Callable[[Context], None]
 
 
-def render_model(system: "HybridSystem") -> str:
+def render_model(system: HybridSystem) -> str:
     """The SDF text of a multibody system, with the spec's parameters filled in."""
     kind = system.spec.get("model.drake")
     filename = kind.split(":", 1)[1]
@@ -68,13 +69,13 @@ def render_model(system: "HybridSystem") -> str:
         raise ValueError(f"models/{filename} uses field {exc} that the spec {system.spec.path} does not provide") from exc
 
 
-def _acrobot_parameter_setter(system: "HybridSystem", plant: AcrobotPlant) -> Callable[[Context], None]:
+def _acrobot_parameter_setter(system: HybridSystem, plant: AcrobotPlant) -> Callable[[Context], None]:
     def apply(context: Context) -> None:
         _set_acrobot_params_object(system, plant.get_mutable_parameters(context))
     return apply
 
 
-def _pendulum_parameter_setter(system: "HybridSystem", plant: PendulumPlant) -> Callable[[Context], None]:
+def _pendulum_parameter_setter(system: HybridSystem, plant: PendulumPlant) -> Callable[[Context], None]:
     p = system.chain
     if p.link_inertia[0] != 0.0 or p.link_com[0] != p.link_length[0]:
         raise ValueError(f"{system.spec.path}: Drake's PendulumPlant is a point mass: "
@@ -92,7 +93,7 @@ def _symbolic():
     return symbolic
 
 
-def input_matrix(system: "HybridSystem", plant) -> np.ndarray:
+def input_matrix(system: HybridSystem, plant) -> np.ndarray:
     """S: the plant's actuation input is S u for the system's action u (see ``System.drake_input_matrix``)."""
     if system.family == "multibody":
         return _symbolic().actuator_selection(plant, system.model_request)[0]
@@ -124,7 +125,7 @@ class SpecPendulumPlant(_SpecDefaults, PendulumPlant):
     """Drake's PendulumPlant whose default Context holds the spec's parameters."""
 
 
-def make_plant(system: "HybridSystem"):
+def make_plant(system: HybridSystem):
     """A fresh, unowned Drake plant and the function that writes the spec's parameters into a Context."""
     kind = system.spec.get("model.drake", "multibody")
     if kind == "acrobot":
@@ -143,7 +144,7 @@ def make_plant(system: "HybridSystem"):
                      f"'multibody:FILE.sdf', got {kind!r}")
 
 
-def _parse_model(system: "HybridSystem", plant: MultibodyPlant) -> None:
+def _parse_model(system: HybridSystem, plant: MultibodyPlant) -> None:
     Parser(plant).AddModelsFromString(render_model(system), "sdf")
     plant.Finalize()
 
@@ -154,7 +155,7 @@ def _ports(plant) -> tuple[OutputPort, InputPort]:
     return plant.get_output_port(0), plant.get_input_port(0)
 
 
-def add_plant(system: "HybridSystem", builder: DiagramBuilder, with_geometry: bool = False):
+def add_plant(system: HybridSystem, builder: DiagramBuilder, with_geometry: bool = False):
     """Add the system's Drake plant to ``builder``; returns (PlantHandle, scene_graph or None).
 
     With ``with_geometry`` a SceneGraph is added and the plant's geometry registered,
@@ -197,7 +198,7 @@ def add_plant(system: "HybridSystem", builder: DiagramBuilder, with_geometry: bo
     return PlantHandle(plant, state_output, actuation_input, setter), scene_graph
 
 
-def _set_acrobot_params_object(system: "HybridSystem", params) -> None:
+def _set_acrobot_params_object(system: HybridSystem, params) -> None:
     p = system.chain
     params.set_m1(p.link_mass[0]); params.set_m2(p.link_mass[1])
     params.set_l1(p.link_length[0])
@@ -209,12 +210,12 @@ def _set_acrobot_params_object(system: "HybridSystem", params) -> None:
     params.SetAtIndex(_ACROBOT_L2_INDEX, p.link_length[1])
 
 
-def drake_state_offset(system: "HybridSystem") -> np.ndarray:
+def drake_state_offset(system: HybridSystem) -> np.ndarray:
     """x_drake - x (see ``System.drake_state_offset``)."""
     return system.drake_state_offset()
 
 
-def make_plant_parameter_setter(system: "HybridSystem", plant) -> Callable[[Context], None]:
+def make_plant_parameter_setter(system: HybridSystem, plant) -> Callable[[Context], None]:
     """The function that writes the spec's parameters into a Context of ``plant``."""
     if isinstance(plant, AcrobotPlant):
         return _acrobot_parameter_setter(system, plant)
