@@ -348,7 +348,8 @@ def test_apg_source_fine_tunes_saves_and_drives_drake(tiny_papg, tmp_path):
     again, _ = t.predict(np.zeros(4), state=state)
     assert not np.array_equal(action, again)   # the state carries over
     parts = controller_parts(load_system("cartpole"), f"finetune:{tmp_path / 'final'}")
-    assert parts.gate is None and parts.swingup_period == 0.1 and hasattr(parts.swingup, "initial_state")
+    from hybridctl.systems.switched import CostToGoGate
+    assert type(parts.gate) is CostToGoGate and parts.decision_period == 0.1 and hasattr(parts.swingup, "initial_state")
     loaded = FineTune.load(tmp_path / "final")
     assert np.array_equal(loaded.theta, t.theta)
 

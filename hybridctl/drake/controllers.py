@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from ..systems import System, control
+from ..systems.switched import EnergySwingup, SwitchedController
 
 
 class LQRController:
@@ -162,3 +163,12 @@ def energy_swingup(system: System):
         raise ValueError(f"{system.name} has no hand-designed swing-up ([swingup] in {system.spec.path}); "
                          f"systems with one: those whose spec sets swingup.controller to one of {sorted(SWINGUPS)}")
     return SWINGUPS[name](system)
+
+
+def resolve_swingup(system: System, controller: SwitchedController) -> SwitchedController:
+    """``controller`` with an :class:`~hybridctl.systems.switched.EnergySwingup` that holds its law (the spec's
+    :func:`energy_swingup`, which takes numpy and torch batches), as the torch rollout
+    (:func:`hybridctl.systems.closed_loop_rollout`) needs it; any other controller as it is."""
+    if isinstance(controller.swingup, EnergySwingup) and controller.swingup.law is None:
+        return controller.replace(swingup=EnergySwingup(law=energy_swingup(system)))
+    return controller

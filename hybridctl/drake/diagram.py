@@ -24,6 +24,8 @@ from pydrake.systems.primitives import AffineSystem, LogVectorOutput, PortSwitch
 from ..systems import System
 from ..systems import plants as _plants
 from ..systems.control import CostToGoGate
+from ..systems.switched import (AlwaysGate, EnergySwingup, LearnedGate, NeverGate, SwitchedController, TrajoptSwingup,
+                                ZeroSwingup)
 from ..viz.meshcat import add_meshcat
 from .blocks import Gate, HeldController, HeldLQR, ModeSwitch, RecurrentTorchPolicy, TorchPolicy
 from .controllers import LQRController, energy_swingup
@@ -89,7 +91,7 @@ def _swingup_block(system: System, swingup, period: float | None):
 SWITCHES = ("drake", "python")
 
 
-def _gate_block(system: System, gate, on: float | None, off: float | None):
+def _gate_block(system: System, gate, on: float | None, off: float | None, period: float | None = None):
     on = system.gate.on if on is None else float(on)
     off = system.gate.off if off is None else float(off)
     if isinstance(gate, Gate):
@@ -98,7 +100,47 @@ def _gate_block(system: System, gate, on: float | None, off: float | None):
         gate = CostToGoGate(system)
     elif isinstance(gate, str):
         raise ValueError(f"gate must be None/'cost', a classifier module or callable, got {gate!r}")
-    return Gate(gate, system.n_states, system.control_period, on=on, off=off, name="gate")
+    return Gate(gate, system.n_states, period or system.control_period, on=on, off=off, name="gate")
+
+
+def _zero_command(x: np.ndarray) -> np.ndarray:
+    return np.zeros(1)  # single-input systems only, as all benchmark systems are
+
+
+def controller_of(system: System, swingup=None, gate=None, *, swingup_period: float | None = None,
+                  gate_on: float | None = None, gate_off: float | None = None) -> SwitchedController:
+    """The :class:`~hybridctl.systems.SwitchedController` that ``build_hybrid_diagram``'s keyword form names:
+    ``swingup`` None / "energy" / "trajopt" / "zero" / a torch module / a numpy callable, ``gate`` None /
+    "cost" / "always" / "never" / a classifier, with the spec's defaults."""
+    markers = {None: EnergySwingup(), "energy": EnergySwingup(), "trajopt": TrajoptSwingup(), "zero": ZeroSwingup()}
+    if swingup is None or isinstance(swingup, str):
+        if swingup not in markers:
+            raise ValueError(f"swingup must be None/'energy'/'trajopt', a torch module or a callable, got {swingup!r}")
+        swingup = markers[swingup]
+    gates = {"cost": None, "always": AlwaysGate(), "never": NeverGate()}
+    if isinstance(gate, str):
+        if gate not in gates:
+            raise ValueError(f"gate must be None/'cost', a classifier module or callable, got {gate!r}")
+        gate = gates[gate]
+    return SwitchedController.for_system(system, swingup=swingup, gate=gate, decision_period=swingup_period,
+                                         gate_on=gate_on, gate_off=gate_off)
+
+
+def _drake_parts(system: System, controller: SwitchedController):
+    """(swing-up, gate classifier) of ``controller`` as ``_swingup_block`` / ``_gate_block`` take them: the
+    hand-designed laws as their numpy callables, a learned gate as its own module."""
+    swingup = controller.swingup
+    if isinstance(swingup, EnergySwingup):
+        swingup = HeldController(swingup.law or energy_swingup(system), system.n_states, system.n_actions,
+                                 controller.decision_period, limit=system.action_limit, name="swingup")
+    elif isinstance(swingup, TrajoptSwingup):
+        swingup = "trajopt"
+    elif isinstance(swingup, ZeroSwingup):
+        swingup = _zero_command
+    elif swingup is None:
+        raise ValueError("a Drake diagram needs the controller's swing-up (its swingup is None: an agent's)")
+    gate = controller.gate
+    return swingup, (gate.module if isinstance(gate, LearnedGate) else gate)
 
 
 def build_hybrid_diagram(system: System, swingup=None, gate=None, *, balance=None,
@@ -109,7 +151,10 @@ def build_hybrid_diagram(system: System, swingup=None, gate=None, *, balance=Non
 
     Args:
         system: a ``hybridctl.systems.System``.
-        swingup: None or "energy" (the spec's energy-shaping swing-up, updated every
+        swingup: a :class:`~hybridctl.systems.SwitchedController` (the typed form: its swing-up, gate, K,
+            decision period, hysteresis and gate period; ``gate`` must then be None, and
+            ``swingup_period`` / ``gate_on`` / ``gate_off`` given here win over its own), or, in the
+            keyword form mapped onto one (:func:`controller_of`): None or "energy" (the spec's energy-shaping swing-up, updated every
             ``control.period``), "trajopt" (a direct-collocation swing-up tracked by TVLQR,
             :mod:`.trajopt`, updated every ``control.period``; cached per system), a torch
             module (a learned policy as ``TorchPolicy`` held for ``control.swingup_period``), a
@@ -133,6 +178,24 @@ def build_hybrid_diagram(system: System, swingup=None, gate=None, *, balance=Non
         raise TypeError(f"system must be a hybridctl.systems.System, got {type(system).__name__}")
     if switch not in SWITCHES:
         raise ValueError(f"switch must be one of {SWITCHES}, got {switch!r}")
+    if isinstance(swingup, SwitchedController):
+        if gate is not None:
+            raise ValueError("give the gate in the SwitchedController, not beside it")
+        controller = swingup.replace(**{key: value for key, value in (
+            ("decision_period", swingup_period), ("gate_on", gate_on), ("gate_off", gate_off)) if value is not None})
+    elif isinstance(swingup, (HeldController, RecurrentTorchPolicy, TrajectoryTracker)) or isinstance(gate, Gate):
+        controller = None     # ready blocks: built as they are
+    else:
+        controller = controller_of(system, swingup, gate, swingup_period=swingup_period, gate_on=gate_on,
+                                   gate_off=gate_off)
+    if controller is not None:
+        if not np.array_equal(controller.goal, system.goal):
+            raise ValueError(f"the Drake diagram's LQR drives to the system's goal {system.goal.tolist()}; load the "
+                             f"system with the controller's goal {controller.goal.tolist()}")
+        swingup, gate = _drake_parts(system, controller)
+        swingup_period, gate_on, gate_off = controller.decision_period, controller.gate_on, controller.gate_off
+        balance = controller.K if balance is None else balance
+    period = system.control_period if controller is None else controller.gate_period
     builder = DiagramBuilder()
     handle, scene_graph = _plants.add_plant(system, builder, with_geometry=meshcat is not None)
     if meshcat is not None:
@@ -154,16 +217,16 @@ def build_hybrid_diagram(system: System, swingup=None, gate=None, *, balance=Non
 
     swing = builder.AddSystem(_swingup_block(system, swingup, swingup_period))
     if (balance is None or isinstance(balance, np.ndarray)) and switch == "drake":
-        bal = HeldLQR(system, system.lqr()[0] if balance is None else balance, system.control_period,
+        bal = HeldLQR(system, system.lqr()[0] if balance is None else balance, period,
                       limit=system.action_limit, name="balance")
     else:
         if balance is None or isinstance(balance, np.ndarray):
             balance = LQRController(system, K=balance)
         bal = balance if isinstance(balance, (HeldController, HeldLQR)) else HeldController(
-            balance, system.n_states, system.n_actions, system.control_period, limit=system.action_limit,
+            balance, system.n_states, system.n_actions, period, limit=system.action_limit,
             name="balance")
     bal = builder.AddSystem(bal)
-    gate_block = builder.AddSystem(_gate_block(system, gate, gate_on, gate_off))
+    gate_block = builder.AddSystem(_gate_block(system, gate, gate_on, gate_off, period))
     if switch == "python":
         switch_block = builder.AddSystem(ModeSwitch(system.n_actions))
         swing_in, balance_in = switch_block.GetInputPort("swingup"), switch_block.GetInputPort("balance")

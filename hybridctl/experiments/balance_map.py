@@ -29,14 +29,14 @@ from tqdm import tqdm
 import torch
 
 from .. import io
-from ..drake import energy_swingup, simulate
+from ..drake import resolve_swingup, simulate
 from ..drake.simulate import check_duration
 from ..envs import SwitchedVectorEnv
-from ..envs.switched import switched_decision
 from ..learn.config_check import check_device as check_torch_device, check_device_available
 from ..limits import MAX_GRID, MAX_TOTAL_STEPS, check_at_most, check_fits_memory, cpu_count
 from ..parallel import BACKENDS, make_backend
-from ..systems import System, control, load
+from ..systems import System, load
+from ..systems.switched import SwitchedController, TrajoptSwingup, closed_loop_rollout
 from ..systems.success import decision_indices, episode_return, is_balanced
 from ..viz import plot_balance_map
 from .controllers import build_named_diagram, controller_parts, display_name
@@ -235,74 +235,31 @@ def _grid_starts(system: System, grid: int, axes, ranges):
     return (a1, a2), values1, values2, starts
 
 
-class _ConstantGate(torch.nn.Module):
-    """A gate that always (1) or never (0) hands over, for batches."""
-
-    def __init__(self, value: float):
-        super().__init__()
-        self.value = float(value)
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """The constant probability for every row of ``x`` (..., n), on ``x``'s device and dtype: (..., 1)."""
-        return torch.full((*x.shape[:-1], 1), self.value, dtype=x.dtype, device=x.device)
-
-
-def _parameter_dtype(module, default: torch.dtype) -> torch.dtype:
-    """The dtype of ``module``'s first parameter (what it computes in), else ``default``."""
-    for tensor in getattr(module, "parameters", lambda: [])():
-        return tensor.dtype
-    return default
-
-
-def _torch_swingup(system: System, swingup, period: float | None, device: torch.device):
-    """(policy(x [N, n], h) -> (u [N, m], h), initial h(N), period) for a ControllerParts swing-up on
-    ``device`` (a learned module is moved there), with the periods
-    :func:`hybridctl.drake.build_hybrid_diagram` gives its blocks."""
-    if swingup is None:
-        law = energy_swingup(system)
-        return (lambda x, h: (law(x), h)), (lambda n: None), period or system.control_period
-    if isinstance(swingup, str) and swingup == "zero":
-        return ((lambda x, h: (torch.zeros(len(x), system.n_actions, dtype=x.dtype, device=x.device), h)),
-                (lambda n: None), period or system.control_period)
-    if isinstance(swingup, torch.nn.Module):
-        module = swingup.to(device).eval()
-        dtype = _parameter_dtype(module, torch.float64)
-        if hasattr(module, "initial_state"):       # recurrent (APG's GRU), as RecurrentTorchPolicy
-            def recurrent(x, h):
-                u, h = module(x.to(dtype), h)
-                return u.to(x.dtype), h
-            return recurrent, (lambda n: module.initial_state(n)), period or system.swingup_period
-        return (lambda x, h: (module(x.to(dtype)).to(x.dtype), h)), (lambda n: None), period or system.swingup_period
-    raise ValueError(f"the torch engine cannot run the swing-up {swingup!r}")
-
-
-def _torch_parts(system: System, controller: str):
-    """(ControllerParts, gate module) of a named controller, built on the CPU.
+def _torch_controller(system: System, controller: str) -> SwitchedController:
+    """The :class:`~hybridctl.systems.SwitchedController` of a named controller, built on the CPU, with its
+    energy swing-up's law resolved for torch.
 
     Checkpoints load and the spec's gate builds inside ``torch.device("cpu")`` whatever the
-    default device, as :func:`hybridctl.learn.run.seeded` builds networks: the caller moves them
-    to its device (``.to(device)``)."""
+    default device, as :func:`hybridctl.learn.run.seeded` builds networks: the rollout moves them
+    to its device."""
     with torch.device("cpu"):
-        parts = controller_parts(system, controller)
-        gate = parts.gate
-        if gate is None:
-            gate = control.CostToGoGate(system)
-        elif isinstance(gate, str):
-            gate = _ConstantGate(1.0 if gate == "always" else 0.0)
-    return parts, gate
+        parts = resolve_swingup(system, controller_parts(system, controller))
+    if isinstance(parts.swingup, TrajoptSwingup):
+        raise ValueError(f"the torch engine cannot run the swing-up {parts.swingup!r} (Drake only)")
+    return parts
 
 
 def torch_rollouts(system: System, controller: str, starts, duration: float | None = None,
                    device: str | torch.device = "cpu") -> dict:
     """Simulate a named controller from every row of ``starts`` (N, n) at once, in batched torch on ``device``.
 
-    The swing-up acts every its period (the periods of the Drake blocks: a learned policy
-    ``swingup_period``, a hand-designed law ``control.period``), held in between; inside,
-    :func:`hybridctl.envs.switched.switched_decision` (the decision of
-    :class:`hybridctl.envs.SwitchedVectorEnv`) runs the gate with hysteresis, the LQR and the
-    saturation every ``control.period`` and ``System.step_unchecked`` every ``dt``, in float64,
-    as the Drake diagram does. ``duration`` (default: the spec's episode) must be a whole
-    number of swing-up periods.
+    The controller's :class:`~hybridctl.systems.SwitchedController` (the one the Drake diagram is built
+    from) runs through :func:`hybridctl.systems.closed_loop_rollout`: the swing-up acts every its
+    ``decision_period`` (a learned policy ``swingup_period``, a hand-designed law ``control.period``, as
+    the Drake blocks), held in between; inside, the gate with hysteresis, the LQR and the saturation
+    every ``control.period`` and ``System.step_unchecked`` every ``dt``, in float64, as the Drake diagram
+    does (the decision of :class:`hybridctl.envs.SwitchedVectorEnv`). ``duration`` (default: the spec's
+    episode) must be a whole number of swing-up periods.
 
     Everything stepped lives on ``device``: the states, the policy (a loaded one is moved there),
     the gate, the LQR gain and the per-run records. The loop copies nothing to the host: the
@@ -320,39 +277,21 @@ def torch_rollouts(system: System, controller: str, starts, duration: float | No
     duration = system.episode_duration if duration is None else float(duration)
     starts = np.atleast_2d(np.asarray(starts, dtype=float))
     n_runs = len(starts)
-    parts, gate = _torch_parts(system, controller)
-    if isinstance(gate, torch.nn.Module):
-        gate = gate.to(device)
-    policy, initial_state, period = _torch_swingup(system, parts.swingup, parts.swingup_period, device)
+    parts = _torch_controller(system, controller)
+    period = parts.decision_period
     overrides = {**system.spec.overrides, "episode__duration": duration}
     run_system = load(str(system.spec.path), **overrides)
-    K = run_system.lqr()[0]
-    # the env checks the gate thresholds, the schedule, the batch's memory and the starts; its decision
-    # function runs here directly, since env.step copies flags to the host every decision (autoreset)
-    env = SwitchedVectorEnv(run_system, n_runs, gate=gate, K=K, decision_period=period, gate_on=parts.gate_on,
-                            gate_off=parts.gate_off, device=device, dtype=torch.float64)
+    # the env checks the schedule, the batch's memory and the starts; the rollout runs here directly, since
+    # env.step copies flags to the host every decision (autoreset)
+    env = SwitchedVectorEnv(run_system, n_runs, controller=parts, decision_period=period, device=device,
+                            dtype=torch.float64)
     x, _ = env.reset(options={"state": starts})
-    gain = torch.as_tensor(K, dtype=torch.float64, device=device)
-    gate_dtype, limit = _parameter_dtype(gate, torch.float64), run_system.action_limit
-    h = initial_state(n_runs)
-    mode = torch.zeros(n_runs, dtype=torch.bool, device=device)      # every run starts in swing-up
-    ended_at = torch.full((n_runs,), env.max_decisions + 1, device=device)  # first state after a divergence
-    finite_actions = torch.ones((), dtype=torch.bool, device=device)
-    states = [x]
-    with torch.no_grad():
-        for j in range(1, env.max_decisions + 1):
-            u, h = policy(x, h)
-            finite_actions = finite_actions & torch.isfinite(u).all()
-            u = u.clamp(-limit, limit)                    # as env.step clips the agent's action
-            x_next, diverged, mode, _ = switched_decision(run_system, gate, x, u, mode, gain, env.substeps,
-                                                          env.gate_stride, gate_dtype, env.gate_on, env.gate_off)
-            ended = ended_at <= j                         # diverged before this decision: frozen
-            x = torch.where(ended[:, None], x, x_next)   # a diverging row is back at its last finite state
-            ended_at = torch.where(diverged & ~ended, j, ended_at)
-            states.append(x)
+    limit = run_system.action_limit
+    run = closed_loop_rollout(run_system, parts, x, env.max_decisions, on_divergence="freeze", device=device)
+    finite_actions, ended_at = run.actions_finite, run.diverged_at
     if not bool(finite_actions):
         raise ValueError(f"the swing-up of {controller!r} gave a NaN or Inf action (clipped to [-{limit}, {limit}])")
-    states = torch.stack(states, dim=1).cpu().numpy()
+    states = run.states.cpu().numpy()
     ended_at = ended_at.cpu().numpy()
     diverged = ended_at <= env.max_decisions
     stride = system.swingup_period / period
@@ -395,7 +334,7 @@ def _torch_map(system: System, controller: str, grid_states: np.ndarray, duratio
         # one process needs no pool (spawned workers each import torch and Drake: seconds)
         pool = make_backend("serial" if workers == 1 else "processes", workers if workers > 1 else None, address)
     if pool.name != "serial":
-        _torch_parts(system, controller)   # a bad name or checkpoint fails here, not in a worker
+        _torch_controller(system, controller)   # a bad name or checkpoint fails here, not in a worker
     # one chunk per worker: every chunk costs the same (all runs take every decision), so more
     # chunks would only add per-task costs
     threads = None if pool.name == "serial" else 1
