@@ -127,7 +127,7 @@ def bench_update_variants(grad_steps: int, repeats: int) -> dict:
     it were about as fast (within 10 %)."""
     import torch._dynamo
     from hybridctl.learn import SAC
-    from hybridctl.learn.sac import EagerGrads
+    from hybridctl.learn.sac_grads import EagerGrads
     from hybridctl.systems.compiled import LazyCompiled
 
     out = {}

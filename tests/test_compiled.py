@@ -11,7 +11,7 @@ import torch
 from hybridctl.envs import SwitchedVectorEnv, TorchVectorEnv
 from hybridctl.learn import SAC, SACConfig
 from hybridctl.learn.gate import GateNet
-from hybridctl.learn.sac import CompiledGrads, EagerGrads
+from hybridctl.learn.sac_grads import CompiledGrads, EagerGrads
 from hybridctl.systems import compiled, load
 
 

@@ -15,7 +15,8 @@ from hybridctl import systems
 from hybridctl.learn.gate import (GateConfig, GateNet, _CompiledGateStep, _gate_grads, fit_gate, gate_metrics,
                                   warm_start_gate, warm_start_states)
 from hybridctl.learn.optim import adam
-from hybridctl.learn.ssac import SSAC, RelabelPool
+from hybridctl.learn.gate_data import RelabelPool
+from hybridctl.learn.ssac import SSAC
 
 # small enough for seconds: 200 warm-start states, refits at 200 and 400 env steps, each relabelling
 # 16 pooled states (gate_relabel_cost 1e9 pools every swing-up decision state)

@@ -12,7 +12,8 @@ from hybridctl.analysis.postprocess import PostProcessor
 from hybridctl.cli import main
 from hybridctl.envs.toy import PointReach, point_reach
 from hybridctl.learn.checkpoint import CheckpointError
-from hybridctl.learn.finetune import FineTune, FineTuneConfig, TunablePolicy, parse_source, wilson_interval
+from hybridctl.learn.finetune import FineTune, FineTuneConfig, wilson_interval
+from hybridctl.learn.finetune_sources import TunablePolicy, parse_source
 from hybridctl.systems import load as load_system
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

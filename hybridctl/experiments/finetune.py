@@ -20,7 +20,8 @@ from pathlib import Path
 
 
 from ..io import read_json, write_json
-from ..learn.finetune import FineTune, FineTuneConfig, parse_source
+from ..learn.finetune import FineTune, FineTuneConfig
+from ..learn.finetune_sources import parse_source
 from ..learn.run import EVAL_SEED
 from ..parallel import make_backend
 from .controllers import display_name

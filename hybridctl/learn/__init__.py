@@ -12,7 +12,8 @@ callbacks, NaN guard, evaluation results).
 
 from .apg import APG, APGConfig
 from .ars import ARS, ARSConfig
-from .finetune import FineTune, FineTuneConfig, TunablePolicy
+from .finetune import FineTune, FineTuneConfig
+from .finetune_sources import TunablePolicy
 from .checkpoint import CheckpointError, resolve_checkpoint_dir, write_checkpoint_dir
 from .export import load_controller
 from .gate import GateConfig, GateNet, fit_gate, gate_metrics, warm_start_gate
@@ -30,7 +31,8 @@ from .sb3 import SB3Agent, load_sb3, silent_logger
 from .sb3_normalizer import Normalizer
 from .sb3_policy import SB3Policy
 from ..parallel import ProcessBackend, RayBackend, SerialBackend, make_backend
-from .ssac import SSAC, GateDataset, SSACConfig
+from .ssac import SSAC, SSACConfig
+from .gate_data import GateDataset
 
 __all__ = ["APG", "APGConfig", "FineTune", "FineTuneConfig", "TunablePolicy", "Policy", "PolicyPopulation", "SAC", "SACConfig", "SSAC", "SSACConfig", "GateDataset", "Actor", "QNetwork", "ObsTransform",
            "DeterministicPolicy", "ReplayBuffer", "EpisodeStaging", "sample_mixed", "plot_training_curves",
