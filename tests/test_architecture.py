@@ -284,3 +284,24 @@ def test_the_cycle_check_finds_them():
     cycles = import_cycles(import_graph(modules))
     assert sorted(map(sorted, cycles)) == [["hybridctl.learn.a", "hybridctl.learn.b", "hybridctl.learn.c"],
                                            ["hybridctl.learn.base", "hybridctl.learn.run"]]
+
+
+# ============================================================================ module size
+
+MAX_MODULE_LINES = 600
+"""A module longer than this mixes concerns; split it along one (issue 48)."""
+
+# Modules still over the limit, each with why; the list may only shrink (one that got under it fails too).
+OVER_THE_LIMIT = {
+    "learn/rollouts.py": "being split by concern in another change (issue 48)",
+    "reproduce/sb3_baselines.py": "its runs, curves and report not yet split off (issue 48); reproduce/ holds drivers only",
+}
+
+
+def test_no_module_is_over_600_lines():
+    sizes = {str(p.relative_to(PACKAGE_DIR)): len(p.read_text().splitlines()) for p in all_modules()}
+    over = {name: n for name, n in sizes.items() if n > MAX_MODULE_LINES}
+    new = {name: n for name, n in over.items() if name not in OVER_THE_LIMIT}
+    assert not new, f"modules over {MAX_MODULE_LINES} lines (split them along a concern): {new}"
+    fixed = [name for name in OVER_THE_LIMIT if name not in over]
+    assert not fixed, f"now at most {MAX_MODULE_LINES} lines; remove them from OVER_THE_LIMIT: {fixed}"
