@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from ..experiments import run_demo
-from ..experiments.demo import DEMO_GRID
+from ..experiments.demo import DEMO_GRID, PRETRAINED_ACROBOT, PRETRAINED_CARTPOLE, check_demo_arguments
 from ..io import command_folder
 from ..limits import MAX_GRID
 from ._common import add_debug_flag, add_quiet_flag, cli_errors, positive
@@ -31,6 +32,8 @@ def add_parser(sub) -> None:
 @cli_errors
 def run_demo_command(args: argparse.Namespace) -> int:
     """Run the demo, printing its account as it goes; exit 1 when the acrobot or the cart-pole did not balance."""
+    # every argument is checked before --out is made, so a refused run leaves nothing behind
+    check_demo_arguments(Path(args.out), args.grid, PRETRAINED_ACROBOT, PRETRAINED_CARTPOLE)
     with command_folder(args.out, "demo", DEMO_PARTS, own=DEMO_PARTS[:1]):  # locked; never beside an input
         live = start_live_view() if args.meshcat else None
         result = run_demo(args.out, grid=args.grid, meshcat=live, progress=not args.quiet, command=args.command_line)

@@ -270,7 +270,7 @@ def evaluate(model, env_id: str, stats: Normalizer | None, episodes: int = EVAL_
     finally:
         env.close()
     return {"episodes": episodes, "seeds": [seed0, seed0 + episodes - 1], "deterministic": True,
-            "obs_normalized": stats is not None and bool(stats["norm_obs"]),
+            "obs_normalized": stats is not None and stats.norm_obs,
             "mean_return": float(np.mean(returns)), "std_return": float(np.std(returns)),
             "returns": returns, "mean_length": float(np.mean(lengths))}
 
