@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from hybridctl.analysis.markov import absorbing_mfpt, check_transition_matrix
+from hybridctl.analysis.markov import (METHODS, RESIDUAL_TOLERANCE, NearlyNeverFailsError, absorbing_mfpt,
+                                       check_transition_matrix)
 from hybridctl.limits import LimitError
 
 
@@ -99,12 +100,46 @@ def test_bad_method():
 
 
 def test_near_singular_chain_fails_fast_with_a_message():
-    """Upward drift over 300 states: MFPT ~1e32, beyond any iterative solve; say so, and the eigen
-    estimate calls it infinite (lambda_2 within 1e-12 of 1)."""
+    """Upward drift over 300 states: MFPT ~1e32, beyond any solve in float64; every method says so in one
+    line (before issue 50 the eigen estimate returned inf and the others differed)."""
     T = birth_death(300, 0.45, 0.35)
-    with pytest.raises(RuntimeError, match="did not converge"):
-        absorbing_mfpt(T, eigen=False)
-    assert absorbing_mfpt(T, method="eigen").eigen_estimate == np.inf
+    for method in METHODS:
+        with pytest.raises(NearlyNeverFailsError, match="almost never fails") as info:
+            absorbing_mfpt(T, method=method)
+        assert "\n" not in str(info.value)
+    with pytest.raises(RuntimeError):           # still a RuntimeError for callers that caught the old errors
+        absorbing_mfpt(T, method="krylov", eigen=False)
+
+
+def rarely_failing(n, p_up, p_down, eps):
+    """Birth-death chain whose only way to failure is a step of probability ``eps`` from state 1."""
+    T = birth_death(n, p_up, p_down).tolil()
+    T[1, 0], T[1, 1] = eps, T[1, 1] + p_down - eps
+    return T.tocsr()
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_a_chain_that_almost_never_fails_is_refused_on_every_method(method):
+    """Issue 50: failure probability 1e-16 per visit to state 1 (MFPT ~1e16 steps). ``method="direct"``
+    returned -1.9e16 for every state without a word; now every method raises the same one-line error."""
+    T = rarely_failing(10, 0.45, 0.35, 1e-16)
+    with pytest.raises(NearlyNeverFailsError, match="almost never fails") as info:
+        result = absorbing_mfpt(T, method=method)
+        assert not np.any(result.mfpt[1:] < 1), result.mfpt        # what the old code returned, for the record
+    assert "\n" not in str(info.value) and isinstance(info.value, ValueError)
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_every_returned_mfpt_passes_its_checks(method):
+    """A chain that fails rarely but within float64's reach: every method returns MFPT >= 1, finite, with
+    its residual recorded (the eigen estimate: from the quasi-stationary distribution)."""
+    T = rarely_failing(10, 0.45, 0.35, 1e-6)
+    result = absorbing_mfpt(T, method=method)
+    assert np.all(np.isfinite(result.mfpt)) and np.all(result.mfpt[1:] >= 1)
+    if method != "eigen":
+        assert result.solver["relative_residual"] <= RESIDUAL_TOLERANCE
+        exact = np.linalg.solve(np.eye(10) - T.toarray()[1:, 1:], np.ones(10))
+        np.testing.assert_allclose(result.mfpt[1:], exact, rtol=1e-6)
 
 
 # --------------------------------------------------------------------------- method="auto" (issue 29)

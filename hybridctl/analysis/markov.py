@@ -22,6 +22,15 @@ States that cannot reach failure, or that can reach such a state, never fail wit
 positive probability: their MFPT is infinite. They are found by graph search and
 reported, not fed to the solver.
 
+Every method's answer is checked before it is returned (issue 50): finite, at least one step
+from every transient state (``t >= 1``: each needs one step to fail) and, for the exact
+methods, a relative residual ``||(I - Q) t - 1|| / ||1||`` of at most :data:`RESIDUAL_TOLERANCE`.
+A chain that almost never fails (per-step failure probabilities near float64's resolution, MFPT
+beyond about 1e9 steps) makes ``I - Q`` numerically singular: every method then raises
+:class:`NearlyNeverFailsError` (a ValueError, one line) instead of returning a negative, NaN or
+meaningless number; ``method="eigen"`` raises it where ``1 - lambda_2`` is below
+:data:`EIGEN_GAP_FLOOR`.
+
 >>> result = absorbing_mfpt(T)                 # exact, per state
 >>> result.mfpt[1:], result.eigen_estimate, result.infinite_states, result.lambda3_ratio
 >>> result.mean(start_distribution)            # MFPT from a start distribution
@@ -30,6 +39,7 @@ reported, not fed to the solver.
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -55,6 +65,30 @@ without it a slowly mixing 1e5-state mesh ran past 150 s. Hitting it raises :cla
 for ``method="eigen"``; for the diagnostics of an exact solve it leaves them None with a note."""
 EIGEN_MAX_RESTARTS = 2_000
 """ARPACK restarts of the eigen estimate (the iteration cap beside :data:`EIGEN_MAX_SECONDS`)."""
+
+
+RESIDUAL_TOLERANCE = 1e-6
+"""Largest relative residual ``||(I - Q) t - 1||_2 / ||1||_2`` an exact MFPT may have. Rounding alone
+leaves about 4e-16 x max(t), so this accepts MFPTs up to about 1e9 steps; past that the chain
+almost never fails and float64 cannot resolve it (:class:`NearlyNeverFailsError`)."""
+EIGEN_GAP_FLOOR = 1e-12
+"""Smallest ``1 - lambda_2`` the eigen estimate ``1 / (1 - lambda_2)`` is returned for (``method="eigen"``);
+below it ARPACK's own rounding decides the answer (:class:`NearlyNeverFailsError`)."""
+
+
+NEVER_FAILS_GAP = 1e-9
+"""A solve that fails on a chain with ``1 - lambda_2`` below this (MFPT from the quasi-stationary
+distribution above 1e9 steps) is reported as :class:`NearlyNeverFailsError`."""
+
+
+class MFPTSolveError(ValueError, RuntimeError):
+    """No trustworthy MFPT: a solver did not converge or its answer failed the checks (one line).
+    A ValueError for the CLI's one-line errors, a RuntimeError for callers that caught the old errors."""
+
+
+class NearlyNeverFailsError(MFPTSolveError):
+    """The chain fails so rarely that ``(I - Q) t = 1`` is numerically singular: its MFPT is effectively
+    infinite (beyond what float64 resolves), whatever the method."""
 
 
 class EigenLimitError(LimitError):
@@ -208,10 +242,10 @@ def _krylov_solve(A: sp.csr_matrix, b: np.ndarray, rtol: float) -> tuple[np.ndar
         used = name
         if info == 0 and np.all(np.isfinite(x)):
             break
-    residual = float(np.linalg.norm(A @ x - b) / np.linalg.norm(b))
-    if not np.isfinite(residual) or residual > max(1e3 * rtol, 1e-6):
-        raise RuntimeError(f"Krylov solve of (I - Q) t = 1 did not converge (relative residual {residual:.2e}); "
-                           f"the chain may fail extremely rarely: try method='direct' on a smaller mesh")
+    residual = float(np.linalg.norm(A @ x - b) / np.linalg.norm(b)) if np.all(np.isfinite(x)) else np.inf
+    if not np.isfinite(residual) or residual > max(1e3 * rtol, RESIDUAL_TOLERANCE):
+        raise MFPTSolveError(f"Krylov solve of (I - Q) t = 1 did not converge (relative residual {residual:.2e}); "
+                             f"the chain may fail extremely rarely: try method='auto'")
     return x, {"solver": used, "converged": info == 0, "relative_residual": residual,
                "seconds": time.perf_counter() - start}
 
@@ -239,7 +273,10 @@ def _auto_solve(A: sp.csr_matrix, b: np.ndarray, rtol: float, fill_cap: float) -
     if info == 0 and np.all(np.isfinite(x)) and _relative_residual(A, x, b) <= rtol:
         return x, {"solver": "bicgstab", "path": "krylov", "converged": True,
                    "relative_residual": _relative_residual(A, x, b), "seconds": time.perf_counter() - start}
-    factor, cap = _capped_factor(A, fill_cap)
+    try:
+        factor, cap = _capped_factor(A, fill_cap)
+    except RuntimeError as exc:   # SuperLU: "Factor is exactly singular"
+        raise NearlyNeverFailsError(_never_fails_message("auto", f"the LU factor of I - Q is singular ({exc})")) from None
     fill = (factor.L.nnz + factor.U.nnz) / A.nnz
     x = factor.solve(b)
     for _ in range(2):     # iterative refinement: an exact factor gains the last digits in one step
@@ -254,12 +291,36 @@ def _auto_solve(A: sp.csr_matrix, b: np.ndarray, rtol: float, fill_cap: float) -
     x0 = x if np.all(np.isfinite(x)) else None
     x, info = spla.gmres(A, b, x0=x0, M=preconditioner, rtol=rtol, atol=0.0, restart=50, maxiter=20)
     residual = _relative_residual(A, x, b) if np.all(np.isfinite(x)) else np.inf
-    if residual > max(1e3 * rtol, 1e-6):
-        raise RuntimeError(f"ILU-preconditioned GMRES on (I - Q) t = 1 did not converge (relative residual "
+    if residual > max(1e3 * rtol, RESIDUAL_TOLERANCE):
+        raise MFPTSolveError(f"ILU-preconditioned GMRES on (I - Q) t = 1 did not converge (relative residual "
                            f"{residual:.2e}, LU fill capped at {cap:.3g} x nnz); the chain may fail extremely "
                            f"rarely: raise fill_cap or use method='eigen'")
     return x, {"solver": "ilu-gmres", "path": "krylov-ilu", "fill": fill, "fill_cap": cap, "converged": info == 0,
                "relative_residual": residual, "seconds": time.perf_counter() - start}
+
+
+def _never_fails_message(method: str, what: str) -> str:
+    return (f"the chain almost never fails: (I - Q) t = 1 is numerically singular (method {method!r}: {what}), so its "
+            f"MFPT is beyond what float64 resolves (about 1e9 steps or more); treat it as never failing, or mesh "
+            f"with a wider disturbance spread")
+
+
+def _check_solution(A: sp.csr_matrix, b: np.ndarray, x: np.ndarray, method: str) -> float:
+    """The relative residual of ``x`` after the checks every method's answer passes (module docstring)."""
+    if not np.all(np.isfinite(x)):
+        raise NearlyNeverFailsError(_never_fails_message(method, f"{int(np.sum(~np.isfinite(x)))} of {x.size} "
+                                                                 f"MFPTs came out NaN or infinite"))
+    residual = _relative_residual(A, x, b)
+    low = float(x.min())
+    if low < 1.0 - 1e-6 or residual > RESIDUAL_TOLERANCE:
+        scale = float(np.max(np.abs(x)))
+        what = (f"relative residual {residual:.2e} > {RESIDUAL_TOLERANCE:g}, smallest MFPT {low:.3g}, largest "
+                f"|MFPT| {scale:.3g}")
+        if scale > 1e3 * RESIDUAL_TOLERANCE / np.finfo(float).eps or low < 1.0 - 1e-6:
+            raise NearlyNeverFailsError(_never_fails_message(method, what))
+        raise MFPTSolveError(f"no trustworthy MFPT from method {method!r} ({what}): the chain is ill-conditioned; "
+                             f"try method='auto'")
+    return residual
 
 
 def absorbing_mfpt(T, failure: int = 0, method: str = "auto", rtol: float = 1e-10,
@@ -274,6 +335,10 @@ def absorbing_mfpt(T, failure: int = 0, method: str = "auto", rtol: float = 1e-1
     distribution (dense eig below 200 states, ARPACK above, capped at :data:`EIGEN_MAX_SECONDS`:
     past it these stay None and ``result.solver["eigen"]`` says why; with ``method="eigen"``
     it raises :class:`EigenLimitError`). Raises ValueError naming a bad row or index.
+
+    Every answer is checked (finite, ``t >= 1``, relative residual <= :data:`RESIDUAL_TOLERANCE`):
+    a chain that almost never fails raises :class:`NearlyNeverFailsError` on every method, another
+    failed check :class:`MFPTSolveError` (both ValueErrors with one-line messages).
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
@@ -311,21 +376,43 @@ def absorbing_mfpt(T, failure: int = 0, method: str = "auto", rtol: float = 1e-1
     if idx.size == 0:
         return result
     if method == "eigen":
+        gap = 1.0 - result.lambda2
+        if not gap >= EIGEN_GAP_FLOOR:
+            raise NearlyNeverFailsError(_never_fails_message("eigen", f"1 - lambda_2 = {gap:.2e} < {EIGEN_GAP_FLOOR:g}"))
         mfpt[idx] = result.eigen_estimate
         return result
     A = (sp.identity(idx.size, format="csr") - _transient_block(T, idx)).tocsr()
     b = np.ones(idx.size)
+    try:
+        mfpt[idx], solver = _solve(A, b, method, rtol, fill_cap)
+    except NearlyNeverFailsError:
+        raise
+    except MFPTSolveError as exc:   # a failed solve on a chain whose lambda_2 is 1 to rounding: say which it is
+        gap = None if result.lambda2 is None else 1.0 - result.lambda2
+        if gap is not None and gap < NEVER_FAILS_GAP:
+            raise NearlyNeverFailsError(_never_fails_message(
+                method, f"1 - lambda_2 = {gap:.2e} and the solve failed: {str(exc).split(';')[0]}")) from None
+        raise
+    result.solver = {**solver, **note}
+    return result
+
+
+def _solve(A: sp.csr_matrix, b: np.ndarray, method: str, rtol: float, fill_cap: float) -> tuple[np.ndarray, dict]:
+    """``(I - Q) t = 1`` by ``method`` ("direct", "auto", "krylov"), its answer checked (:func:`_check_solution`)."""
     if method == "direct":
         start = time.perf_counter()
-        mfpt[idx] = spla.spsolve(A.tocsc(), b)
-        result.solver = {"solver": "spsolve", "path": "direct", "seconds": time.perf_counter() - start, **note}
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", spla.MatrixRankWarning)   # a singular I - Q: NaN, refused below
+            x = spla.spsolve(A.tocsc(), b)
+        solver = {"solver": "spsolve", "path": "direct", "seconds": time.perf_counter() - start}
     elif method == "auto":
-        mfpt[idx], solver = _auto_solve(A, b, rtol, fill_cap)
-        result.solver = {**solver, **note}
+        x, solver = _auto_solve(A, b, rtol, fill_cap)
     else:
-        mfpt[idx], solver = _krylov_solve(A, b, rtol)
-        result.solver = {**solver, "path": "krylov", **note}
-    return result
+        x, solver = _krylov_solve(A, b, rtol)
+        solver["path"] = "krylov"
+    x = np.asarray(x, dtype=np.float64)
+    solver["relative_residual"] = _check_solution(A, b, x, method)
+    return x, solver
 
 
 def cumulative_transition_mass(T, failure: int = 0) -> tuple[np.ndarray, np.ndarray]:
