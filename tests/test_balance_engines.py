@@ -103,7 +103,7 @@ def test_learned_gate_numpy_forward_is_its_torch_forward():
     from hybridctl.learn import load_controller
 
     system = systems.load("acrobot")
-    _, gate, _ = load_controller("models/policies/ssac-acrobot", system)
+    gate = load_controller("models/policies/ssac-acrobot", system).gate.module
     rng = np.random.default_rng(1)
     x = system.goal + rng.uniform(-1, 1, size=(500, 4)) * [4.0, 4.0, 10.0, 20.0]
     with torch.no_grad():

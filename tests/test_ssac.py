@@ -235,7 +235,7 @@ def test_load_errors(tmp_path, warm):
     SAC("acrobot", **{k: v for k, v in TINY.items() if not k.startswith("gate")}).save(tmp_path / "sac")
     with pytest.raises(CheckpointError, match="written by SAC"):
         SSAC.load(tmp_path / "sac")
-    with pytest.raises(ValueError, match="without a gate"):
+    with pytest.raises(ValueError, match="without a learned gate"):
         experiments.build_named_diagram(systems.load("acrobot"), f"ssac:{tmp_path / 'sac'}")
 
 
@@ -261,7 +261,8 @@ def test_drake_diagram_from_checkpoint_equals_the_switched_env(tmp_path, warm):
         gate.net[-1].bias.add_(6.0)
     agent = SSAC(SwitchedVectorEnv(system, 1, gate=gate), gate_data=warm[1:], **TINY)
     agent.save(tmp_path / "ck")
-    policy, loaded_gate, _ = load_controller(tmp_path / "ck", system)
+    loaded = load_controller(tmp_path / "ck", system)
+    policy, loaded_gate = loaded.swingup, loaded.gate.module
     diagram = experiments.build_named_diagram(system, f"ssac:{tmp_path / 'ck'}")
     x0 = np.array([1.2, -0.4, 0.5, -1.0])
     traj = drake.simulate(diagram, x0, duration=4.0)

@@ -140,10 +140,9 @@ def test_hand_designed_swingups_need_the_drake_room_in_torch():
 def _ssac(system):
     from hybridctl.learn import load_controller
 
-    policy, gate, meta = load_controller("models/policies/ssac-acrobot", system)
-    thresholds = meta.get("gate", {})
-    return SwitchedController.for_system(system, swingup=policy, gate=LearnedGate(gate),
-                                         gate_on=thresholds.get("gate_on"), gate_off=thresholds.get("gate_off"))
+    controller = load_controller("models/policies/ssac-acrobot", system)
+    assert isinstance(controller, SwitchedController) and isinstance(controller.gate, LearnedGate)
+    return controller
 
 
 # tests/test_balance_engines.py's tolerances: the acrobot agrees to 1e-6 while the run is not chaotic

@@ -7,13 +7,16 @@ import os
 from pathlib import Path
 
 from ..drake import HybridDiagram, build_hybrid_diagram
-from ..learn import APG, load_controller
-from ..learn.apg import METHODS as APG_METHODS
-from ..learn.finetune import FineTune
+from ..learn.registry import checkpoint_kinds, gate_of_kind, load_controller
 from ..systems import System
-from ..systems.switched import (AlwaysGate, CostToGoGate, EnergySwingup, LearnedGate, NeverGate, SwitchedController,
+from ..systems.switched import (AlwaysGate, CostToGoGate, EnergySwingup, NeverGate, SwitchedController,
                                 TrajoptSwingup, ZeroSwingup)
 
+
+HAND_DESIGNED = {"energy": (EnergySwingup, CostToGoGate), "lqr": (ZeroSwingup, AlwaysGate),
+                 "swingup": (EnergySwingup, NeverGate), "zero": (ZeroSwingup, NeverGate),
+                 "trajopt": (TrajoptSwingup, CostToGoGate)}   # trajopt: the diagram solves or reads the cache
+"""The hand-designed controllers: (swing-up marker, gate class) by name."""
 
 CONTROLLERS = {
     "energy": "energy-shaping swing-up + cost-to-go gate (hysteresis) + LQR",
@@ -30,7 +33,12 @@ CONTROLLERS = {
                           "+ LQR, as the APG controllers; for a system whose learned gate does not fire",
     "ce-apg:PATH": "learned recurrent swing-up from an APG/PAPG/CEM/CE-APG checkpoint (thesis Ch. 7; also "
                    "apg:, papg:, cem:, shapg:) + cost-to-go gate (hysteresis) + LQR",
+    "checkpoint:PATH": "the controller of any checkpoint that drives a system, by its config.json's algorithm "
+                       "(hybridctl.learn.load_controller; also ALGORITHM:PATH for any registered learner)",
 }
+"""What the command line lists. Every ``KIND:PATH`` loads through :func:`hybridctl.learn.load_controller` (the
+learner registered for the checkpoint's algorithm); the kind selects only the gate
+(:data:`hybridctl.learn.registry.KIND_GATES`)."""
 
 
 ControllerParts = SwitchedController
@@ -52,49 +60,25 @@ def display_name(controller: str) -> str:
 
 def controller_parts(system: System, controller: str = "energy") -> SwitchedController:
     """The :class:`~hybridctl.systems.SwitchedController` of a controller given by name (see ``CONTROLLERS``);
-    loads checkpoints. What the name leaves open is the spec's (:meth:`SwitchedController.for_system`)."""
-    def make(swingup=None, gate=None, gate_on=None, gate_off=None, decision_period=None):
-        return SwitchedController.for_system(system, swingup=swingup, gate=gate, gate_on=gate_on, gate_off=gate_off,
-                                             decision_period=decision_period)
-    hand_designed = {"energy": (EnergySwingup, CostToGoGate), "lqr": (ZeroSwingup, AlwaysGate),
-                     "swingup": (EnergySwingup, NeverGate), "zero": (ZeroSwingup, NeverGate),
-                     "trajopt": (TrajoptSwingup, CostToGoGate)}   # trajopt: the diagram solves or reads the cache
-    if controller in hand_designed:
-        swingup, gate = hand_designed[controller]
-        return make(swingup(), gate(system) if gate is CostToGoGate else gate())
+    loads checkpoints. What the name leaves open is the spec's (:meth:`SwitchedController.for_system`).
+
+    ``KIND:PATH``: the checkpoint's controller through the learner contract
+    (:func:`hybridctl.learn.load_controller`), with the gate ``KIND`` selects
+    (:func:`hybridctl.learn.registry.gate_of_kind`: ``sac`` none, ``ssac`` the learned one,
+    ``ssac-costgate`` the spec's cost-to-go gate, every other kind the checkpoint's own)."""
+    if controller in HAND_DESIGNED:
+        swingup, gate = HAND_DESIGNED[controller]
+        return SwitchedController.for_system(system, swingup=swingup(),
+                                             gate=gate(system) if gate is CostToGoGate else gate())
     kind, sep, path = controller.partition(":")
-    if sep and kind in ("ssac", "sac", "ssac-costgate"):
+    gate = gate_of_kind(kind) if sep else None
+    if gate is not None:
         if not path:
             raise ValueError(f"controller {controller!r} needs a checkpoint path after '{kind}:'")
-        policy, gate, meta = load_controller(path, system, with_gate=kind != "ssac-costgate")
-        if kind == "ssac-costgate":   # the spec's cost-to-go gate in place of the checkpoint's gate
-            return make(policy, CostToGoGate(system))
-        if kind == "ssac" and gate is None:
-            raise ValueError(f"{path} is a {meta.get('algorithm')} checkpoint without a gate; use sac:{path}")
-        gate_meta = meta.get("gate", {})
-        return make(policy, NeverGate() if kind == "sac" else LearnedGate(gate), gate_meta.get("gate_on"),
-                    gate_meta.get("gate_off"))
-    if sep and kind == "finetune":   # thesis Ch. 6: a fine-tuned sac/ssac/APG-family swing-up (FineTune checkpoint)
-        if not path:
-            raise ValueError(f"controller {controller!r} needs a checkpoint path after 'finetune:'")
-        tuner = FineTune.load(path, device="cpu")   # Drake runs on the CPU, whatever device it trained on
-        if tuner.tunable.system != system.name:
-            raise ValueError(f"{path} fine-tunes {tuner.tunable.source} on {tuner.env_name}; a Drake diagram of "
-                             f"{system.name} needs a sac:/ssac:/APG-family source of that system")
-        gate_meta = tuner.tunable.meta.get("gate", {})
-        gate = tuner.tunable.gate   # None: no gate; a str: the spec's cost-to-go gate; else the learned gate
-        gate = NeverGate() if gate is None else CostToGoGate(system) if isinstance(gate, str) else LearnedGate(gate)
-        return make(tuner.tuned_module(), gate, gate_meta.get("gate_on"), gate_meta.get("gate_off"),
-                    tuner.tunable.decision_period)
-    if sep and kind in APG_METHODS:   # thesis Ch. 7: the trained GRU with its hidden state in the Context
-        if not path:
-            raise ValueError(f"controller {controller!r} needs a checkpoint path after '{kind}:'")
-        agent = APG.load(path, device="cpu")   # Drake runs on the CPU, whatever device it trained on
-        if agent.system.name != system.name:
-            raise ValueError(f"{path} was trained on {agent.system.name}, not {system.name}")
-        return make(agent.closed_loop_policy(), CostToGoGate(system), decision_period=agent.period)
+        return load_controller(path, system, gate=gate)   # on the CPU, whatever device it trained on
     raise ValueError(f"unknown controller {controller!r}; known: "
-                     + ", ".join(f"{k} ({v})" for k, v in CONTROLLERS.items()))
+                     + ", ".join(f"{k} ({v})" for k, v in CONTROLLERS.items())
+                     + f"; checkpoint kinds: {', '.join(checkpoint_kinds())}")
 
 
 def build_named_diagram(system: System, controller: str = "energy", **kwargs) -> HybridDiagram:

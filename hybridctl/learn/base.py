@@ -16,7 +16,12 @@ rollouts (:meth:`Learner.run_evaluation`). The base gives every learner the same
   **overrides)`` -- one checkpoint directory, one ``config.json`` schema (algorithm, format,
   ``system`` record, config, versions, files; the counters in ``progress.json``) read through
   :func:`~hybridctl.learn.checkpoint.read_meta` (older layouts upgraded) and
-  :func:`~hybridctl.learn.checkpoint.config_from_meta` (a dropped field loads with a warning).
+  :func:`~hybridctl.learn.checkpoint.config_from_meta` (a dropped field loads with a warning);
+* ``controller(system=None)`` -- the :class:`~hybridctl.systems.SwitchedController` its policy drives
+  a system with (a learner that drives none keeps the default, an error). A class that sets
+  ``algorithm_name`` registers itself (:mod:`hybridctl.learn.registry`), so
+  :func:`hybridctl.learn.load_controller` turns its checkpoints into controllers by config.json's
+  ``algorithm``, for named controllers, balance maps and fine-tuning alike.
 
 >>> class MyLearner(Learner):
 ...     algorithm_name, config_class, budget_field, unit = "MINE", MyConfig, "epochs", "epoch"
@@ -37,6 +42,7 @@ import numpy as np
 
 from . import checkpoint as ckpt
 from .checkpoint import Checkpointer, Saved
+from .registry import no_swingup, register_learner
 from .run import EVAL_SEED, EvalResult, Run, training_run
 from .runlog import RunLog
 
@@ -73,12 +79,17 @@ class Learner:
     saved: tuple[Saved, ...] = ()
     log_rows: list[dict]                   # progress rows so far (set by the subclass's __init__)
 
+    controller_aliases: tuple[str, ...] = ()
+    """Lower-case kinds of named controllers ``KIND:PATH`` beside the algorithm's name (APG: its methods)."""
+
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
         if "compatible_algorithms" not in cls.__dict__:
             cls.compatible_algorithms = (cls.algorithm_name,)
         # a subclass's hook appends its columns to the inherited ones (each column once)
         cls.log_columns = tuple(dict.fromkeys(cls.extend_log_columns(tuple(cls.log_columns))))
+        if "algorithm_name" in cls.__dict__:   # the class that names an algorithm loads its checkpoints
+            register_learner(cls.algorithm_name, cls, tuple(cls.controller_aliases))
 
     @classmethod
     def extend_log_columns(cls, columns: tuple[str, ...]) -> tuple[str, ...]:
@@ -268,6 +279,33 @@ class Learner:
         agent = cls.from_checkpoint(found, meta, config, system, force, **build)
         agent.checkpointer.restore(found, bulky=False, force=force)
         return agent
+
+    # ------------------------------------------------------------------ the controller
+    def controller(self, system=None):
+        """The :class:`~hybridctl.systems.SwitchedController` this learner's policy drives ``system`` with
+        (default: the system it trained on): its swing-up, its gate, the LQR of ``system``. What
+        :func:`hybridctl.learn.load_controller` returns for its checkpoints. A learner whose policy drives
+        no hybridctl system keeps this default, which raises CheckpointError."""
+        raise no_swingup(self.algorithm_name)
+
+    @classmethod
+    def drives_systems(cls) -> bool:
+        """Whether :meth:`controller` is written (checked before a checkpoint is loaded for one)."""
+        return cls.controller is not Learner.controller
+
+    @classmethod
+    def deploy_overrides(cls, config: dict) -> dict:
+        """:meth:`load`'s overrides when a checkpoint (its recorded ``config``) is loaded only for its
+        controller: the CPU, where a config has a device (Drake and the rollouts move their own copy)."""
+        fields = {f.name for f in dataclasses.fields(cls.config_class)} if cls.config_class else set()
+        return {"device": "cpu"} if "device" in fields else {}
+
+    def fine_tuning_task(self) -> dict:
+        """The spec overrides of the task the policy was trained on (reward, starts): what fine-tuning
+        (:mod:`hybridctl.learn.finetune`) tunes its controller on; ValueError where it cannot be tuned
+        inside the switched controller. Default: the overrides of the system it trained on."""
+        spec = getattr(getattr(self, "system", None), "spec", None)
+        return dict(getattr(spec, "overrides", None) or {})
 
     load_keywords: tuple[str, ...] = ()
     """Keywords of :meth:`load` that are not config fields but go to :meth:`from_checkpoint` (ARS's

@@ -53,10 +53,11 @@ from ..analysis.postprocess import PostProcessor
 from ..envs.mujoco_batch import supports as batch_supports
 from ..parallel import BACKENDS, make_backend
 from ..systems import load as load_system
+from ..systems.switched import CostToGoGate, LearnedGate, NeverGate, SwitchedController
 from . import checkpoint as ckpt
 from .checkpoint import PROGRESS_FILE, Saved
 from .config_check import check_fields, check_types
-from .finetune_sources import SELECTIONS, SOURCE_KINDS, TunablePolicy, load_policy
+from .finetune_sources import SELECTIONS, TunablePolicy, load_policy, source_kinds
 from .random_search import RandomSearchLearner
 from .robustness import wilson_interval  # noqa: F401 (re-exported: hybridctl.learn.finetune.wilson_interval)
 from .rollouts import (AUTO_CHUNK_MAX, AUTO_CHUNK_MAX_ACCELERATOR, COST_TO_GO_GATE, ChunkInputs,  # noqa: F401
@@ -318,6 +319,28 @@ class FineTune(RandomSearchLearner):
             p.requires_grad_(False)
         return module
 
+    def controller(self, system=None) -> SwitchedController:
+        """The tuned swing-up (:meth:`tuned_module`) with its source's gate (none, the spec's cost-to-go gate,
+        or the learned gate), hysteresis and decision period and the LQR of ``system`` (default: the
+        source's system); a source that drives no hybridctl system (sb3, ars, a module) has no controller."""
+        if self.tunable.system is None:
+            raise ckpt.CheckpointError(f"FineTune of {self.tunable.source} on {self.env_name} holds no swing-up of "
+                                       f"a hybridctl system (a sac/ssac/APG-family source has one)")
+        system = load_system(self.tunable.system, **self.tunable.system_overrides) if system is None else system
+        if self.tunable.system != system.name:
+            raise ValueError(f"this FineTune tunes {self.tunable.source} on {self.env_name}; a controller of "
+                             f"{system.name} needs a source of that system")
+        gate_meta = self.tunable.meta.get("gate") or {}
+        gate = self.tunable.gate   # None: no gate; a str: the spec's cost-to-go gate; else the learned gate
+        gate = NeverGate() if gate is None else CostToGoGate(system) if isinstance(gate, str) else LearnedGate(gate)
+        return SwitchedController.for_system(system, swingup=self.tuned_module(), gate=gate,
+                                             gate_on=gate_meta.get("gate_on"), gate_off=gate_meta.get("gate_off"),
+                                             decision_period=self.tunable.decision_period)
+
+    def fine_tuning_task(self) -> dict:
+        """The source's training task (fine-tuning a fine-tuned policy goes on on the same task)."""
+        return dict(self.tunable.system_overrides)
+
     def run_evaluation(self, episodes: int, seed: int, theta: np.ndarray | None = None,
                        backend=None, episode_steps: int | None = None, keep_states: bool = False) -> EvalResult:
         """``evaluate(episodes, seed=, ...)``: deterministic episodes of theta (default the current; ``theta0`` is the pretrained agent):
@@ -415,7 +438,7 @@ class FineTune(RandomSearchLearner):
             raise ckpt.CheckpointError(f"{file} is damaged or not a FineTune checkpoint's: it lacks 'source'")
         source = policy if policy is not None else meta["source"]
         if not isinstance(source, (str, TunablePolicy, torch.nn.Module)):
-            raise ckpt.CheckpointError(f"{file}: 'source' must be a string KIND:PATH with KIND one of {SOURCE_KINDS}, "
+            raise ckpt.CheckpointError(f"{file}: 'source' must be a string KIND:PATH with KIND one of {source_kinds()}, "
                                        f"got {type(source).__name__}")
         record = meta.get("system") if isinstance(meta.get("system"), dict) else {}
         env = system if system is not None else recorded_env_id(record.get("name"), file, "system.name")

@@ -16,17 +16,15 @@ import torch
 
 from ..systems import known_systems
 from ..systems import load as load_system
-from . import checkpoint as ckpt
-from .apg import METHODS as APG_METHODS
+from ..systems.switched import CostToGoGate, LearnedGate, NeverGate
+from .registry import checkpoint_kinds, gate_of_kind, load_deployed
 from .rollouts import COST_TO_GO_GATE, make_env
 
-__all__ = ["SELECTIONS", "SOURCE_KINDS", "AffineNormalizer", "ScaledModule", "TunablePolicy", "parse_source",
+__all__ = ["SELECTIONS", "source_kinds", "AffineNormalizer", "ScaledModule", "TunablePolicy", "parse_source",
            "load_policy"]
 
 SELECTIONS = ("action", "all", "last")
 """The parameter selections (``FineTuneConfig.select``): the action path, every parameter, the last layer."""
-SOURCE_KINDS = ("sb3", "ars", "sac", "ssac", *APG_METHODS)
-"""The ``KIND`` of a ``KIND:PATH`` policy source."""
 
 
 class AffineNormalizer:
@@ -110,26 +108,35 @@ class TunablePolicy:
         return names
 
 
+def source_kinds() -> tuple[str, ...]:
+    """The ``KIND`` of a ``KIND:PATH`` policy source: ``sb3`` and ``ars`` (gymnasium policies), and every kind
+    of a checkpoint that drives a system (:func:`hybridctl.learn.registry.checkpoint_kinds`: ``sac``,
+    ``ssac``, the APG family's methods, ``finetune``, any registered learner's name)."""
+    return tuple(dict.fromkeys(("sb3", "ars", *checkpoint_kinds())))
+
+
 def parse_source(text: str) -> tuple[str, str]:
-    """"sb3:PATH" -> ("sb3", "PATH"); the kinds are :data:`SOURCE_KINDS`."""
+    """"sb3:PATH" -> ("sb3", "PATH"); the kinds are :func:`source_kinds`."""
     kind, sep, path = str(text).partition(":")
-    if not sep or kind not in SOURCE_KINDS or not path:
-        raise ValueError(f"--policy must be KIND:PATH with KIND one of {SOURCE_KINDS} (e.g. sb3:runs/agent/model.zip), "
+    if not sep or kind not in source_kinds() or not path:
+        raise ValueError(f"--policy must be KIND:PATH with KIND one of {source_kinds()} (e.g. sb3:runs/agent/model.zip), "
                          f"got {text!r}")
     return kind, path
 
 
 def load_policy(source: str, env: str, trust: bool = False, normalizer: str | None = None) -> TunablePolicy:
-    """The :class:`TunablePolicy` of ``source`` ("sb3:PATH", "ars:PATH", "sac:PATH", "ssac:PATH", or an APG
-    family's "ce-apg:PATH", "papg:PATH", ...) for ``env``.
+    """The :class:`TunablePolicy` of ``source`` ("sb3:PATH", "ars:PATH", or a checkpoint's controller:
+    "sac:PATH", "ssac:PATH", an APG family's "ce-apg:PATH", "papg:PATH", ...) for ``env``.
 
     sb3: a Stable-Baselines3 zip read without unpickling (:func:`hybridctl.learn.sb3.load_sb3`;
     its normaliser from ``normalizer`` or a ``vecnormalize.npz`` beside it; a pickle only with
-    ``trust``). ars: an ARS checkpoint, its running statistics frozen. sac / ssac: a hybridctl
-    checkpoint of a system (``env`` must be that system's name); ssac keeps its gate and LQR.
-    apg, shapg, papg, cem, ce-apg: an APG-family checkpoint of the system (its default policy: the
-    best member or the CEM mean), recurrent, under the spec's cost-to-go gate and LQR as in its Drake
-    controller, at its own decision period, on its training's reward and starts.
+    ``trust``). ars: an ARS checkpoint, its running statistics frozen. Every other kind: the
+    controller of a checkpoint that drives a system (``env`` must be that system's name), read
+    through the learner contract (:func:`hybridctl.learn.registry.load_deployed`: the learner registered
+    for its config.json's algorithm, ``learner.controller(system)``), with the gate its kind selects
+    (``sac``: none; ``ssac``: the learned gate; ``ssac-costgate``: the spec's cost-to-go gate; other
+    kinds the checkpoint's own: SSAC's learned gate, the APG family's cost-to-go gate and LQR at its
+    own decision period), on the task it was trained on (``learner.fine_tuning_task()``).
     Raises CheckpointError / ValueError naming the file or what does not fit the env.
     """
     kind, path = parse_source(source)
@@ -157,47 +164,27 @@ def load_policy(source: str, env: str, trust: bool = False, normalizer: str | No
                                 meta={"algo": "ars", "trained_env": agent.env_name})
         _check_gym_spaces(tunable, env, spec.obs_dim, spec.act_dim, path)
         return tunable
-    # sac / ssac / the APG family: our swing-up checkpoints drive a system
+    # a checkpoint whose controller drives a system
     if env not in known_systems():
         raise ValueError(f"a {kind}: policy drives a hybridctl system; env must be one of {known_systems()}, "
                          f"got {env!r}")
-    if kind in APG_METHODS:
-        return _apg_policy(kind, path, env, source)
-    from .export import load_controller
-    policy, gate, meta = load_controller(path, load_system(env))
-    if kind == "ssac" and gate is None:
-        raise ckpt.CheckpointError(f"{path} is a {meta.get('algorithm')} checkpoint without a gate; use sac:{path}")
-    # the task it was trained on: the spec overrides its config.json records (e.g. a reward kind or
-    # wider starts); the plain spec would tune it for another reward than it learned
-    overrides = dict((meta.get("system") or {}).get("overrides") or {})
-    return TunablePolicy(policy, None, source, system=env, gate=gate if kind == "ssac" else None,
-                         system_overrides=overrides,
-                         meta={"algo": kind, "trained_algorithm": meta.get("algorithm"), "system_overrides": overrides,
-                               "gate": {k: v for k, v in (meta.get("gate") or {}).items() if k in ("gate_on", "gate_off")}})
-
-
-def _apg_policy(kind: str, path: str, env: str, source: str) -> TunablePolicy:
-    """An APG-family checkpoint as a recurrent swing-up under the spec's cost-to-go gate and LQR."""
-    from .apg import APG
-    agent = APG.load(path, device="cpu")   # the learner's copy on the CPU (workers move theirs to the device)
-    if agent.system.name != env:
-        raise ValueError(f"{path} was trained on {agent.system.name}, not {env}")
-    if agent.config.takeover != "lqr":
-        raise ValueError(f"{path} was trained without the LQR takeover (takeover={agent.config.takeover!r}); "
-                         f"fine-tuning inside the switched controller needs one trained through it "
-                         f"(hybridctl train {kind} {env} --takeover lqr)")
-    system = agent.system
-    # the task it was trained on: its reward (the system's overrides) and its starts (hanging down +-
-    # start_noise on every state, or the spec's spread when start_noise is None)
-    overrides = dict(system.spec.overrides)
-    if agent.config.start_noise is not None:
-        noise = float(agent.config.start_noise)
-        overrides.update(initial_state__low=[-noise] * system.n_states, initial_state__high=[noise] * system.n_states)
-    on, off = float(system.gate.on), float(system.gate.off)
-    return TunablePolicy(agent.closed_loop_policy(), None, source, system=env, gate=COST_TO_GO_GATE,
-                         system_overrides=overrides, decision_period=float(agent.period),
-                         meta={"algo": kind, "trained_algorithm": agent.config.method, "system_overrides": overrides,
-                               "decision_period": float(agent.period), "gate": {"gate_on": on, "gate_off": off}})
+    learner, controller = load_deployed(path, load_system(env), gate=gate_of_kind(kind))
+    if not isinstance(controller.swingup, torch.nn.Module):
+        raise ValueError(f"{path}: its swing-up is not a torch module; fine-tuning perturbs a module's weights")
+    gate = controller.gate   # the rollouts' gate: a learned module, the spec's cost-to-go gate or none
+    if not isinstance(gate, (LearnedGate, CostToGoGate, NeverGate)):
+        raise ValueError(f"{path}: fine-tuning runs a swing-up with a learned gate, the spec's cost-to-go gate or "
+                         f"none, not {type(gate).__name__}")
+    gate = gate.module if isinstance(gate, LearnedGate) else COST_TO_GO_GATE if isinstance(gate, CostToGoGate) else None
+    # the task it was trained on: the spec overrides of its reward and starts (the plain spec would tune
+    # it for another reward than it learned)
+    overrides = learner.fine_tuning_task()
+    period = float(controller.decision_period)
+    return TunablePolicy(controller.swingup, None, source, system=env, gate=gate, system_overrides=overrides,
+                         decision_period=period,
+                         meta={"algo": kind, "trained_algorithm": learner.run_label(learner.config),
+                               "system_overrides": overrides, "decision_period": period,
+                               "gate": {"gate_on": controller.gate_on, "gate_off": controller.gate_off}})
 
 
 def _check_gym_spaces(tunable: TunablePolicy, env: str, obs_dim: int, act_dim: int, path) -> None:

@@ -18,6 +18,7 @@ import torch
 from . import checkpoint as ckpt
 from ..envs import TorchVectorEnv
 from ..systems import System
+from ..systems.switched import LearnedGate, NeverGate, SwitchedController
 from .base import Learner
 from .checkpoint import PROGRESS_FILE, Saved
 from .run import EvalResult, set_torch_threads
@@ -185,6 +186,37 @@ class VectorEnvAgent(Learner):
                 break
         return EvalResult.from_returns(total.numpy(), success_rate=float(success.float().mean()), first={
             "episodes": int(episodes), "seed": int(seed), "deterministic": bool(deterministic)})
+
+    # ------------------------------------------------------------------ the controller
+    def deterministic_policy(self) -> torch.nn.Module:
+        """A frozen CPU copy of the deterministic policy (B, n) -> (B, m) (the subclass's)."""
+        raise NotImplementedError
+
+    def gate_module(self) -> torch.nn.Module | None:
+        """A frozen CPU copy of the learned gate (SSAC's); None: the policy swings up alone (SAC)."""
+        return None
+
+    def controller(self, system: System | None = None) -> SwitchedController:
+        """The learned swing-up (:meth:`deterministic_policy`) with the learned gate and its hysteresis
+        (:meth:`gate_module`; without one, :class:`~hybridctl.systems.switched.NeverGate`) and the LQR of
+        ``system`` (default: the one it trained on), at the spec's swing-up period."""
+        system = self.system if system is None else system
+        if (system.n_states, system.n_actions) != (self.obs_dim, self.action_dim):
+            raise ckpt.CheckpointError(f"the {self.algorithm_name} policy has obs/action dims {self.obs_dim}/"
+                                       f"{self.action_dim}, {system.name} has {system.n_states}/{system.n_actions}")
+        gate = self.gate_module()
+        return SwitchedController.for_system(system, swingup=self.deterministic_policy(),
+                                             gate=NeverGate() if gate is None else LearnedGate(gate),
+                                             gate_on=getattr(self.env, "gate_on", None),
+                                             gate_off=getattr(self.env, "gate_off", None))
+
+    @classmethod
+    def deploy_overrides(cls, config: dict) -> dict:
+        """The CPU, one env, the torch threads as they are and replay buffers of one minibatch: a
+        controller needs the policy (and gate) only."""
+        batch = config.get("minibatch_size")
+        small = {"buffer_size": batch, "needle_buffer_size": batch} if isinstance(batch, int) else {}
+        return {**super().deploy_overrides(config), "num_envs": 1, "torch_threads": torch.get_num_threads(), **small}
 
     # ------------------------------------------------------------------ checkpoints
     @property

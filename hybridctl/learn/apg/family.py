@@ -26,6 +26,7 @@ from ... import systems as systems_mod
 from ...parallel import make_backend
 from ...systems import System, known_systems
 from ...systems.success import stabilisation
+from ...systems.switched import CostToGoGate, SwitchedController
 from .. import checkpoint as ckpt
 from ..base import Learner
 from ..checkpoint import PROGRESS_FILE, Saved
@@ -58,7 +59,8 @@ class APGFamily(Learner):
     :meth:`unroll`, :meth:`check_config` and ``default_policy``.
     """
 
-    algorithm_name = "APG"          # every method's checkpoints: algorithm "APG", the method in config.json
+    # every method's checkpoints: algorithm "APG" (set, and registered, by the entry point .methods.APG),
+    # the method in config.json
     config_class = APGConfig
     budget_field, unit, uses_backend = "epochs", "epoch", True
     warm_starts = True              # --init: go on from another run's policy, e.g. with another reward
@@ -301,6 +303,32 @@ class APGFamily(Learner):
     def closed_loop_policy(self, which: str | None = None) -> ClosedLoopPolicy:
         """:meth:`policy` with the observation, on raw states (for Drake's RecurrentTorchPolicy)."""
         return ClosedLoopPolicy(self.system, self.policy(which), self.config.observation)
+
+    def controller(self, system: System | None = None) -> SwitchedController:
+        """The trained recurrent swing-up (:meth:`closed_loop_policy`) at its own decision period, under the
+        spec's cost-to-go gate (hysteresis) and LQR of ``system`` (default: the one it trained on), the
+        takeover it trains through (thesis Ch. 7)."""
+        system = self.system if system is None else system
+        if system.name != self.system.name:
+            raise ValueError(f"this {self.config.method} policy was trained on {self.system.name}, not {system.name}")
+        return SwitchedController.for_system(system, swingup=self.closed_loop_policy(), gate=CostToGoGate(system),
+                                             decision_period=self.period)
+
+    def fine_tuning_task(self) -> dict:
+        """Its reward (the system's overrides) and its starts (hanging down +- ``start_noise`` on every
+        state; the spec's spread when ``start_noise`` is None); refused for a policy trained without
+        the LQR takeover (fine-tuning runs it inside the switched controller)."""
+        if self.config.takeover != "lqr":
+            raise ValueError(f"this {self.config.method} policy was trained without the LQR takeover (takeover="
+                             f"{self.config.takeover!r}); fine-tuning inside the switched controller needs one "
+                             f"trained through it (hybridctl train {self.config.method} {self.system.name} "
+                             f"--takeover lqr)")
+        overrides = dict(self.system.spec.overrides)
+        if self.config.start_noise is not None:
+            noise = float(self.config.start_noise)
+            n = self.system.n_states
+            overrides.update(initial_state__low=[-noise] * n, initial_state__high=[noise] * n)
+        return overrides
 
     def run_evaluation(self, episodes: int, seed: int, which: str | None = None,
                        horizon: int | None = None, keep_states: bool = False) -> EvalResult:

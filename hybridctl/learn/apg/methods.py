@@ -30,6 +30,8 @@ class APG(APGFamily):
     is CE-APG (``APGConfig``'s default, the thesis' method).
     """
 
+    algorithm_name = "APG"                 # the family's checkpoints load through this entry point
+    controller_aliases = METHODS           # named controllers apg:PATH, papg:PATH, ...
     method = "apg"
     preset_settings = {"thesis": {"population": 1, "elites": 1}, "reduced": {}}
 
