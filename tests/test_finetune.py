@@ -362,8 +362,9 @@ def test_apg_source_needs_the_takeover_and_its_own_system(tmp_path):
     APG("cartpole", config).learn(out=tmp_path, progress=False)
     with pytest.raises(ValueError, match="--takeover lqr"):
         FineTune("cartpole", f"papg:{tmp_path / 'final'}")
-    with pytest.raises(ValueError, match="trained on cartpole, not acrobot"):
-        FineTune("acrobot", f"papg:{tmp_path / 'final'}")
+    from hybridctl.learn import CheckpointError
+    with pytest.raises(CheckpointError, match="trained on system 'cartpole', but this system is 'acrobot'"):
+        FineTune("acrobot", f"papg:{tmp_path / 'final'}")   # the plant check of every deployed checkpoint
 
 
 def test_a_fine_tuned_checkpoint_loads_from_any_working_folder(tmp_path, monkeypatch):
