@@ -22,7 +22,7 @@ def test_rimless_wheel_fixed_point_and_failure():
 
 
 def test_gaussian_quantiles():
-    finite = GaussianDisturbance(0.0, 1.0, 4).finite_set()
+    finite = GaussianDisturbance(0.0, 1.0, 4, rule="quantiles").finite_set()
     np.testing.assert_allclose(finite.values, [-1.1503, -0.3186, 0.3186, 1.1503], atol=1e-4)
     assert finite.weights.sum() == pytest.approx(1.0)
 
@@ -52,10 +52,63 @@ def test_wheel_mesh_matches_monte_carlo_on_the_same_disturbances():
 def test_more_disturbances_approach_the_continuous_distribution():
     w = WHEEL.fixed_point(0.15)
     continuous = monte_carlo_mfpt(WHEEL, [[w]], SLOPES, episodes=3000, seed=4)
-    coarse = build_mesh(WHEEL, [[w]], SLOPES, 2e-3, progress=False)
-    fine = build_mesh(WHEEL, [[w]], GaussianDisturbance(0.15, 0.06, 200), 2e-3, progress=False)
+    coarse = build_mesh(WHEEL, [[w]], GaussianDisturbance(0.15, 0.06, 25, rule="quantiles"), 2e-3, progress=False)
+    fine = build_mesh(WHEEL, [[w]], GaussianDisturbance(0.15, 0.06, 200, rule="quantiles"), 2e-3, progress=False)
     err = [abs(m.mfpt().mean(m.seed_distribution()) - continuous.mean) for m in (coarse, fine)]
     assert err[1] < err[0] / 3            # 25 quantiles miss the tails that cause failures
+
+
+def test_weighted_grid_keeps_the_tails_and_any_scipy_distribution_works():
+    """Issue 50: 25 quantiles reach +-2.05 std; the grid reaches +-6 std with each cell's probability."""
+    import scipy.stats as stats
+    from hybridctl.analysis import ScipyDisturbance
+    quantiles = GaussianDisturbance(0.0, 1.0, 25, rule="quantiles").finite_set()
+    grid = GaussianDisturbance(0.0, 1.0, 25).finite_set()
+    assert max(quantiles.values) == pytest.approx(2.054, abs=1e-3)
+    assert min(grid.values) == pytest.approx(-6.0) and max(grid.values) == pytest.approx(6.0)
+    assert grid.weights.sum() == pytest.approx(1.0) and grid.weights[0] == pytest.approx(stats.norm.cdf(-5.75))
+    same = ScipyDisturbance(stats.norm(0.0, 1.0), 25).finite_set()
+    np.testing.assert_allclose(same.values, grid.values, atol=1e-12)
+    np.testing.assert_allclose(same.weights, grid.weights, atol=1e-15)
+    heavy = ScipyDisturbance(stats.t(3, loc=0.15, scale=0.05), 49)
+    finite = heavy.finite_set()
+    assert finite.weights.sum() == pytest.approx(1.0) and np.isclose(np.dot(finite.values, finite.weights), 0.15)
+    assert heavy.sample(np.random.default_rng(0), 5).shape == (5,)
+    with pytest.raises(ValueError, match="rule must be one of"):
+        GaussianDisturbance(0.0, 1.0, rule="midpoints")
+
+
+def test_refined_gaussian_slopes_match_monte_carlo_where_25_quantiles_do_not():
+    """Issue 50: at the command's defaults (mean 0.15 rad, sigma 0.06) the 25-quantile mesh gives 177 steps
+    where Monte Carlo with continuous slopes gives about 110; the refined weighted grid lies inside the
+    Monte Carlo interval, and its record says how it settled."""
+    from hybridctl.analysis import refined_mesh
+    w = WHEEL.fixed_point(0.15)
+    continuous = monte_carlo_mfpt(WHEEL, [[w]], GaussianDisturbance(0.15, 0.06), episodes=3000, seed=5)
+    lo, hi = continuous.interval95
+    mesh, result, record = refined_mesh(WHEEL, [[w]], GaussianDisturbance(0.15, 0.06), 2e-3, progress=False)
+    refined = result.mean(mesh.seed_distribution())
+    assert lo <= refined <= hi, (refined, continuous.interval95)
+    assert record["converged"] and record["relative_change"] <= record["rtol"] == 0.01
+    assert record["counts"][:3] == [25, 49, 97] and record["mfpt_from_seed"][-1] == refined
+    assert mesh.weights.size == record["count"] == record["counts"][-1]
+    q_mesh, q_result, q_record = refined_mesh(WHEEL, [[w]], GaussianDisturbance(0.15, 0.06, rule="quantiles"), 2e-3,
+                                              progress=False)
+    quantiles = q_result.mean(q_mesh.seed_distribution())
+    assert q_record["counts"] == [25] and q_record["converged"] is None
+    assert not lo <= quantiles <= hi and quantiles > 1.4 * continuous.mean, (quantiles, continuous.interval95)
+
+
+def test_refinement_stops_at_its_cap_and_calls_a_never_failing_chain_infinite():
+    from hybridctl.analysis import refined_mesh
+    w = WHEEL.fixed_point(0.15)
+    _, _, capped = refined_mesh(WHEEL, [[w]], GaussianDisturbance(0.15, 0.06, 5), 1e-2, rtol=1e-9, max_count=20,
+                                progress=False)
+    assert capped["counts"] == [5, 9, 17] and capped["converged"] is False and "max_count 20" in capped["stopped"]
+    mesh, result, calm = refined_mesh(WHEEL, [[w]], GaussianDisturbance(0.15, math.radians(1), 9), 1e-2,
+                                      progress=False)
+    assert result is None and calm["mfpt_from_seed"] == [math.inf, math.inf] and calm["converged"]
+    assert "almost never fails" in calm["never_fails_note"]
 
 
 def test_box_size_controls_the_mesh_size():
@@ -116,7 +169,8 @@ def test_cumulative_mass_and_failure_states():
     x, y = cumulative_transition_mass(T)
     np.testing.assert_allclose(x, [1 / 3, 2 / 3, 1.0])
     np.testing.assert_allclose(y, [1.8 / 2.8, 2.8 / 2.8, 1.0])
-    mesh = build_mesh(WHEEL, [[WHEEL.fixed_point(0.15)]], SLOPES, 1e-2, progress=False)
+    quantiles = GaussianDisturbance(0.15, 0.06, 25, rule="quantiles")   # no failure weights of 1e-9 (grid tails)
+    mesh = build_mesh(WHEEL, [[WHEEL.fixed_point(0.15)]], quantiles, 1e-2, progress=False)
     red = failure_states(mesh, share=1.0)
     assert set(red) == set(np.flatnonzero(mesh.failure_probability() > 0))
     assert len(failure_states(mesh, share=0.5)) < len(red)

@@ -9,10 +9,13 @@ does not pull in scipy.sparse and the reachable-mesh code.
 from .. import lazy_exports
 
 _HOMES = {
-    "markov": ("MFPTResult", "absorbing_mfpt", "check_transition_matrix", "cumulative_transition_mass"),
+    "markov": ("MFPTResult", "MFPTSolveError", "NearlyNeverFailsError", "absorbing_mfpt", "check_transition_matrix",
+               "cumulative_transition_mass"),
     "mesh": ("MeshDimension", "box_keys", "box_mesh_size", "count_distinct_rows", "mesh_dimension"),
-    "poincare": ("FiniteDisturbances", "FunctionMap", "GaussianDisturbance", "RimlessWheel", "SectionMap"),
+    "poincare": ("DISTURBANCE_RULES", "FiniteDisturbances", "FunctionMap", "GaussianDisturbance", "RimlessWheel",
+                 "ScipyDisturbance", "SectionMap", "weighted_grid"),
     "postprocess": ("PostProcessor",),
+    "refine": ("DEFAULT_REFINE_RTOL", "refined_mesh"),
     "reachable": ("MonteCarloResult", "ReachableMesh", "build_mesh", "failure_states", "mesh_sizes",
                   "monte_carlo_mfpt", "reachable_dimension"),
     "variation": ("madogram", "power_variation", "variation_dimension", "variogram"),

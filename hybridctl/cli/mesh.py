@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import math
 
 from ..experiments import MESH_MAPS, mesh_report
+from ..analysis import DEFAULT_REFINE_RTOL, DISTURBANCE_RULES
 from ..analysis.reachable import check_disturbances
-from ..limits import MAX_MONTE_CARLO, check_at_most
+from ..limits import MAX_MONTE_CARLO, MAX_REFINED_DISTURBANCES, check_at_most
 from ._common import (non_negative, USAGE_ERROR, add_backend_flags, add_debug_flag, ray_options_for, check_backend_flags, add_force_flag, add_quiet_flag, cli_errors, finite,
                       limits_epilog, positive)
 
@@ -19,7 +21,19 @@ def add_parser(sub) -> None:
     p.add_argument("--box-size", type=positive(float), default=1e-3, help="box side (default 1e-3)")
     p.add_argument("--slope-mean", type=finite(float), default=0.15, help="mean terrain slope, rad (default 0.15)")
     p.add_argument("--slope-std", type=positive(float), default=0.06, help="slope std, rad (default 0.06)")
-    p.add_argument("--disturbances", type=positive(int), default=25, help="slope quantiles in the mesh (default 25)")
+    p.add_argument("--disturbances", type=positive(int), default=25,
+                   help="slope points of the first grid, doubled until the MFPT settles (--disturbance-rule grid), "
+                        "or the slope quantiles (quantiles); default 25")
+    p.add_argument("--disturbance-rule", choices=DISTURBANCE_RULES, default="grid",
+                   help="grid (default): a weighted grid over mean +- --tails std that keeps the tails, refined; "
+                        "quantiles: the thesis' equal-probability quantiles (25 reach only +-2.05 std)")
+    p.add_argument("--refine-rtol", type=positive(float), default=DEFAULT_REFINE_RTOL, metavar="RTOL",
+                   help=f"stop refining the grid when the MFPT from the seed changes by at most RTOL (default "
+                        f"{DEFAULT_REFINE_RTOL:g})")
+    p.add_argument("--max-disturbances", type=positive(int), default=MAX_REFINED_DISTURBANCES, metavar="N",
+                   help=f"the most points the grid may be refined to (default and limit {MAX_REFINED_DISTURBANCES})")
+    p.add_argument("--tails", type=positive(float), default=6.0, metavar="STD",
+                   help="half-width of the grid in slope std (default 6)")
     p.add_argument("--max-states", type=positive(int), default=1_000_000, help="cap on mesh states")
     p.add_argument("--monte-carlo", type=non_negative(int), default=0, metavar="EPISODES",
                    help="also estimate the MFPT by Monte Carlo on the true map")
@@ -46,12 +60,24 @@ def add_parser(sub) -> None:
 def result_line(report: dict) -> str:
     """One line: mesh states, MFPT from the seed, eigen estimate and the Monte Carlo interval."""
     mfpt = report["mfpt"]
-    line = f"{report['mesh']['states']} states; MFPT from the seed {mfpt['from_seed']:.1f} steps, eigen estimate " \
-           f"{mfpt['eigen_estimate']:.1f}"
+    refinement = report["disturbance"]["refinement"]
+    if math.isinf(mfpt["from_seed"]):
+        line = f"{report['mesh']['states']} states; the chain almost never fails (MFPT beyond float64's reach)"
+    else:
+        line = f"{report['mesh']['states']} states; MFPT from the seed {mfpt['from_seed']:.1f} steps, eigen estimate " \
+               f"{mfpt['eigen_estimate']:.1f}"
+    if refinement["rule"] == "grid":
+        change = refinement["relative_change"]
+        line += (f"; slopes: grid of {refinement['count']} over +-{refinement['tails_std']:g} std, "
+                 f"{'settled' if refinement['converged'] else 'NOT settled'} (last change {change:.2%}, rtol "
+                 f"{refinement['rtol']:g})" if change is not None else f"; slopes: grid of {refinement['count']}")
+    else:
+        line += f"; slopes: {refinement['count']} quantiles"
     if "monte_carlo" in report:
-        same = report["monte_carlo"]["mesh_disturbance_set"]
-        lo, hi = same["interval95"]
-        line += f"; Monte Carlo (same disturbances) {same['mean_steps_to_failure']:.1f} [{lo:.1f}, {hi:.1f}]"
+        for key, label in (("continuous_disturbance", "continuous slopes"), ("mesh_disturbance_set", "the mesh's slopes")):
+            mc = report["monte_carlo"][key]
+            lo, hi = mc["interval95"]
+            line += f"; Monte Carlo ({label}) {mc['mean_steps_to_failure']:.1f} [{lo:.1f}, {hi:.1f}]"
     return line
 
 
@@ -60,6 +86,8 @@ def check_mesh_arguments(args: argparse.Namespace) -> None:
     their successor table's memory, which nothing lifts), Monte Carlo episodes, local worker
     processes above the cores."""
     check_disturbances(args.disturbances, args.max_states, force=args.force)
+    check_at_most("--max-disturbances", args.max_disturbances, MAX_REFINED_DISTURBANCES, force_flag=None,
+                  why="points of a refined slope grid")
     check_at_most("--monte-carlo", args.monte_carlo, MAX_MONTE_CARLO, args.force, why="episodes")
     if args.monte_carlo and args.monte_carlo_chunks > args.monte_carlo:
         raise ValueError(f"--monte-carlo-chunks must be in [1, --monte-carlo={args.monte_carlo}], "
@@ -89,4 +117,6 @@ def _mesh_report(args: argparse.Namespace) -> dict:
                        workers=args.workers, resume=args.resume, progress=not args.quiet,
                        command=args.command_line, overwrite=args.overwrite,
                        checkpoint_every=args.checkpoint_every, checkpoint_minutes=args.checkpoint_minutes,
-                       address=args.address, monte_carlo_chunks=args.monte_carlo_chunks)
+                       address=args.address, monte_carlo_chunks=args.monte_carlo_chunks,
+                       disturbance_rule=args.disturbance_rule, refine_rtol=args.refine_rtol,
+                       max_disturbances=args.max_disturbances, tails=args.tails)

@@ -9,6 +9,7 @@ mesh sizes and the figures.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 from typing import Sequence
@@ -16,8 +17,9 @@ from typing import Sequence
 import scipy.sparse as sp
 
 from .. import io, viz
-from ..analysis import (GaussianDisturbance, RimlessWheel, build_mesh, mesh_sizes, monte_carlo_mfpt,
-                        reachable_dimension)
+from ..analysis import (DEFAULT_REFINE_RTOL, GaussianDisturbance, RimlessWheel, mesh_sizes, monte_carlo_mfpt,
+                        reachable_dimension, refined_mesh)
+from ..limits import MAX_REFINED_DISTURBANCES
 from ..drake import DrakeRimlessWheelMap
 from .training import MESH_MARKERS, open_run_folder
 
@@ -41,11 +43,16 @@ def mesh_report(map_name: str = "rimless-wheel", out: str | Path = "runs/mesh", 
                 backend: str = "serial", workers: int | None = None, resume: bool = False,
                 progress: bool = True, command: str | None = None, overwrite: bool = False,
                 checkpoint_every: int = 20, checkpoint_minutes: float = 5.0, address: str | None = None,
-                monte_carlo_chunks: int = 1) -> dict:
+                monte_carlo_chunks: int = 1, disturbance_rule: str = "grid", refine_rtol: float = DEFAULT_REFINE_RTOL,
+                max_disturbances: int = MAX_REFINED_DISTURBANCES, tails: float = 6.0) -> dict:
     """Mesh the states a map reaches from its rolling gait under Gaussian slopes; write the report.
 
-    Seeds the mesh with the wheel's fixed point at ``slope_mean``; the mesh uses ``disturbances``
-    equal-probability slope quantiles. Writes into ``out``: ``mfpt.json`` (the returned report),
+    Seeds the mesh with the wheel's fixed point at ``slope_mean``. The slopes (issue 50): with
+    ``disturbance_rule="grid"`` (default) a weighted grid of ``disturbances`` points over
+    ``slope_mean`` +- ``tails`` std, doubled (:func:`~hybridctl.analysis.refined_mesh`) until the MFPT
+    from the seed changes by at most ``refine_rtol`` (or the grid would pass ``max_disturbances``),
+    the steps recorded under ``disturbance.refinement``; with ``"quantiles"``, the thesis'
+    ``disturbances`` equal-probability quantiles (25: +-2.05 std, the tails cut off). Writes into ``out``: ``mfpt.json`` (the returned report),
     and for a complete mesh ``transition_matrix.npz``, ``mesh.npz`` (``ReachableMesh.load``) and
     ``sparsity.png``, ``cumulative_mass.png``, ``states.png`` (plus ``mesh_sizes.png`` with
     ``sizes``). ``out/mesh_checkpoint.npz`` lets ``resume`` continue an interrupted mesh.
@@ -56,6 +63,11 @@ def mesh_report(map_name: str = "rimless-wheel", out: str | Path = "runs/mesh", 
         monte_carlo_chunks: groups the Monte Carlo episodes are split into, each a task on
             ``backend`` with its own random stream: the estimate depends on it (not on the backend),
             so it is a setting of its own; at least the worker count fills the workers (default 1).
+        disturbances: points of the first grid (``"grid"``) or the quantiles (``"quantiles"``; 25 is
+            the thesis' set).
+        disturbance_rule, refine_rtol, max_disturbances, tails: the slope set's rule, the relative
+            change of the MFPT from the seed at which its refinement stops (1 %), the most grid points
+            it may reach, and the grid's half-width in std (6).
         sizes: further box sizes to mesh at (thesis Table 5.1); two complete ones give
             ``reachable_dimension``.
         resume: continue the mesh from ``out/mesh_checkpoint.npz``.
@@ -77,7 +89,8 @@ def mesh_report(map_name: str = "rimless-wheel", out: str | Path = "runs/mesh", 
         ValueError: an unknown map, a bad disturbance, or no rolling gait at ``slope_mean``.
     """
     section_map = section_map_by_name(map_name)
-    slopes = GaussianDisturbance(slope_mean, slope_std, disturbances)
+    slopes = GaussianDisturbance(slope_mean, slope_std, disturbances, rule=disturbance_rule, tails=tails)
+    refine = {"rtol": refine_rtol, "max_count": max_disturbances}
     seed = RimlessWheel().fixed_point(slope_mean)
     if not math.isfinite(seed):
         raise ValueError(f"--slope-mean {slope_mean} has no rolling gait to seed the mesh from")
@@ -85,21 +98,24 @@ def mesh_report(map_name: str = "rimless-wheel", out: str | Path = "runs/mesh", 
         folder.clear()   # --overwrite: the mesh reads no input files
         return _mesh_report_in(folder.path, map_name, section_map, slopes, seed, box_size, slope_mean, slope_std,
                                disturbances, max_states, monte_carlo, sizes, backend, workers, resume, progress,
-                               command, checkpoint_every, checkpoint_minutes, address, monte_carlo_chunks)
+                               command, checkpoint_every, checkpoint_minutes, address, monte_carlo_chunks, refine)
 
 
 def _mesh_report_in(out: Path, map_name: str, section_map, slopes, seed: float, box_size: float, slope_mean: float,
                     slope_std: float, disturbances: int, max_states: int, monte_carlo: int,
                     sizes: Sequence[float] | None, backend: str, workers: int | None, resume: bool, progress: bool,
                     command: str | None, checkpoint_every: int, checkpoint_minutes: float,
-                    address: str | None = None, monte_carlo_chunks: int = 1) -> dict:
+                    address: str | None = None, monte_carlo_chunks: int = 1, refine: dict | None = None) -> dict:
     """The body of :func:`mesh_report` in its locked run folder ``out``."""
-    mesh = build_mesh(section_map, [[seed]], slopes, box_size, max_states=max_states, backend=backend,
-                      workers=workers, address=address, checkpoint=out / "mesh_checkpoint.npz", resume=resume, progress=progress,
-                      checkpoint_every=checkpoint_every, checkpoint_minutes=checkpoint_minutes)
+    mesh, result, refinement = refined_mesh(
+        section_map, [[seed]], slopes, box_size, **(refine or {}), max_states=max_states, backend=backend,
+        workers=workers, address=address, checkpoint=out / "mesh_checkpoint.npz", resume=resume, progress=progress,
+        checkpoint_every=checkpoint_every, checkpoint_minutes=checkpoint_minutes)
+    slopes = dataclasses.replace(slopes, count=refinement["count"])     # the finest grid
     report = {} if command is None else {"command": command}
     report.update({"map": map_name, "seed_state": [seed], "mesh": mesh.summary(),
-                   "disturbance": {"slope_mean": slope_mean, "slope_std": slope_std, "count": disturbances}})
+                   "disturbance": {"slope_mean": slope_mean, "slope_std": slope_std, "rule": slopes.rule,
+                                   "count": slopes.count, "refinement": refinement}})
     if not mesh.complete:
         report["error"] = f"mesh incomplete at --max-states {max_states}: no transition matrix"
         io.write_json(out / "mfpt.json", report)
@@ -107,8 +123,10 @@ def _mesh_report_in(out: Path, map_name: str, section_map, slopes, seed: float, 
     T = mesh.transition_matrix()
     io.atomic_write(out / "transition_matrix.npz", lambda f: sp.save_npz(f, T))
     mesh.save(out / "mesh.npz")
-    result = mesh.mfpt()
-    report["mfpt"] = {**result.report(), "from_seed": result.mean(mesh.seed_distribution())}
+    if result is None:     # the chain almost never fails: no finite MFPT float64 can resolve
+        report["mfpt"] = {"from_seed": math.inf, "eigen_estimate": None, "note": refinement["never_fails_note"]}
+    else:
+        report["mfpt"] = {**result.report(), "from_seed": result.mean(mesh.seed_distribution())}
     where = {"backend": backend, "workers": workers, "address": address}
     if monte_carlo:
         continuous = monte_carlo_mfpt(section_map, [[seed]], slopes, episodes=monte_carlo, seed=0,
