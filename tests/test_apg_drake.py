@@ -103,5 +103,5 @@ def test_named_controller_runs_an_apg_checkpoint(tmp_path):
     assert isinstance(diagram.swingup, RecurrentTorchPolicy) and diagram.swingup.period == agent.period
     traj = simulate(diagram, system.nudged_nominal_state(), duration=0.3)
     assert np.isfinite(traj.x).all()
-    with pytest.raises(ValueError, match="was trained on cartpole, not acrobot"):
+    with pytest.raises(ValueError, match="trained on system 'cartpole', but this system is 'acrobot'"):
         build_named_diagram(systems.load("acrobot"), f"apg:{tmp_path / 'final'}")
