@@ -15,6 +15,7 @@ from pydrake.systems.primitives import AffineSystem  # noqa: E402
 
 from hybridctl.drake import RecurrentTorchPolicy  # noqa: E402
 from hybridctl.learn.apg import APG, APGConfig, population_returns  # noqa: E402
+from hybridctl.learn.checkpoint_schema import CheckpointError  # noqa: E402
 from hybridctl.systems.plants import add_plant  # noqa: E402
 
 
@@ -103,5 +104,5 @@ def test_named_controller_runs_an_apg_checkpoint(tmp_path):
     assert isinstance(diagram.swingup, RecurrentTorchPolicy) and diagram.swingup.period == agent.period
     traj = simulate(diagram, system.nudged_nominal_state(), duration=0.3)
     assert np.isfinite(traj.x).all()
-    with pytest.raises(ValueError, match="trained on system 'cartpole', but this system is 'acrobot'"):
+    with pytest.raises(CheckpointError, match="trained on system 'cartpole', but this system is 'acrobot'"):
         build_named_diagram(systems.load("acrobot"), f"apg:{tmp_path / 'final'}")
