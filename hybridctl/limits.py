@@ -38,7 +38,7 @@ MAX_GRID = 1001
 MAX_DISTURBANCES = 100_000
 """Disturbance samples per state of a reachable-state mesh (``--disturbances``)."""
 MAX_REFINED_DISTURBANCES = 1537
-"""Points a mesh's disturbance grid may be refined to (25 doubled six times: 25, 49, ..., 1537; issue 50);
+"""Points a mesh's disturbance grid may be refined to (25 doubled six times: 25, 49, ..., 1537);
 the rimless wheel's MFPT settles to 1 % by 193. The successor table's memory is checked too."""
 MAX_MONTE_CARLO = 10_000_000
 """Monte Carlo runs of a first-passage estimate (``--monte-carlo``)."""

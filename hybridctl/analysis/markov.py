@@ -22,7 +22,7 @@ States that cannot reach failure, or that can reach such a state, never fail wit
 positive probability: their MFPT is infinite. They are found by graph search and
 reported, not fed to the solver.
 
-Every method's answer is checked before it is returned (issue 50): finite, at least one step
+Every method's answer is checked before it is returned: finite, at least one step
 from every transient state (``t >= 1``: each needs one step to fail) and, for the exact
 methods, a relative residual ``||(I - Q) t - 1|| / ||1||`` of at most :data:`RESIDUAL_TOLERANCE`.
 A chain that almost never fails (per-step failure probabilities near float64's resolution, MFPT

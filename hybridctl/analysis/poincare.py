@@ -15,7 +15,7 @@ lazily inside whichever process calls it.
 Disturbance models give the mesh its finite disturbance set and Monte Carlo its draws:
 :class:`FiniteDisturbances` (a set with weights), :class:`GaussianDisturbance` (a scalar
 Gaussian) and :class:`ScipyDisturbance` (any continuous scipy.stats distribution). A continuous
-model is discretised by a rule (:data:`DISTURBANCE_RULES`): ``"grid"`` (the default, issue 50)
+model is discretised by a rule (:data:`DISTURBANCE_RULES`): ``"grid"`` (the default)
 puts ``count`` equally spaced points from the ``tail`` to the ``1 - tail`` quantile (a Gaussian:
 mean +- ``tails`` std, 6 by default) and gives each the probability of its cell, the outer
 cells reaching to +-infinity, so the tails that make a system fail keep their weight;

@@ -1,4 +1,4 @@
-"""A reachable mesh whose disturbance set is refined until its MFPT settles (issue 50).
+"""A reachable mesh whose disturbance set is refined until its MFPT settles.
 
 A mesh is only as good as its disturbance set: the thesis' 25 equal-probability quantiles of a
 Gaussian reach +-2.05 std, so the tail slopes that make a rimless wheel fall are cut off and its

@@ -47,7 +47,7 @@ def mesh_report(map_name: str = "rimless-wheel", out: str | Path = "runs/mesh", 
                 max_disturbances: int = MAX_REFINED_DISTURBANCES, tails: float = 6.0) -> dict:
     """Mesh the states a map reaches from its rolling gait under Gaussian slopes; write the report.
 
-    Seeds the mesh with the wheel's fixed point at ``slope_mean``. The slopes (issue 50): with
+    Seeds the mesh with the wheel's fixed point at ``slope_mean``. The slopes: with
     ``disturbance_rule="grid"`` (default) a weighted grid of ``disturbances`` points over
     ``slope_mean`` +- ``tails`` std, doubled (:func:`~hybridctl.analysis.refined_mesh`) until the MFPT
     from the seed changes by at most ``refine_rtol`` (or the grid would pass ``max_disturbances``),
