@@ -1,5 +1,6 @@
-"""hybridctl.reproduce.sb3_baselines: every algorithm for a tiny budget in two chunks, the resume that trains
-only the difference, the VecNormalize .npz round trip, the report's JSON and figure, and bad input."""
+"""hybridctl.reproduce.sb3_baselines and its workflow hybridctl.experiments.sb3_runs: every algorithm for a
+tiny budget in two chunks, the resume that trains only the difference, the VecNormalize .npz round trip, the
+report's JSON and figure, and bad input."""
 
 import contextlib
 import io
@@ -22,24 +23,27 @@ BUDGETS = {"ppo": (8192, 4096, 12288), "trpo": (4096, 2048, 6144), "a2c": (160, 
            "sac": (200, 100, 300), "td3": (200, 100, 300)}
 
 
-def _load_module():
-    from hybridctl.reproduce import sb3_baselines
+@pytest.fixture(scope="module")
+def runs():
+    """The workflow module (ZOO, run folders, curves), with TD3's warm-up shortened for tiny budgets (restored
+    afterwards: the module is shared with the rest of the session)."""
+    from hybridctl.experiments import sb3_runs
 
-    return sb3_baselines
+    # TD3's zoo warm-up (learning_starts 10000) would leave a few hundred steps untrained; start at 100
+    # so that the resumed run updates its networks from the reloaded replay buffer
+    kwargs = sb3_runs.ZOO["td3"]["kwargs"]
+    before = kwargs["learning_starts"]
+    kwargs["learning_starts"] = 100
+    yield sb3_runs
+    kwargs["learning_starts"] = before
 
 
 @pytest.fixture(scope="module")
-def sb():
-    """The driver module, with TD3's warm-up shortened for tiny budgets (restored afterwards: the module
-    is shared with the rest of the session)."""
-    module = _load_module()
-    # TD3's zoo warm-up (learning_starts 10000) would leave a few hundred steps untrained; start at 100
-    # so that the resumed run updates its networks from the reloaded replay buffer
-    kwargs = module.ZOO["td3"]["kwargs"]
-    before = kwargs["learning_starts"]
-    kwargs["learning_starts"] = 100
-    yield module
-    kwargs["learning_starts"] = before
+def sb(runs):
+    """The driver module (its ZOO is the workflow's, patched by ``runs``)."""
+    from hybridctl.reproduce import sb3_baselines
+
+    return sb3_baselines
 
 
 def _run(sb, capsys, *argv):
@@ -71,7 +75,7 @@ def trained(sb, tmp_path_factory):
 
 
 @pytest.mark.parametrize("algo", list(BUDGETS))
-def test_two_chunks_then_resume_trains_only_the_difference(sb, trained, algo):
+def test_two_chunks_then_resume_trains_only_the_difference(runs, trained, algo):
     out, first, second = trained
     b1, chunk, b2 = BUDGETS[algo]
     run = out / f"{algo}-s0"
@@ -82,10 +86,10 @@ def test_two_chunks_then_resume_trains_only_the_difference(sb, trained, algo):
     assert p2["chunks"][:2] == p1["chunks"] and len(p2["chunks"]) == 3
     assert (p2["chunks"][2]["from"], p2["chunks"][2]["to"]) == (b1, b2)
     assert second[algo]["summary"]["steps_before"] == b1 and p2["steps_done"] == b2
-    assert len(p2["commands"]) == 2 and p2["hyperparameters"] == sb.hyperparameters(algo)
-    model = sb.algorithm_class(algo).load(run / "model.zip", device="cpu")
+    assert len(p2["commands"]) == 2 and p2["hyperparameters"] == runs.hyperparameters(algo)
+    model = runs.algorithm_class(algo).load(run / "model.zip", device="cpu")
     assert model.num_timesteps == b2
-    if algo in sb.ON_POLICY:
+    if algo in runs.ON_POLICY:
         assert (run / "vecnormalize.npz").is_file() and not (run / "replay_buffer.pkl").exists()
         with np.load(run / "vecnormalize.npz") as stats:
             assert int(stats["steps"]) == b2 and float(stats["count"]) > b2 / 2
@@ -99,7 +103,7 @@ def test_two_chunks_then_resume_trains_only_the_difference(sb, trained, algo):
     assert evaluation["env_steps"] == b2 and evaluation["episodes"] == 2
     assert np.isfinite(evaluation["mean_return"]) and 0 <= evaluation["success_rate"] <= 1
     assert (run / "curve.csv.xz").is_file() and not (run / "curve.csv").exists()   # packed at the budget
-    rows = sb.read_curve(run / "curve.csv")
+    rows = runs.read_curve(run / "curve.csv")
     assert np.all(np.diff(rows[:, 0]) >= 0) and (len(rows) == 0 or rows[-1, 0] <= b2)
     if algo in ("sac", "td3"):                            # one env: an episode every 50 steps, none lost
         assert rows[:, 0].tolist() == list(range(50, b2 + 1, 50)) and set(rows[:, 2]) == {50}
@@ -117,14 +121,14 @@ def test_a_run_at_its_budget_is_skipped(sb, trained, capsys):
     assert json.loads((out / "a2c-s0" / "progress.json").read_text()) == second["a2c"]["progress"]
 
 
-def test_vecnormalize_npz_round_trip(sb, tmp_path):
-    venv = sb.new_vecnormalize(sb.make_venv("trpo", seed=3), "trpo")
+def test_vecnormalize_npz_round_trip(runs, tmp_path):
+    venv = runs.new_vecnormalize(runs.make_venv("trpo", seed=3), "trpo")
     venv.reset()
     for _ in range(30):
         venv.step(np.stack([venv.action_space.sample() for _ in range(venv.num_envs)]))
-    sb.save_vecnormalize(venv, tmp_path / "vn.npz", steps=60)
+    runs.save_vecnormalize(venv, tmp_path / "vn.npz", steps=60)
     for training in (True, False):
-        loaded, steps = sb.load_vecnormalize(tmp_path / "vn.npz", sb.make_venv("trpo", seed=4), training=training)
+        loaded, steps = runs.load_vecnormalize(tmp_path / "vn.npz", runs.make_venv("trpo", seed=4), training=training)
         assert steps == 60 and loaded.training is training and loaded.norm_reward is training
         for a, b in ((loaded.obs_rms, venv.obs_rms), (loaded.ret_rms, venv.ret_rms)):
             np.testing.assert_array_equal(a.mean, b.mean)
@@ -139,35 +143,35 @@ def test_vecnormalize_npz_round_trip(sb, tmp_path):
     assert venv.gamma == 0.99 and venv.norm_obs and venv.norm_reward       # the zoo's normalize: true
 
 
-def test_curve_rows_past_the_checkpoint_are_dropped(sb, tmp_path):
+def test_curve_rows_past_the_checkpoint_are_dropped(runs, tmp_path):
     path = tmp_path / "curve.csv"
-    sb.append_curve(path, [(50, -3.0, 50, 0), (100, -2.5, 50, 1)])
-    sb.append_curve(path, [(150, -1.0, 50, 0)])
-    sb.truncate_curve(path, 100)
-    np.testing.assert_array_equal(sb.read_curve(path), [[50, -3.0, 50, 0], [100, -2.5, 50, 1]])
-    sb.pack_curve(path)
+    runs.append_curve(path, [(50, -3.0, 50, 0), (100, -2.5, 50, 1)])
+    runs.append_curve(path, [(150, -1.0, 50, 0)])
+    runs.truncate_curve(path, 100)
+    np.testing.assert_array_equal(runs.read_curve(path), [[50, -3.0, 50, 0], [100, -2.5, 50, 1]])
+    runs.pack_curve(path)
     assert not path.exists() and (tmp_path / "curve.csv.xz").is_file()
-    np.testing.assert_array_equal(sb.read_curve(path), [[50, -3.0, 50, 0], [100, -2.5, 50, 1]])
-    sb.unpack_curve(path)                                   # trained further: rows are appended again
-    sb.append_curve(path, [(150, -1.0, 50, 0)])
-    assert sb.read_curve(path).shape == (3, 4) and not (tmp_path / "curve.csv.xz").exists()
-    sb.truncate_curve(path, 100)
-    curve = sb.binned_curve(sb.read_curve(path), 80)
+    np.testing.assert_array_equal(runs.read_curve(path), [[50, -3.0, 50, 0], [100, -2.5, 50, 1]])
+    runs.unpack_curve(path)                                   # trained further: rows are appended again
+    runs.append_curve(path, [(150, -1.0, 50, 0)])
+    assert runs.read_curve(path).shape == (3, 4) and not (tmp_path / "curve.csv.xz").exists()
+    runs.truncate_curve(path, 100)
+    curve = runs.binned_curve(runs.read_curve(path), 80)
     assert curve["env_steps"] == [80, 100] and curve["mean_return"] == [-3.0, -2.5] and curve["episodes"] == [1, 1]
 
 
-def test_zoo_entries_become_sb3_arguments(sb):
+def test_zoo_entries_become_sb3_arguments(runs):
     from stable_baselines3.common.noise import NormalActionNoise
 
-    kwargs = sb.model_kwargs("td3", n_actions=1)
+    kwargs = runs.model_kwargs("td3", n_actions=1)
     assert isinstance(kwargs["action_noise"], NormalActionNoise)
     np.testing.assert_array_equal(kwargs["action_noise"]._sigma, [0.1])   # in SB3's [-1, 1] action scale
     assert kwargs["train_freq"] == (1, "episode") and kwargs["policy_kwargs"] == {"net_arch": [400, 300]}
-    assert sb.model_kwargs("ppo", 1) == {"n_steps": 256, "gae_lambda": 0.94, "gamma": 0.99, "n_epochs": 4,
+    assert runs.model_kwargs("ppo", 1) == {"n_steps": 256, "gae_lambda": 0.94, "gamma": 0.99, "n_epochs": 4,
                                          "ent_coef": 0.0}
-    assert [sb.ZOO[a]["n_envs"] for a in sb.ALGOS] == [16, 16, 2, 1, 1]
-    for algo in sb.ALGOS:
-        assert sb.ZOO[algo]["source"].startswith(f"rl-baselines3-zoo hyperparams/{algo}.yml: ")
+    assert [runs.ZOO[a]["n_envs"] for a in runs.ALGOS] == [16, 16, 2, 1, 1]
+    for algo in runs.ALGOS:
+        assert runs.ZOO[algo]["source"].startswith(f"rl-baselines3-zoo hyperparams/{algo}.yml: ")
 
 
 def test_report_writes_json_and_png(sb, trained, tmp_path, capsys):
