@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from hybridctl.experiments.apg_study import (StudySettings, held_out_starts, rollout_metrics, run_one, summarize,
-                                             task_system, zero_policy_baseline)
+from hybridctl.experiments.apg_study import (StudySettings, apg_controller, held_out_starts, rollout_metrics, run_one,
+                                             summarize, swingup_alone, task_system, zero_policy_baseline)
+from hybridctl.systems.switched import AlwaysGate, CostToGoGate, NeverGate, SwitchedController, ZeroSwingup
 
 TINY = StudySettings(apg_iterations=2, epochs=2, sac_steps=200, sb3_steps=200, eval_episodes=3, compile=False)
 
@@ -21,14 +22,41 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")   # tests/conftest.py
 def test_rollout_metrics_score_a_held_pole_as_stabilised_and_a_hanging_one_as_not():
     system = task_system("cartpole")
     K, _ = system.lqr()
-    goal = torch.as_tensor(system.goal)
-    lqr = lambda x, h: (-(system.state_error(x) @ torch.as_tensor(K).T), None)   # noqa: E731
+    lqr = lambda x: -(system.state_error(x) @ torch.as_tensor(K).T)   # noqa: E731
     near = np.tile(system.goal, (2, 1)) + np.array([[0.05, 0.02, 0, 0], [-0.05, -0.02, 0, 0]])
-    held = rollout_metrics(system, lqr, near, 100, 0.05)
+    held = rollout_metrics(system, swingup_alone(system, lqr, 0.05), near, 100)
     assert held["stabilised"] == 1.0 and held["upright"] == 1.0 and held["mean_return"] > -5
+    # the same LQR as the switched controller's own (AlwaysGate): the LQR acts from the first gate evaluation on
+    always = SwitchedController.for_system(system, swingup=ZeroSwingup(), gate=AlwaysGate(), decision_period=0.05)
+    assert rollout_metrics(system, always, near, 100)["stabilised"] == 1.0
     hanging = zero_policy_baseline("cartpole", TINY)
     assert hanging["stabilised"] == 0.0 and hanging["mean_return"] < -390     # 100 steps of 2 (1 - cos pi) = 4
-    assert goal.shape == (4,)
+
+
+def test_rollout_metrics_keep_a_diverging_row_out_of_the_return():
+    """A row that runs to Inf / NaN (``on_divergence="propagate"``, as the APG family's own rollouts) is
+    counted as diverged and left out of the return; the others are scored."""
+    system = task_system("cartpole")
+    x0 = np.tile(system.initial_state.nominal, (3, 1))
+    x0[1, 3] = np.inf
+    metrics = rollout_metrics(system, swingup_alone(system, ZeroSwingup(), 0.05), x0, 20)
+    assert metrics["diverged"] == 1 and np.isfinite(metrics["mean_return"]) and metrics["episodes"] == 3
+
+
+def test_an_apg_run_is_scored_under_the_controller_it_trained_through():
+    """``takeover="lqr"``: the run's recurrent swing-up under the takeover's own controller (the spec's
+    cost-to-go gate, every integrator step); without it, the swing-up alone (NeverGate)."""
+    from hybridctl.learn.apg import APG, APGConfig
+
+    system = task_system("cartpole")
+    small = dict(method="papg", horizon=10, batch=2, population=2, elites=1, apg_iterations=1, epochs=1)
+    switched = apg_controller(APG(system, APGConfig(takeover="lqr", **small)))
+    assert isinstance(switched.gate, CostToGoGate) and switched.gate_period == system.dt
+    assert switched.decision_period == system.swingup_period
+    alone = apg_controller(APG(system, APGConfig(**small)))
+    assert isinstance(alone.gate, NeverGate)
+    x0 = held_out_starts(system, 2, 1)
+    assert rollout_metrics(system, switched, x0, 10)["episodes"] == 2
 
 
 def test_held_out_starts_are_the_spec_distribution_and_reproduce():

@@ -163,3 +163,80 @@ def test_torch_equals_drake_on_one_controller(which, seconds):
     lqr_share = float(run.lqr_steps.sum()) / (decisions * stride)
     assert lqr_share == pytest.approx(traj.gate[:decisions * stride].mean(), abs=0.02)
     assert (lqr_share > 0) == (which == "ssac")     # SSAC hands over to the LQR within 6 s; energy not in 3 s
+
+
+# --------------------------------------------------------------- the APG family's LQR takeover is this controller
+def test_the_apg_takeover_is_a_view_of_the_switched_controller_and_decides_as_closed_loop_rollout():
+    """``learn.apg.LQRTakeover`` (inside the APG population rollout, differentiable) is built from
+    ``SwitchedController.for_system(system, gate=CostToGoGate(system))`` with the gate every integrator step
+    (``gate_period = dt``: what a checkpoint's ``takeover = "lqr"`` means) and decides through the same
+    ``switched_decision`` / ``gate_command``: the population rollout and ``closed_loop_rollout`` of that controller
+    reach the same states and gate modes bit for bit, decision by decision."""
+    from hybridctl.learn.apg import ClosedLoopPolicy, LQRTakeover, population_returns
+    from hybridctl.learn.policies import Policy, PolicyPopulation
+    from hybridctl.systems.switched import gate_command
+
+    system = systems.load("cartpole")
+    takeover = LQRTakeover(system, decision_period=system.swingup_period)
+    controller = takeover.controller
+    assert type(controller.gate) is CostToGoGate and controller.swingup is None
+    assert controller.gate_period == system.dt and takeover.stride == 1
+    np.testing.assert_array_equal(controller.K, system.lqr()[0])
+    assert (controller.gate_on, controller.gate_off) == (system.gate.on, system.gate.off)
+
+    gen = torch.Generator().manual_seed(3)
+    scales = torch.logspace(-2.5, 0.3, 12, dtype=torch.float64)[:, None]     # inside the gate's region ... far out
+    x0 = torch.as_tensor(system.goal) + torch.randn(12, 4, generator=gen, dtype=torch.float64) * scales
+    substeps, steps = controller.substeps(system), 15
+
+    # 1. given actions: the takeover's decision against closed_loop_rollout's, decision by decision
+    actions = system.action_limit * (2 * torch.rand(12, steps, 1, generator=gen, dtype=torch.float64) - 1)
+    run = closed_loop_rollout(system, controller, x0, steps, actions=actions, on_divergence="propagate")
+    x, mode = x0, None
+    for j in range(steps):
+        x, mode = takeover.decide(x, actions[:, j], mode, substeps)
+        assert torch.equal(x, run.states[:, j + 1])
+    assert torch.equal(mode, run.mode) and bool(run.lqr_steps.gt(0).any()) and not bool(run.lqr_steps.eq(substeps).all())
+
+    # 2. the APG population rollout (a recurrent policy acting on observations) against closed_loop_rollout of the
+    # same policy as the controller's swing-up
+    torch.manual_seed(0)
+    pop = PolicyPopulation.build("gru", 5, 1, system.action_limit, members=1, init_std=0.5, dtype=torch.float64)
+    swingup = ClosedLoopPolicy(system, Policy(pop))
+    _, _, (_, apg_mode), _, apg_states = population_returns(system, pop, x0, steps, substeps, takeover=takeover,
+                                                            keep_states=True)
+    run = closed_loop_rollout(system, controller.replace(swingup=swingup), x0, steps, on_divergence="propagate")
+    assert torch.equal(apg_states[0], run.states) and torch.equal(apg_mode[0], run.mode)
+    assert bool(run.mode.any()) and not bool(run.mode.all())
+
+    # 3. one gate evaluation: the takeover's command is gate_command's, the LQR saturated where the mode is on
+    u = torch.full((12, 1), 3.0, dtype=torch.float64)
+    command, on = takeover(x0, None, u)
+    same, same_on = gate_command(system, controller.gate, x0, u, torch.zeros(12, dtype=torch.bool),
+                                 torch.as_tensor(controller.K), torch.float64, controller.gate_on, controller.gate_off)
+    assert torch.equal(command, same) and torch.equal(on, same_on)
+    lqr = control.saturate(control.lqr_command(system.state_error(x0), torch.as_tensor(controller.K)),
+                           system.action_limit)
+    assert torch.equal(command, torch.where(on[:, None], lqr, u)) and bool(on.any()) and not bool(on.all())
+
+
+def test_the_apg_takeover_keeps_autograd_as_a_differentiable_closed_loop_rollout():
+    """The takeover's gradients (the APG's) are ``closed_loop_rollout(differentiable=True)``'s: d(final state)/d(actions)
+    through the LQR phase, the switch a hard choice."""
+    from hybridctl.learn.apg import LQRTakeover
+
+    system = systems.load("cartpole")
+    takeover = LQRTakeover(system, decision_period=system.swingup_period)
+    substeps = takeover.controller.substeps(system)
+    x0 = torch.as_tensor(system.goal) + torch.tensor([[0.01, 0.02, 0.0, 0.0], [0.0, 0.6, 0.0, 0.0]],
+                                                     dtype=torch.float64)
+    actions = torch.full((2, 4, 1), 5.0, dtype=torch.float64, requires_grad=True)
+    run = closed_loop_rollout(system, takeover.controller, x0, 4, actions=actions, differentiable=True,
+                              on_divergence="propagate")
+    (grad_rollout,) = torch.autograd.grad(run.final.sum(), actions)
+    x, mode = x0, None
+    for j in range(4):
+        x, mode = takeover.decide(x, actions[:, j], mode, substeps)
+    (grad_takeover,) = torch.autograd.grad(x.sum(), actions)
+    assert torch.equal(grad_rollout, grad_takeover)
+    assert bool(grad_rollout[0].eq(0).all()) and bool(grad_rollout[1].ne(0).any())   # the LQR row ignores the actions

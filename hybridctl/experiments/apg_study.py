@@ -3,7 +3,10 @@ Stable-Baselines3's PPO and SAC on the same Ch. 7 task of each system, several s
 
 Every learner sees the same task: the spec's start distribution, the Ch. 7 reward
 (:data:`TASKS`), policy steps of 0.05 s, episodes of ``horizon`` steps. Every trained policy is
-scored by the same code, :func:`rollout_metrics`, on the same held-out starts: the return, the
+scored by the same code, :func:`rollout_metrics`, on the same held-out starts, as a
+:class:`~hybridctl.systems.SwitchedController` run by :func:`~hybridctl.systems.closed_loop_rollout` (the
+policy alone under :class:`~hybridctl.systems.switched.NeverGate`; an APG-family policy trained through
+the LQR takeover under the takeover's own controller, :func:`apg_controller`): the return, the
 stabilisation rate (every coordinate within the spec's success eps of the goal over the last
 second, thesis eq. 3.2) and the upright rate (the angles alone). The APG family also reports
 the best member's training return (the author's metric). Interactions are counted as the
@@ -40,6 +43,7 @@ from ..learn.run import EVAL_SEED
 from ..learn.sb3 import silent_logger
 from ..systems import System, load
 from ..systems.success import stabilisation
+from ..systems.switched import NeverGate, SwitchedController, ZeroSwingup, closed_loop_rollout
 from .training import machine
 
 STUDY_METHODS = ("ce-apg", "papg", "cem", "apg", "shapg", "sac", "sb3-ppo", "sb3-sac")
@@ -152,23 +156,37 @@ def held_out_starts(system: System, episodes: int, seed: int) -> np.ndarray:
     return np.asarray(system.sample_initial_states(episodes, rng), dtype=float)
 
 
-def rollout_metrics(system: System, act: Callable, x0: np.ndarray, horizon: int, period: float,
-                    state=None) -> dict:
-    """Roll ``act(x [B, n] float64, state) -> (u [B, m], state)`` out for ``horizon`` policy steps of
-    ``period`` s (action held over the integrator steps) from ``x0``; the return (sum of
-    ``System.reward`` after each policy step), stabilisation and upright rates over the last second."""
-    substeps = int(round(period / system.dt))
-    x = torch.as_tensor(x0, dtype=torch.float64)
-    states, total = [x], torch.zeros(len(x0), dtype=torch.float64)
-    with torch.no_grad():
-        for _ in range(horizon):
-            u, state = act(x, state)
-            u = torch.as_tensor(u, dtype=torch.float64).reshape(len(x0), system.n_actions)
-            for _ in range(substeps):
-                x = system.step_unchecked(x, u)
-            total += system.reward(x)
-            states.append(x)
-    s = torch.stack(states, 1).numpy()
+def swingup_alone(system: System, act, period: float) -> SwitchedController:
+    """A policy alone as a switched controller on ``system``: the swing-up ``act(x [B, n] float64) -> u``
+    (torch or numpy, B x m values; a torch module or :class:`~hybridctl.systems.switched.ZeroSwingup` as it
+    is) held ``period`` s, and a :class:`~hybridctl.systems.switched.NeverGate` (the LQR never acts)."""
+    if not isinstance(act, (torch.nn.Module, ZeroSwingup)):
+        law = act
+        act = lambda x: torch.as_tensor(law(x), dtype=torch.float64).reshape(len(x), system.n_actions)  # noqa: E731
+    return SwitchedController.for_system(system, swingup=act, gate=NeverGate(), decision_period=period)
+
+
+def apg_controller(agent) -> SwitchedController:
+    """What an APG-family run is scored as: its recurrent swing-up (``closed_loop_policy``) through the LQR
+    takeover it trained through (``config.takeover = "lqr"``: the takeover's own controller, its gate and
+    LQR every integrator step), else alone (:func:`swingup_alone`)."""
+    closed = agent.closed_loop_policy()
+    if agent.takeover is not None:
+        return agent.takeover.controller.replace(swingup=closed)
+    return swingup_alone(agent.system, closed, agent.period)
+
+
+def rollout_metrics(system: System, controller: SwitchedController, x0: np.ndarray, horizon: int) -> dict:
+    """Roll ``controller`` out on ``system`` for ``horizon`` swing-up decisions (its ``decision_period``) from
+    ``x0`` (:func:`~hybridctl.systems.closed_loop_rollout`, float64, a diverging row left to run on to Inf /
+    NaN); the return (sum of ``System.reward`` after each decision), stabilisation and upright rates over the
+    last second, and the rows whose states or return are not finite (``diverged``, left out of the return)."""
+    period = controller.decision_period
+    run = closed_loop_rollout(system, controller, x0, horizon, on_divergence="propagate", dtype=torch.float64)
+    total = torch.zeros(len(x0), dtype=torch.float64)
+    for t in range(1, horizon + 1):
+        total += system.reward(run.states[:, t].contiguous())
+    s = run.states.numpy()
     balanced, upright = stabilisation(s, system, lookback=max(1, int(round(1.0 / period))))
     ok = np.isfinite(s).all(axis=(1, 2)) & np.isfinite(total.numpy())
     r = total.numpy()[ok]
@@ -185,9 +203,7 @@ def _train_apg(method: str, system_name: str, seed: int, settings: StudySettings
     agent.learn(out=out / "run", progress=False,
                 resume=any((out / "run" / name).exists() for name in ("checkpoint", "final")))
     x0 = held_out_starts(agent.system, settings.eval_episodes, settings.eval_seed)
-    closed = agent.closed_loop_policy()
-    metrics = rollout_metrics(agent.system, lambda x, h: closed(x, h if h is not None else closed.initial_state(len(x))),
-                              x0, config.horizon, agent.period)
+    metrics = rollout_metrics(agent.system, apg_controller(agent), x0, config.horizon)
     facts = {"interactions": agent.env_steps, "iterations": agent.iterations, "epochs": agent.epoch,
              "train_wall_time_s": agent.wall_time, "best_training_return": agent.best_score,
              "which": agent.default_policy, "nan_grads": agent.nan_grads,
@@ -218,8 +234,8 @@ def _train_sac(system_name: str, seed: int, settings: StudySettings, out: Path) 
     agent.learn(out=out / "run", progress=False)
     wall = time.perf_counter() - start
     x0 = held_out_starts(system, settings.eval_episodes, settings.eval_seed)
-    metrics = rollout_metrics(system, lambda x, h: (agent.predict(x.float(), deterministic=True), None), x0,
-                              task.horizon, period)
+    metrics = rollout_metrics(system, swingup_alone(system, lambda x: agent.predict(x.float(), deterministic=True),
+                                                    period), x0, task.horizon)
     facts = {"interactions": int(agent.num_timesteps), "train_wall_time_s": wall, "best_training_return": None,
              "which": "deterministic actor", "config": dataclasses.asdict(agent.config)}
     return metrics, facts
@@ -250,8 +266,8 @@ def _train_sb3(method: str, system_name: str, seed: int, settings: StudySettings
     (out / "run").mkdir(parents=True, exist_ok=True)
     model.save(out / "run" / "model.zip")
     x0 = held_out_starts(env.system, settings.eval_episodes, settings.eval_seed)
-    act = lambda x, h: (model.predict(x.numpy(), deterministic=True)[0], None)   # noqa: E731
-    metrics = rollout_metrics(env.system, act, x0, TASKS[system_name].horizon, period)
+    act = lambda x: model.predict(x.numpy(), deterministic=True)[0]   # noqa: E731
+    metrics = rollout_metrics(env.system, swingup_alone(env.system, act, period), x0, TASKS[system_name].horizon)
     facts = {"interactions": int(model.num_timesteps), "train_wall_time_s": wall, "best_training_return": None,
              "which": "deterministic policy",
              "config": {"algorithm": f"stable_baselines3.{SB3_ALGORITHMS[method]}", "policy": "MlpPolicy",
@@ -313,9 +329,8 @@ def zero_policy_baseline(system_name: str, settings: StudySettings | None = None
     settings = settings or StudySettings()
     system = task_system(system_name)
     x0 = held_out_starts(system, settings.eval_episodes, settings.eval_seed)
-    zero = torch.zeros((len(x0), system.n_actions), dtype=torch.float64)
-    return rollout_metrics(system, lambda x, h: (zero, None), x0, settings.horizon or TASKS[system_name].horizon,
-                           system.swingup_period)
+    return rollout_metrics(system, swingup_alone(system, ZeroSwingup(), system.swingup_period), x0,
+                           settings.horizon or TASKS[system_name].horizon)
 
 
 def summarize(records: list[dict]) -> list[dict]:

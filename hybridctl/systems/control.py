@@ -120,7 +120,12 @@ class CostToGoGate(torch.nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """Probability that the LQR can take over, in (0, 1]; shape (..., 1)."""
-        return torch.exp(-self.cost_to_go(x) / self.scale).unsqueeze(-1)
+        return self.of_error(self.system.state_error(x))
+
+    def of_error(self, err: torch.Tensor) -> torch.Tensor:
+        """:meth:`forward` from the state errors ``err = system.state_error(x)`` (torch, (..., n)) where the
+        caller has them already (the switched controller's gate step, which needs them for the LQR too)."""
+        return torch.exp(-cost_to_go(err, self.S.to(err.dtype)) / self.scale).unsqueeze(-1)
 
     def numpy_forward(self, x: np.ndarray) -> np.ndarray:
         """The same probability for numpy states, shape (..., 1) (used by the Drake ``Gate``)."""

@@ -9,7 +9,9 @@ hysteresis thresholds ``gate_on`` / ``gate_off`` and the gate's ``gate_period``.
 
 :func:`closed_loop_rollout` runs it in batched torch, with the divergence policy an explicit
 argument; :func:`switched_decision` is one decision of it (a pure function of tensors, so
-``torch.compile`` can fuse it), the decision of :class:`hybridctl.envs.SwitchedVectorEnv` too.
+``torch.compile`` can fuse it), the decision of :class:`hybridctl.envs.SwitchedVectorEnv` and of the APG
+family's population rollout (``hybridctl.learn.apg.LQRTakeover``) too; :func:`gate_command`, one gate
+evaluation (gate, hysteresis, LQR, saturation), is the one place that sequence is written.
 ``hybridctl.drake.build_hybrid_diagram(system, controller)`` builds the same controller as a
 Drake diagram. Every law comes from :mod:`.control`.
 
@@ -34,7 +36,7 @@ System = Any
 """A :class:`hybridctl.systems.System` (not imported: the package imports this module)."""
 
 __all__ = ["Gate", "LearnedGate", "CostToGoGate", "ConstantGate", "AlwaysGate", "NeverGate", "as_gate",
-           "EnergySwingup", "ZeroSwingup", "TrajoptSwingup", "SwitchedController", "switched_decision",
+           "EnergySwingup", "ZeroSwingup", "TrajoptSwingup", "SwitchedController", "gate_command", "switched_decision",
            "closed_loop_rollout", "Rollout", "DIVERGENCE_POLICIES"]
 
 
@@ -311,46 +313,68 @@ class SwitchedController:
 
 
 # ---------------------------------------------------------------------------------------- the rollout
+def gate_command(system: System, gate, x: torch.Tensor, u: torch.Tensor, mode: torch.Tensor, K: torch.Tensor,
+                 gate_dtype: torch.dtype, gate_on: float, gate_off: float, goal: torch.Tensor | None = None):
+    """One gate evaluation of the switched controller at states ``x`` (B, n): the gate classifies ``x``
+    (in ``gate_dtype``), the hysteresis (``gate_on`` / ``gate_off``) moves ``mode`` (B,) bool (True: LQR),
+    and where the mode is on the LQR command -K (x - goal) replaces the held swing-up action ``u`` (B, m);
+    the command is saturated to the action limit. Returns ``(command, mode)``.
+
+    The one place this sequence is written: :func:`switched_decision` runs it every gate stride, the APG
+    family's LQR takeover (``hybridctl.learn.apg.LQRTakeover``) through it. Autograd flows through the
+    LQR command and ``u`` (the switch itself is a hard choice). ``goal`` (n,): the LQR's goal where it is
+    not the system's (None: ``system.state_error``).
+    """
+    err = system.state_error(x) if goal is None else control.wrap_angles(x - goal, system.angle_indices)
+    if goal is None and isinstance(gate, control.CostToGoGate) and gate.system is system and gate_dtype == x.dtype:
+        p = gate.of_error(err)                  # the same formula on the error computed once
+    else:
+        p = gate(x.to(gate_dtype))
+    mode = control.hysteresis(p.reshape(-1).to(x.dtype), mode, gate_on, gate_off)
+    lqr = control.lqr_command(err, K)
+    return control.saturate(torch.where(mode[:, None], lqr, u), system.action_limit), mode
+
+
 def switched_decision(system: System, gate, x0: torch.Tensor, u: torch.Tensor, mode: torch.Tensor, K: torch.Tensor,
                       substeps: int, gate_stride: int, gate_dtype: torch.dtype, gate_on: float, gate_off: float,
-                      goal: torch.Tensor | None = None):
+                      goal: torch.Tensor | None = None, restore_diverged: bool = True):
     """One decision of the switched controller from states ``x0`` (B, n) with the held swing-up
     action ``u`` (B, m) and gate modes ``mode`` (B,) bool (True: LQR).
 
     Every ``gate_stride`` integration steps the gate classifies the state and the hysteresis
-    updates the mode; the command (LQR or ``u``, saturated) is held until the next gate
-    evaluation. A row that diverges (:func:`~hybridctl.systems.control.is_diverged`) is put back
-    to its start state. Returns ``(x, diverged, mode, lqr_steps)``: the states after the decision,
+    updates the mode (:func:`gate_command`); the command (LQR or ``u``, saturated) is held until the
+    next gate evaluation. A row that diverges (:func:`~hybridctl.systems.control.is_diverged`) is put
+    back to its start state. Returns ``(x, diverged, mode, lqr_steps)``: the states after the decision,
     the diverged rows, the final modes and the number of integration steps the LQR acted.
     A pure function (no env state), so ``torch.compile`` can fuse it whole. ``goal`` (n,): the LQR's
-    goal where it is not the system's (None: ``system.state_error``).
+    goal where it is not the system's (None: ``system.state_error``). ``restore_diverged`` False: no
+    divergence check, a diverging row goes on (to Inf / NaN: the APG family's rollouts, where a
+    non-finite return marks the member), and ``diverged`` is None.
     """
-    limit = system.action_limit
     x = x0
-    diverged = torch.zeros(x0.shape[0], dtype=torch.bool, device=x0.device)
+    diverged = torch.zeros(x0.shape[0], dtype=torch.bool, device=x0.device) if restore_diverged else None
     lqr_steps = torch.zeros(x0.shape[0], dtype=x0.dtype, device=x0.device)
     command = u
     for k in range(substeps):
         if k % gate_stride == 0:
-            p = gate(x.to(gate_dtype)).reshape(-1).to(x0.dtype)
-            mode = control.hysteresis(p, mode, gate_on, gate_off)
-            err = system.state_error(x) if goal is None else control.wrap_angles(x - goal, system.angle_indices)
-            lqr = control.lqr_command(err, K)
-            command = control.saturate(torch.where(mode[:, None], lqr, u), limit)
+            command, mode = gate_command(system, gate, x, u, mode, K, gate_dtype, gate_on, gate_off, goal)
         lqr_steps = lqr_steps + mode.to(x0.dtype)
         x = system.step_unchecked(x, command)
-        diverged = diverged | control.is_diverged(x)
-        x = torch.where(diverged[:, None], x0, x)
+        if restore_diverged:
+            diverged = diverged | control.is_diverged(x)
+            x = torch.where(diverged[:, None], x0, x)
     return x, diverged, mode, lqr_steps
 
 
-DIVERGENCE_POLICIES = ("freeze", "restart", "continue")
+DIVERGENCE_POLICIES = ("freeze", "restart", "continue", "propagate")
 """What :func:`closed_loop_rollout` does with a row once it diverges (a coordinate beyond
 :data:`~hybridctl.systems.control.DIVERGENCE_BOUND` or non-finite; the decision it diverged in ends at its
-start state either way): ``"freeze"`` holds that last finite state to the end (the balance map's torch
-engine); ``"continue"`` goes on deciding from it (the chunk tasks of random search, which count the row's
-reward as 0 from then on); ``"restart"`` starts the row again from its row of ``x0``, in swing-up mode with a
-fresh swing-up state (the switched env's autoreset, from given starts)."""
+start state, except under ``"propagate"``): ``"freeze"`` holds that last finite state to the end (the balance
+map's torch engine); ``"continue"`` goes on deciding from it (the chunk tasks of random search, which count the
+row's reward as 0 from then on); ``"restart"`` starts the row again from its row of ``x0``, in swing-up mode
+with a fresh swing-up state (the switched env's autoreset, from given starts); ``"propagate"`` checks nothing
+inside a decision and lets the row run on to Inf / NaN (the APG family's rollouts and the Ch. 7 study's
+metrics, where a non-finite return marks the row; ``Rollout.diverged`` is then read at the decision times)."""
 
 
 @dataclass
@@ -431,7 +455,8 @@ def closed_loop_rollout(system: System, controller: SwitchedController, x0, step
     Args:
         differentiable: keep autograd's graph (False: the rollout runs under ``torch.no_grad``). The switch
             is a hard choice: no gradient flows through the switching time.
-        on_divergence: one of :data:`DIVERGENCE_POLICIES` (``"freeze"``, ``"continue"``, ``"restart"``).
+        on_divergence: one of :data:`DIVERGENCE_POLICIES` (``"freeze"``, ``"continue"``, ``"restart"``,
+            ``"propagate"``).
         mode: the gate's modes at the start (B,) bool (None: swing-up, as at every episode start);
             swingup_state: a recurrent swing-up's state (None: its ``initial_state``).
         record: keep the states at every decision (``Rollout.states``).
@@ -468,6 +493,8 @@ def closed_loop_rollout(system: System, controller: SwitchedController, x0, step
                              f"got {tuple(actions.shape)}")
         policy, initial_state = None, (lambda n: None)
     decide = switched_decision if decision is None else decision
+    options = ({} if goal is None else {"goal": goal}) | ({"restore_diverged": False} if on_divergence == "propagate"
+                                                           else {})
     start = x
     h = initial_state(n_rows) if swingup_state is None else swingup_state
     mode = torch.zeros(n_rows, dtype=torch.bool, device=device) if mode is None else mode
@@ -483,9 +510,11 @@ def closed_loop_rollout(system: System, controller: SwitchedController, x0, step
             finite = finite & torch.isfinite(u).all()
             u = u.clamp(-limit, limit)
             x_next, diverged, mode, lqr = decide(system, gate, x, u, mode, K, substeps, stride, gate_dtype,
-                                                 controller.gate_on, controller.gate_off, **({} if goal is None
-                                                                                            else {"goal": goal}))
-            if on_divergence == "freeze":
+                                                 controller.gate_on, controller.gate_off, **options)
+            if on_divergence == "propagate":
+                diverged = control.is_diverged(x_next)
+                x = x_next
+            elif on_divergence == "freeze":
                 ended = diverged_at <= j                          # diverged before this decision: frozen
                 x = torch.where(ended[:, None], x, x_next)       # a diverging row is back at its last finite state
             elif on_divergence == "restart":

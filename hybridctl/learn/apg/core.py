@@ -28,12 +28,12 @@ import torch
 
 from ...limits import MAX_SIMULATION_STEPS, check_at_most
 from ...systems import System
-from ...systems import control
+from ...systems.switched import CostToGoGate, SwitchedController, gate_command, switched_decision
 from ..policies import Policy, PolicyPopulation
 from ..run import check_finite, seeded
 from .config import APGConfig, parse_policy
 
-__all__ = ["APGProblem", "Phase", "BatchedAdam", "LQRTakeover", "ClosedLoopPolicy", "observe", "observation_size",
+__all__ = ["APGProblem", "Phase", "BatchedAdam", "LQRTakeover", "takeover_controller", "ClosedLoopPolicy", "observe", "observation_size",
            "policy_step", "compiled_policy_step", "policy_steps", "compiled_policy_steps", "population_returns",
            "member_gradients", "clip_gradients",
            "cem_update", "start_states", "start_array", "apg_iteration", "apg_episode", "apg_phase",
@@ -68,9 +68,11 @@ def policy_step(system: System, pop: PolicyPopulation, x: torch.Tensor, h: torch
     """One policy step of K x N states x [K, N, n]: observe, act, hold the action over ``substeps``
     integrator steps of ``System.step_unchecked``; returns (next x, next h, reward [K, N], obs, mode).
 
-    ``takeover``: the switched controller's LQR half (:class:`LQRTakeover`): at every integrator
-    step the gate's ``mode`` [K, N] (bool, True = LQR) is updated with hysteresis and the LQR's
-    command replaces the held policy action where the mode is on (as the Drake diagram does).
+    ``takeover``: the switched controller's LQR half (:class:`LQRTakeover`): the held action is one
+    decision of its :class:`~hybridctl.systems.SwitchedController` (:func:`~hybridctl.systems.switched.
+    switched_decision`): every gate period (every integrator step for the APG's) the gate's ``mode``
+    [K, N] (bool, True = LQR) is updated with hysteresis and the saturated LQR command replaces the held
+    policy action where the mode is on (as the Drake diagram does).
     """
     K, N, n = x.shape
     obs = observe(system, x, observation)
@@ -78,48 +80,81 @@ def policy_step(system: System, pop: PolicyPopulation, x: torch.Tensor, h: torch
     u = action.reshape(K * N, system.n_actions)
     xs = x.reshape(K * N, n)
     ms = None if mode is None else mode.reshape(K * N)
-    for _ in range(substeps):
-        if takeover is not None:
-            command, ms = takeover(xs, ms, u)
-            xs = system.step_unchecked(xs, command)
-        else:
+    if takeover is not None:
+        xs, ms = takeover.decide(xs, u, ms, substeps)
+    else:
+        for _ in range(substeps):
             xs = system.step_unchecked(xs, u)
     x = xs.reshape(K, N, n)
     return x, h, system.reward(x), obs, (None if ms is None else ms.reshape(K, N))
 
 
-class LQRTakeover:
-    """The balance half of the switched controller inside a torch rollout (thesis Ch. 3 around Ch. 7).
+def takeover_controller(system: System, decision_period: float | None = None) -> SwitchedController:
+    """The switched controller the APG family trains through (``APGConfig.takeover = "lqr"``):
+    :meth:`SwitchedController.for_system` with the spec's :class:`~hybridctl.systems.switched.CostToGoGate`,
+    hysteresis and LQR; its swing-up the population's actions (None); ``decision_period`` the policy
+    step (None: the spec's ``swingup_period``); and the gate and LQR acting every integrator step
+    (``gate_period = integrator.dt``: what ``takeover = "lqr"`` in a checkpoint's config has always
+    meant; the spec's ``control.period`` equals ``dt`` for every shipped system)."""
+    return SwitchedController.for_system(system, gate=CostToGoGate(system), decision_period=decision_period,
+                                         gate_period=system.dt).replace(swingup=None)
 
-    ``takeover(x [B, n], mode [B] bool, u_policy [B, m]) -> (command [B, m], next mode)``: the
-    spec's cost-to-go gate p = exp(-V(x) / gate.cost_scale) (:class:`~hybridctl.systems.control.
-    CostToGoGate`) with the spec's hysteresis (gate.on / gate.off) chooses, per state, the
-    saturated LQR command -K (x - goal) (Drake's LQR, :meth:`System.lqr`) or the policy's.
-    Every law comes from :mod:`hybridctl.systems.control`, as the Drake blocks'.
+
+class LQRTakeover:
+    """The balance half of the switched controller inside the population rollout (thesis Ch. 3 around
+    Ch. 7): a view of a :class:`~hybridctl.systems.SwitchedController` (default :func:`takeover_controller`)
+    on the rollout's dtype and device, run by the one switched decision of :mod:`hybridctl.systems.switched`.
+
+    ``takeover.decide(x [B, n], u [B, m], mode [B] | None, substeps) -> (x, mode)``: the policy action
+    ``u`` held over ``substeps`` integrator steps while, every ``controller.gate_period`` (``stride``
+    steps), the controller's gate (the spec's cost-to-go gate p = exp(-V(x) / gate.cost_scale)) with its
+    hysteresis (gate.on / gate.off) chooses, per state, the saturated LQR command -K (x - goal) (Drake's
+    LQR, :meth:`System.lqr`) or the policy's (:func:`~hybridctl.systems.switched.switched_decision`; a
+    diverging row runs on to Inf / NaN: the member's return is then non-finite and its gradient skipped).
+    ``takeover(x, mode, u) -> (command, mode)``: one gate evaluation
+    (:func:`~hybridctl.systems.switched.gate_command`).
 
     Training a swing-up with it (``APGConfig.takeover = "lqr"``) optimises the switched
     controller that runs in Drake: the swing-up need only deliver the state into the gate's
     region, and the LQR phase, being stable, passes bounded gradients back to the state where
     the gate switched on. The switch itself is a hard choice: no gradient flows through the
-    switching time.
+    switching time (autograd as :func:`~hybridctl.systems.closed_loop_rollout` with ``differentiable=True``).
+
+    Why the population rollout is not :func:`~hybridctl.systems.closed_loop_rollout` itself: its states are
+    [K, N, n] under K stacked policies that act on observations, it sums the reward and the
+    observation statistics every policy step, cuts the graph every ``truncation`` steps and fuses
+    ``compile_steps`` policy steps into one compiled call (:func:`policy_steps`); the decision inside
+    each policy step is the shared one.
     """
 
-    def __init__(self, system: System, dtype: torch.dtype = torch.float64, device: str | torch.device = "cpu"):
-        K, S = system.lqr()
-        gate = control.CostToGoGate(system)
-        self.system = system
-        self.K = torch.as_tensor(K, dtype=dtype, device=device)   # on the rollout's device: no copy per step
-        self.S = torch.as_tensor(S, dtype=dtype, device=device)
-        self.scale, self.on, self.off = float(gate.scale), float(system.gate.on), float(system.gate.off)
+    def __init__(self, system: System, dtype: torch.dtype = torch.float64, device: str | torch.device = "cpu",
+                 controller: SwitchedController | None = None, decision_period: float | None = None):
+        device = torch.device(device)
+        controller = takeover_controller(system, decision_period) if controller is None else controller
+        if not isinstance(controller, SwitchedController):
+            raise TypeError(f"controller must be a SwitchedController, got {type(controller).__name__}")
+        self.system, self.controller = system, controller
+        self.gate = controller.gate.to(device)   # on the rollout's device: no copy per step
+        self.gate_dtype = self.gate.compute_dtype or dtype
+        self.K = torch.as_tensor(controller.K, dtype=dtype, device=device)
+        self.goal = (None if np.array_equal(controller.goal, system.goal)
+                     else torch.as_tensor(controller.goal, dtype=dtype, device=device))
+        self.on, self.off = controller.gate_on, controller.gate_off
+        self.stride = controller.gate_stride(system)
         self.limit = float(system.action_limit)
 
     def __call__(self, x: torch.Tensor, mode: torch.Tensor | None, u_policy: torch.Tensor):
-        err = self.system.state_error(x)
-        probability = torch.exp(-control.cost_to_go(err, self.S) / self.scale)
-        mode = torch.zeros_like(probability, dtype=torch.bool) if mode is None else mode
-        mode = control.hysteresis(probability, mode, self.on, self.off)
-        balance = control.saturate(control.lqr_command(err, self.K), self.limit)
-        return torch.where(mode[:, None], balance, u_policy), mode
+        """One gate evaluation at states x [B, n]: (command [B, m], next mode [B]); ``mode`` None: swing-up."""
+        mode = torch.zeros(x.shape[0], dtype=torch.bool, device=x.device) if mode is None else mode
+        return gate_command(self.system, self.gate, x, u_policy, mode, self.K, self.gate_dtype, self.on, self.off,
+                            self.goal)
+
+    def decide(self, x: torch.Tensor, u: torch.Tensor, mode: torch.Tensor | None, substeps: int):
+        """``u`` held over ``substeps`` integrator steps under the takeover: (next x [B, n], next mode [B])."""
+        mode = torch.zeros(x.shape[0], dtype=torch.bool, device=x.device) if mode is None else mode
+        x, _, mode, _ = switched_decision(self.system, self.gate, x, u, mode, self.K, substeps, self.stride,
+                                          self.gate_dtype, self.on, self.off, goal=self.goal, restore_diverged=False)
+        return x, mode
 
 
 _COMPILED_STEP = None
@@ -362,7 +397,8 @@ class APGProblem:
                                          init_std=config.init_std, dtype=dtype)
         return cls(system, config, pop.to(device), dtype, float(period), int(round(ratio)),
                    compiled_policy_step() if config.compile else policy_step,
-                   LQRTakeover(system, dtype, device) if config.takeover == "lqr" else None, device,
+                   LQRTakeover(system, dtype, device, decision_period=period) if config.takeover == "lqr" else None,
+                   device,
                    compiled_policy_steps() if config.compile and config.compile_steps > 1 else None)
 
     def starts(self, n: int, seed_words) -> torch.Tensor:
