@@ -26,14 +26,15 @@ from ... import systems as systems_mod
 from ...parallel import make_backend
 from ...systems import System, known_systems
 from ...systems.success import stabilisation
-from ...systems.switched import CostToGoGate, SwitchedController
+from ...systems.switched import SwitchedController
 from .. import checkpoint as ckpt
 from ..base import Learner
 from ..checkpoint import PROGRESS_FILE, Saved
 from ..policies import Policy
 from ..run import EvalResult
 from .config import APGConfig, lr_schedule
-from .core import APGProblem, BatchedAdam, ClosedLoopPolicy, Phase, apg_iteration, apg_phase, population_returns
+from .core import (APGProblem, BatchedAdam, ClosedLoopPolicy, Phase, apg_iteration, apg_phase, population_returns,
+                   takeover_controller)
 from .split import split_apg_phase
 
 __all__ = ["APGFamily", "EpochStep"]
@@ -307,12 +308,12 @@ class APGFamily(Learner):
     def controller(self, system: System | None = None) -> SwitchedController:
         """The trained recurrent swing-up (:meth:`closed_loop_policy`) at its own decision period, under the
         spec's cost-to-go gate (hysteresis) and LQR of ``system`` (default: the one it trained on), the
-        takeover it trains through (thesis Ch. 7)."""
+        takeover it trains through (thesis Ch. 7): :func:`~.core.takeover_controller`, the gate every
+        integrator step, as in training."""
         system = self.system if system is None else system
         if system.name != self.system.name:
             raise ValueError(f"this {self.config.method} policy was trained on {self.system.name}, not {system.name}")
-        return SwitchedController.for_system(system, swingup=self.closed_loop_policy(), gate=CostToGoGate(system),
-                                             decision_period=self.period)
+        return takeover_controller(system, self.period).replace(swingup=self.closed_loop_policy())
 
     def fine_tuning_task(self) -> dict:
         """Its reward (the system's overrides) and its starts (hanging down +- ``start_noise`` on every
