@@ -12,7 +12,7 @@ DOCS_STAMP := $(VENV)/.installed-docs
 # error at the start of the session (tests/conftest.py) instead of a quiet skip.
 TEST_EXTRAS := test,sb3,mujoco,ray
 
-.PHONY: demo test test-all bench docs venv clean
+.PHONY: demo test test-fast test-all bench docs venv clean
 
 $(STAMP): pyproject.toml constraints.txt Makefile
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -33,6 +33,10 @@ demo: $(STAMP)
 # the tests marked xdist_group("ray") on one process, so the session starts one local Ray instance, not two.
 test: $(STAMP)
 	HYBRIDCTL_REQUIRE_EXTRAS=$(TEST_EXTRAS) $(BIN)/python -m pytest -q -n 2 --dist loadgroup
+
+# The edit-test loop: the tests not marked slow or heavy (tests/conftest.py: HEAVY_FILES), aim under 90 s on 2 cores.
+test-fast: $(STAMP)
+	$(BIN)/python -m pytest -q -n 2 --dist loadgroup -m "not slow and not heavy"
 
 # Everything, the slow tests too (the documentation build in headless Chromium among them).
 test-all: $(DOCS_STAMP)

@@ -96,3 +96,59 @@ def local_ray():
     yield ray
     if started:
         ray.shutdown()
+
+
+# The edit-test loop's tier (`make test-fast`): every test except the whole-workflow ones below, which
+# `make test` (and CI) still runs. A file is heavy when its tests start kernels, subprocess commands, Ray
+# or a wheel install, or train end to end; a single heavy test elsewhere carries @pytest.mark.heavy.
+HEAVY_FILES = frozenset({
+    "test_notebooks.py",        # a Jupyter kernel per chapter notebook
+    "test_doc_blocks.py",       # every Python block of the README and the chapter pages
+    "test_install.py",          # builds and installs the wheel
+    "test_ray_cluster.py",      # a local Ray instance and ray start
+    "test_apg_parallel.py",     # process pools and Ray
+    "test_sb3_baselines.py",    # Stable-Baselines3 training runs
+    "test_run_folders.py",      # concurrent training processes
+    "test_device_balance_map.py", "test_device_apg.py", "test_device_finetune.py",   # every backend
+})
+
+
+HEAVY_TESTS = frozenset({
+    # single tests over about 5 s on 2 busy cores (pytest --durations=0), each a whole workflow
+    "test_multibody.py::test_the_command_line_trains_fine_tunes_and_simulates_a_multibody_system_by_name",
+    "test_cli.py::test_demo_balances_the_acrobot_and_the_cartpole",
+    "test_cli.py::test_mesh_writes_matrix_report_and_figures",
+    "test_cli.py::test_debug_flag_shows_the_traceback",
+    "test_cli.py::test_output_into_a_closed_pipe_is_not_an_error",
+    "test_cli.py::test_balance_map_writes_png_and_json",
+    "test_ssac.py::test_gate_is_refit_on_schedule_and_env_uses_it",
+    "test_ssac.py::test_overlapped_gate_refit_gives_the_one_thread_numbers",
+    "test_ssac.py::test_cli_train_resume_simulate_and_balance_map",
+    "test_finetune.py::test_apg_source_rolls_out_what_apg_trains_recurrent_through_its_takeover",
+    "test_finetune.py::test_same_seed_same_result_on_serial_and_processes_and_another_seed_differs",
+    "test_finetune.py::test_cli_finetune_reports_before_and_after_and_resumes",
+    "test_safe_runs.py::test_resume_applies_run_settings_and_refuses_changed_math_settings",
+    "test_safe_runs.py::test_kill_9_ars_then_resume_continues_from_the_checkpoint",
+    "test_ars.py::test_processes_and_serial_backends_agree",
+    "test_hopper_section.py::test_mesh_on_worker_processes_matches_serial",
+    "test_apg_study.py::test_sb3_learners_train_through_the_gym_wrapper_and_are_scored_by_the_same_code",
+    "test_parallel.py::test_an_unguarded_script_gets_one_line_naming_the_guard",
+    "test_compiled.py::test_compiled_sac_gradients_equal_eager",
+    "test_drake_hybrid.py::test_balance_map_workers_keep_the_systems_overrides",
+})
+"""Single heavy tests outside :data:`HEAVY_FILES`, by ``file::name`` (every parametrisation of it)."""
+
+
+def pytest_collection_modifyitems(config, items):
+    """Mark the tests of :data:`HEAVY_FILES` and :data:`HEAVY_TESTS` ``heavy`` (``make test-fast`` leaves
+    them out); a name in HEAVY_TESTS that no longer exists is an error, so the list cannot rot."""
+    collected = set()
+    for item in items:
+        name = f"{item.path.name}::{item.originalname}"
+        collected.add(name)
+        if item.path.name in HEAVY_FILES or name in HEAVY_TESTS:
+            item.add_marker(pytest.mark.heavy)
+    files = {item.path.name for item in items}
+    stale = sorted(t for t in HEAVY_TESTS if t.split("::")[0] in files and t not in collected)
+    if stale:
+        raise pytest.UsageError(f"tests/conftest.py HEAVY_TESTS names tests that do not exist: {stale}")

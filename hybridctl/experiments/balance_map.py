@@ -245,7 +245,8 @@ def _torch_controller(system: System, controller: str) -> SwitchedController:
     with torch.device("cpu"):
         parts = resolve_swingup(system, controller_parts(system, controller))
     if isinstance(parts.swingup, TrajoptSwingup):
-        raise ValueError(f"the torch engine cannot run the swing-up {parts.swingup!r} (Drake only)")
+        raise ValueError(f"the torch engine cannot run controller {controller!r}: the trajopt swing-up reads the "
+                         f"time, so it runs in Drake only (use --engine drake)")
     return parts
 
 
