@@ -166,7 +166,7 @@ GENERATED_BATCHES = (1, 4096)
 
 
 def generated_twin(chain):
-    """The multibody-family twin of a chain system (issue 30): the same robot read by Drake from a model
+    """The multibody-family twin of a chain system: the same robot read by Drake from a model
     file (the thesis acrobot's URDF; the cart-poles' SDF templates filled with the spec's values), its
     torch step generated from Drake's symbolic plant. None for chains without a model file."""
     import tempfile
@@ -281,7 +281,8 @@ def _time_simulation(drake, diagram, x0, repeats: int, cpu: list | None = None) 
 def bench_drake_controller(drake, name: str, controller: str, repeats: int) -> dict:
     """Real-time factor of one named controller's diagram, on the default loop (C++ switch, LQR and saturation;
     Python only in periodic updates) and on ``switch="python"`` (the Python ModeSwitch evaluated at every
-    derivative evaluation and the LQR in a Python block, as before issue 15), timed alternately in this run."""
+    derivative evaluation and the LQR in a Python block, the loop the C++ PortSwitch replaced), timed alternately
+    in this run."""
     from hybridctl.experiments.controllers import build_named_diagram
 
     system = systems.load(name)

@@ -9,7 +9,7 @@ Pendulum-v1 and Hopper-v5, on three paths measured in the same run:
 * ``batched_processes``: the same chunks on the local process backend (``--workers``).
 
 Prints one JSON document with seconds per update and ratios against the peer (no thresholds).
-The aims of issue 14: batched >= 10x the predict loop on Pendulum; 200 updates <= 5 min.
+Its speed aims: batched >= 10x the predict loop on Pendulum; 200 updates <= 5 min.
 
     .venv/bin/python benchmarks/finetune.py [--quick] [--workers 2] [--repeats 2] [--out FILE]
 

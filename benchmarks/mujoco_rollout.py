@@ -1,4 +1,4 @@
-"""MuJoCo rollouts (issue 15, part 5): the batched closed-loop stepper against gymnasium and the physics limit.
+"""MuJoCo rollouts: the batched closed-loop stepper against gymnasium and the physics limit.
 
 Measured in one run, on Hopper-v5 under the shipped ARS hopper (a linear policy with its
 observation normalisation), every episode reset from a gymnasium reset state when it falls:
@@ -162,7 +162,7 @@ def rollout_rate(batch: int, nthread: int, steps: int, M, mean, std, low, high) 
 def section_map_rates(quick: bool, frozen) -> dict:
     """Hopper apex-to-apex transitions/s (thesis Ch. 5 mesh and Monte Carlo work) on the gymnasium path
     and on the batched stepper (1 thread), the same states and pushes, with the projection to the
-    3,715-state x 25-push mesh of issue 15 (1,410 s on the gymnasium path and 2 processes)."""
+    3,715-state x 25-push hopper mesh (1,410 s on the gymnasium path and 2 processes)."""
     from hybridctl.envs.sections import HopperApexMap, x_pushes
     gym_map = HopperApexMap(frozen, engine="gym")
     starts = gym_map.apex_states(steps=400 if quick else 2000)

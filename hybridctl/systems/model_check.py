@@ -1,4 +1,5 @@
-"""Reading a generated-model cache entry and checking it against Drake (issue 47: no cache changes the physics).
+"""Reading a generated-model cache entry and checking it against Drake (a cache file, edited or
+stale, must not change the physics).
 
 :func:`read_cache_entry` reads ``$HYBRIDCTL_CACHE/multibody/KEY.json`` with its size and nesting checked on the
 bytes before they are parsed, then every count, length and number (``MultibodyModel.from_json``).

@@ -1,4 +1,5 @@
-"""Every file a model file names, checked before Drake opens any of them (issue 47).
+"""Every file a model file names, checked before Drake opens any of them (a model file from someone else is
+data: it may name any path).
 
 Drake's parser opens what a URDF, SDF or MJCF file names: meshes (and an .obj's material
 library, a material's textures, a glTF's buffers and images), textures, MJCF ``<include>``s,
