@@ -87,14 +87,15 @@ from .core import (APGProblem, BatchedAdam, ClosedLoopPolicy, LQRTakeover, Phase
                    apg_phase, cem_update, clip_gradients, compiled_policy_step, compiled_policy_steps,
                    evaluate_members,
                    gradient_norms_by_horizon, member_gradients, observation_size, observe, policy_step, policy_steps,
-                   population_returns, returns_along_direction, start_array, start_states)
+                   population_returns, returns_along_direction, start_array, start_states, takeover_controller)
 from .split import apg_chunk, split_apg_phase
 from .family import APGFamily, EpochStep
 from .methods import APG, CEAPG, CEM, PAPG, ShortHorizonAPG
 
 __all__ = ["APG", "ShortHorizonAPG", "PAPG", "CEM", "CEAPG", "APGFamily", "EpochStep", "APGConfig",
            "METHOD_CLASSES", "METHODS", "PRESETS", "OBSERVATIONS", "TAKEOVERS", "APGProblem", "Phase",
-           "BatchedAdam", "LQRTakeover", "ClosedLoopPolicy", "apg_chunk", "split_apg_phase", "policy_step",
+           "BatchedAdam", "LQRTakeover", "takeover_controller", "ClosedLoopPolicy", "apg_chunk", "split_apg_phase",
+           "policy_step",
            "policy_steps", "compiled_policy_step", "compiled_policy_steps", "observe", "observation_size",
            "population_returns", "member_gradients",
            "clip_gradients", "lr_schedule", "parse_policy", "cem_update", "start_states", "start_array",
