@@ -196,7 +196,8 @@ def test_the_apg_takeover_is_a_view_of_the_switched_controller_and_decides_as_cl
     for j in range(steps):
         x, mode = takeover.decide(x, actions[:, j], mode, substeps)
         assert torch.equal(x, run.states[:, j + 1])
-    assert torch.equal(mode, run.mode) and bool(run.lqr_steps.gt(0).any()) and not bool(run.lqr_steps.eq(substeps).all())
+    assert torch.equal(mode, run.mode)
+    assert bool(run.lqr_steps.gt(0).any()) and not bool(run.lqr_steps.eq(substeps).all())
 
     # 2. the APG population rollout (a recurrent policy acting on observations) against closed_loop_rollout of the
     # same policy as the controller's swing-up
@@ -221,8 +222,8 @@ def test_the_apg_takeover_is_a_view_of_the_switched_controller_and_decides_as_cl
 
 
 def test_the_apg_takeover_keeps_autograd_as_a_differentiable_closed_loop_rollout():
-    """The takeover's gradients (the APG's) are ``closed_loop_rollout(differentiable=True)``'s: d(final state)/d(actions)
-    through the LQR phase, the switch a hard choice."""
+    """The takeover's gradients (the APG's) are ``closed_loop_rollout(differentiable=True)``'s:
+    d(final state)/d(actions) through the LQR phase, the switch a hard choice."""
     from hybridctl.learn.apg import LQRTakeover
 
     system = systems.load("cartpole")

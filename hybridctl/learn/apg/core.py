@@ -33,7 +33,8 @@ from ..policies import Policy, PolicyPopulation
 from ..run import check_finite, seeded
 from .config import APGConfig, parse_policy
 
-__all__ = ["APGProblem", "Phase", "BatchedAdam", "LQRTakeover", "takeover_controller", "ClosedLoopPolicy", "observe", "observation_size",
+__all__ = ["APGProblem", "Phase", "BatchedAdam", "LQRTakeover", "takeover_controller",
+           "ClosedLoopPolicy", "observe", "observation_size",
            "policy_step", "compiled_policy_step", "policy_steps", "compiled_policy_steps", "population_returns",
            "member_gradients", "clip_gradients",
            "cem_update", "start_states", "start_array", "apg_iteration", "apg_episode", "apg_phase",
