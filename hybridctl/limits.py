@@ -102,7 +102,7 @@ MAX_INCLUDE_DEPTH = 8
 MAX_BODIES = 100
 """Bodies (links) of one model with its includes expanded, counted in the file before Drake parses it:
 the generated models have at most 12 joints; deriving one with 100 welded links took 0.7 s, with 300
-19 s (measured, issue 47), so 20,000 would not end."""
+19 s (measured on a 2-core machine, 2026-12-07), so 20,000 would not end."""
 MAX_MODEL_LENGTH = 1e3
 """|x| of any offset in a model (joint origins, frames, in m): a kilometre. Products of lengths, masses
 and inertias appear squared in the generated code; past this a typo (1e300) becomes inf there."""
@@ -112,7 +112,7 @@ MAX_MODEL_INERTIA = 1e6
 """Principal moment of inertia of one body of a model, in kg m^2."""
 MAX_DERIVE_SECONDS = 300.0
 """Wall time of one symbolic derivation of a model's equations (checked as it goes): a planar chain
-of 4 joints took 1.8 s, of 5 joints 14 s, of 6 joints more than 2 minutes (measured, issue 47); past
+of 4 joints took 1.8 s, of 5 joints 14 s, of 6 joints more than 2 minutes (measured on a 2-core machine, 2026-12-07); past
 this a model is too large to generate code for."""
 
 __all__ += ["MAX_MODEL_BYTES", "MAX_MESH_BYTES", "MAX_MODEL_FILES", "MAX_INCLUDE_DEPTH", "MAX_BODIES",
