@@ -7,6 +7,7 @@ import torch
 
 from hybridctl import SwitchedController, closed_loop_rollout, systems
 from hybridctl.envs import SwitchedVectorEnv
+from test_switched_env import TanhPolicy   # one fixed smooth swing-up-like policy for both files
 from hybridctl.systems import control
 from hybridctl.systems.switched import (AlwaysGate, CostToGoGate, EnergySwingup, LearnedGate, NeverGate, TrajoptSwingup,
                                         ZeroSwingup)
@@ -15,19 +16,6 @@ from hybridctl.systems.switched import (AlwaysGate, CostToGoGate, EnergySwingup,
 @pytest.fixture(autouse=True)
 def one_thread():
     torch.set_num_threads(1)
-
-
-class TanhPolicy(torch.nn.Module):
-    """A fixed smooth swing-up-like policy (as tests/test_switched_env.py's)."""
-
-    def __init__(self, limit):
-        super().__init__()
-        self.limit = limit
-        self.weights = torch.nn.Parameter(torch.tensor([[0.3, -0.8, 1.5, 0.4]], dtype=torch.float64),
-                                          requires_grad=False)
-
-    def forward(self, x):
-        return self.limit * torch.tanh(x @ self.weights.T)
 
 
 def test_one_class_from_the_package_and_the_systems_room():
