@@ -20,6 +20,8 @@ from typing import Any
 import numpy as np
 
 from . import control
+from . import equilibrium
+from .equilibrium import GOAL_TOLERANCE, EquilibriumError
 from .multibody import ModelError
 from .spec import (GateSection, InitialStateSection, SpecError, Spec, SuccessSection, SwingupSection, known_systems,
                    read_spec, spec_from_document)
@@ -30,7 +32,7 @@ from .system import System, check_array
 __all__ = ["System", "load", "from_drake", "known_systems", "SpecError", "ModelError", "Spec", "check_array", "control",
            "GateSection", "SuccessSection", "InitialStateSection", "SwingupSection", "SwitchedController",
            "closed_loop_rollout", "Rollout", "Gate", "LearnedGate", "CostToGoGate", "AlwaysGate", "NeverGate",
-           "EnergySwingup", "ZeroSwingup", "TrajoptSwingup"]
+           "EnergySwingup", "ZeroSwingup", "TrajoptSwingup", "nearest_equilibrium", "EquilibriumError"]
 
 
 def load(name: str, **overrides: Any) -> System:
@@ -105,3 +107,28 @@ def from_drake(model_file: str, goal, Q, R, *, name: str | None = None, actuated
         doc["params"] = {"gravity": entry(float(gravity), "from_drake argument")}
     base = Path(model["file"]) if found else Path.cwd() / path.name   # where errors say the values come from
     return System(spec_from_document(doc, base, **overrides))
+
+
+def nearest_equilibrium(system_or_model, x, *, tolerance: float = GOAL_TOLERANCE, check_drake: bool = True):
+    """The equilibrium (u = 0) nearest to state ``x``: ``(x_eq, distance)``, the max-norm of the move.
+
+    ``system_or_model``: a :class:`System`, a spec name or path (:func:`load`), or a URDF/SDF/MJCF file
+    (:func:`from_drake`, built with ``goal = x``). Solves qdd(q, v = 0, u = 0) = 0 from the given q on
+    the generated dynamics (Levenberg-Marquardt) and checks the answer on Drake's plant. Raises
+    :class:`EquilibriumError` (one line) where none lies within ``tolerance``. A system's goal within
+    ``GOAL_TOLERANCE`` (1e-2) of an equilibrium is moved there when it is built, with one warning.
+    """
+    system = system_or_model
+    if not isinstance(system, System):
+        ref = str(system_or_model)
+        if ref.lower().endswith((".urdf", ".sdf", ".xml")):
+            import warnings
+            from .symbolic import ModelRequest, load_model, resolve_source
+            n = np.asarray(x, dtype=float).size
+            n_u = load_model(ModelRequest(source=resolve_source(ref))).n_u      # cached: from_drake reads it again
+            with warnings.catch_warnings():     # its goal is x, moved or not: the caller gets the answer instead
+                warnings.simplefilter("ignore")
+                system = from_drake(ref, goal=x, Q=np.eye(n), R=np.eye(n_u), action_limit=1.0)
+        else:
+            system = load(ref)
+    return equilibrium.nearest_equilibrium(system, x, tolerance=tolerance, check_drake=check_drake)

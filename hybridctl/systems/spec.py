@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from ..limits import MAX_SIMULATION_STEPS, MAX_SPEC_BYTES, MAX_SPEC_FILES, MIN_DT
+from .initial_state import InitialStateSection, warn_absolute_offsets
 
 # Specs and robot models ship inside the package (``hybridctl/data``; the repository's top-level
 # ``systems/`` and ``models/`` are links to them), so an installed wheel finds them.
@@ -300,7 +301,11 @@ def spec_from_document(doc: dict, path: Path, **overrides: Any) -> Spec:
 
 
 def read_spec(name_or_path: str | Path, **overrides: Any) -> Spec:
-    """Read, override and validate a spec by system name or by path to a TOML file."""
+    """Read, override and validate a spec by system name or by path to a TOML file.
+
+    ``[initial_state]``: starts are ``nominal + U(low, high)``, so ``low`` and ``high`` are offsets from
+    ``nominal`` (one finite number per state, low <= high, refused in one line otherwise), not absolute
+    states; a coordinate whose [low, high] holds its nonzero nominal but not 0 is warned about."""
     path = Path(name_or_path)
     if path.suffix != ".toml":
         path = spec_path(str(name_or_path))
@@ -441,6 +446,7 @@ def validate_shapes(spec: Spec, n_q: int, n_actions: int) -> None:
             raise spec.error(key, f"must be {n} finite numbers, got {spec.get(key)!r}")
     if np.any(spec.get("initial_state.low") > spec.get("initial_state.high")):
         raise spec.error("initial_state.low", "must be <= initial_state.high elementwise")
+    warn_absolute_offsets(spec)
     for idx in spec.get("state.angles"):
         if not 0 <= idx < n_q:
             raise spec.error("state.angles", f"index {idx} is not a position index (0..{n_q - 1})")
@@ -557,19 +563,6 @@ class SuccessSection:
 
     eps: float
     lookback: int
-
-
-@dataclass(frozen=True)
-class InitialStateSection:
-    """``[initial_state]``: x0 = nominal + U(low, high), elementwise."""
-
-    nominal: np.ndarray
-    low: np.ndarray
-    high: np.ndarray
-
-    def sample(self, n: int, rng: np.random.Generator) -> np.ndarray:
-        """n initial states (n, len(nominal)) drawn with ``rng``."""
-        return self.nominal + rng.uniform(self.low, self.high, size=(n, len(self.nominal)))
 
 
 @dataclass(frozen=True)

@@ -14,6 +14,7 @@ import torch
 
 from . import control
 from .dynamics import ChainDynamics, ChainParams
+from .equilibrium import EQUILIBRIUM_XDOT, settle_goal
 from .multibody import GeneratedDynamics, ModelError, MultibodyModel
 from .rewards import Reward, reward_for
 from .spec import (OPTIONAL_DEFAULTS, GateSection, InitialStateSection, Spec, SuccessSection, SwingupSection,
@@ -154,6 +155,7 @@ class System:
                                  torch.zeros(2, self.n_actions, dtype=dtype))  # compile twice)
         self._lqr_cache: dict = {}
         self._input_matrix: np.ndarray | None = None
+        self.goal = settle_goal(self)      # a goal within GOAL_TOLERANCE of an equilibrium moves there, said
         self._warn_tuned_values_kept()
 
     def __repr__(self) -> str:
@@ -519,8 +521,9 @@ class System:
             port = _plants().actuation_port(plant)
             port.FixValue(context, np.zeros(port.size()))
             xdot = plant.EvalTimeDerivatives(context).CopyToVector()
-            if np.abs(xdot).max() > 1e-8:
-                raise ValueError(f"{self.name}: the goal is not an equilibrium with u = 0 (xdot = {xdot})")
+            if np.abs(xdot).max() > EQUILIBRIUM_XDOT:
+                raise ValueError(f"{self.name}: the goal {self.goal.tolist()} is not an equilibrium with u = 0, nor "
+                                 f"near one (xdot = {xdot.tolist()}); see systems.nearest_equilibrium")
             from pydrake.systems.framework import OutputPortSelection
             linear = Linearize(plant, context, input_port_index=port.get_index(),
                                output_port_index=OutputPortSelection.kNoOutput)
