@@ -349,7 +349,7 @@ ENV_KWARGS_CASES = [
 
 @pytest.mark.parametrize("kwargs, message", ENV_KWARGS_CASES, ids=[str(k)[:40] for k, _ in ENV_KWARGS_CASES])
 def test_recorded_env_kwargs_are_known_keys_and_plain_values(kwargs, message):
-    from hybridctl.learn.rollouts import recorded_env_kwargs
+    from hybridctl.learn.rollout_envs import recorded_env_kwargs
     with pytest.raises(CheckpointError, match=message):
         recorded_env_kwargs(kwargs, "config.json", "system.kwargs")
     assert recorded_env_kwargs({"render_mode": "rgb_array", "ctrl_cost_weight": 1e-3}, "c", "k") is not None

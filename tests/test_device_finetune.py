@@ -15,7 +15,7 @@ from hybridctl.analysis.postprocess import PostProcessor
 from hybridctl.envs import SwitchedVectorEnv, TorchVectorEnv
 from hybridctl.learn.finetune import FineTune, FineTuneConfig
 from hybridctl.learn.finetune_sources import TunablePolicy, load_policy
-from hybridctl.learn.rollouts import AUTO_CHUNK_MAX, ChunkInputs, batched_actions, chunk_slices, unflatten
+from hybridctl.learn.chunk_tasks import AUTO_CHUNK_MAX, ChunkInputs, batched_actions, chunk_slices, unflatten
 from hybridctl.learn.run import seeded
 from hybridctl.parallel import SerialBackend, make_backend
 from hybridctl.systems import load as load_system

@@ -53,9 +53,11 @@ from . import checkpoint as ckpt
 from .checkpoint import PROGRESS_FILE, Saved
 from .config_check import check_fields, check_types
 from .random_search import RandomSearchLearner
-from .rollouts import (ACCEPTED_IDS, FrozenPolicy, PolicySpec, RolloutTask, batchable,  # noqa: F401 (re-exported)
-                       evaluation_seeds, make_env, measure_dimensions, recorded_env_id, recorded_env_kwargs,
-                       rollouts, run_episode, run_episodes_batched)
+from .episode_tasks import RolloutTask, batchable, run_episode, run_episodes_batched  # noqa: F401 (re-exported)
+from .flat_policy import FrozenPolicy, PolicySpec
+from .rollout_envs import ACCEPTED_IDS, make_env, recorded_env_id, recorded_env_kwargs  # noqa: F401 (re-exported)
+from .rollout_results import evaluation_seeds
+from .rollouts import rollouts
 from .run import EvalResult, seeded
 
 

@@ -56,13 +56,15 @@ from ..systems import load as load_system
 from ..systems.switched import CostToGoGate, LearnedGate, NeverGate, SwitchedController
 from . import checkpoint as ckpt
 from .checkpoint import PROGRESS_FILE, Saved
+from .chunk_tasks import (AUTO_CHUNK_MAX, AUTO_CHUNK_MAX_ACCELERATOR, ChunkInputs, ChunkTask, Shipped, chunk_slices,
+                          is_recurrent, normalise, unflatten)
 from .config_check import check_fields, check_types
 from .finetune_sources import SELECTIONS, TunablePolicy, load_policy, source_kinds
 from .random_search import RandomSearchLearner
 from .robustness import wilson_interval  # noqa: F401 (re-exported: hybridctl.learn.finetune.wilson_interval)
-from .rollouts import (AUTO_CHUNK_MAX, AUTO_CHUNK_MAX_ACCELERATOR, COST_TO_GO_GATE, ChunkInputs,  # noqa: F401
-                       ChunkTask, Shipped, batched_actions, chunk_slices, evaluation_seeds, is_recurrent, make_env,
-                       normalise, recorded_env_id, recorded_env_kwargs, rollouts, run_chunk, unflatten)
+from .rollout_envs import make_env, recorded_env_id, recorded_env_kwargs
+from .rollout_results import evaluation_seeds
+from .rollouts import rollouts
 from .run import EvalResult
 from .config_check import check_device_field
 

@@ -18,7 +18,8 @@ from ..systems import known_systems
 from ..systems import load as load_system
 from ..systems.switched import CostToGoGate, LearnedGate, NeverGate
 from .registry import checkpoint_kinds, gate_of_kind, load_deployed
-from .rollouts import COST_TO_GO_GATE, make_env
+from .chunk_tasks import COST_TO_GO_GATE
+from .rollout_envs import make_env
 
 __all__ = ["SELECTIONS", "source_kinds", "AffineNormalizer", "ScaledModule", "TunablePolicy", "parse_source",
            "load_policy"]

@@ -18,7 +18,11 @@ import numpy as np
 
 from ..analysis.postprocess import PostProcessor
 from ..parallel import make_backend
-from .rollouts import FrozenPolicy, PolicySpec, RolloutTask, evaluation_seeds, make_env, rollouts
+from .episode_tasks import RolloutTask
+from .flat_policy import FrozenPolicy, PolicySpec
+from .rollout_envs import make_env
+from .rollout_results import evaluation_seeds
+from .rollouts import rollouts
 
 
 def wilson_interval(failures: int, n: int, z: float = 1.96) -> tuple[float, float]:
