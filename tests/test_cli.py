@@ -45,6 +45,21 @@ def test_simulate_writes_all_outputs(tmp_path):
     assert "<html" in (out / "replay.html").read_text()[:2000].lower()
 
 
+def test_simulate_force_loads_a_checkpoint_trained_on_other_spec_values_from_a_spec_file(tmp_path, capsys):
+    """SYSTEM may be a spec file's path; --force loads a checkpoint trained on other spec values (as the
+    refusal says), with a warning naming what differs."""
+    text = (ROOT / "systems" / "acrobot.toml").read_text()
+    spec = tmp_path / "acrobot_g97.toml"
+    spec.write_text(text.replace("gravity      = { value = 9.8,", "gravity = { value = 9.7,"))
+    args = ("simulate", str(spec), "--controller", f"ssac:{ROOT / 'models/policies/ssac-acrobot'}", "--duration", "0.05",
+            "--no-html")
+    code, _, err = run_in_process(capsys, *args, "--out", str(tmp_path / "refused"))
+    assert code == 2 and "params.gravity=9.8; this system has 9.7" in err and "--force" in err
+    with pytest.warns(UserWarning, match="force: loading anyway: .*params.gravity=9.8; this system has 9.7"):
+        code, out, _ = run_in_process(capsys, *args, "--force", "--out", str(tmp_path / "forced"))
+    assert code == 0 and json.loads((tmp_path / "forced" / "summary.json").read_text())["system"] == "acrobot"
+
+
 def test_balance_map_writes_png_and_json(tmp_path):
     out = tmp_path / "map"
     proc = run("balance-map", "pendulum", "--grid", "3", "--workers", "1", "--quiet", "--out", str(out))
@@ -149,9 +164,27 @@ def test_mesh_writes_matrix_report_and_figures(tmp_path):
         assert (out / name).stat().st_size > 5000, name
 
 
+def test_mesh_sweep_of_slope_stds_writes_the_curve(tmp_path, capsys):
+    """Several --slope-std values (rad, or degrees as 2deg): the MFPT-vs-roughness sweep, one line per sigma."""
+    out = tmp_path / "sweep"
+    code, stdout, err = run_in_process(capsys, "mesh", "rimless-wheel", "--slope-std", "0.06", "5deg", "2deg",
+                                       "--box-size", "0.01", "--monte-carlo", "200", "--monte-carlo-budget", "1e5",
+                                       "--out", str(out), "--quiet")
+    assert code == 0, err
+    record = json.loads((out / "mfpt_vs_roughness.json").read_text())
+    assert [round(r["slope_std_deg"], 3) for r in record["rows"]] == [2.0, 3.438, 5.0]
+    assert [r["monte_carlo"]["status"] for r in record["rows"]] == ["skipped", "run", "run"]
+    assert "Monte Carlo skipped" in stdout and "above the budget" in stdout and record["command"].startswith("hybridctl")
+    assert (out / "mfpt_vs_roughness.png").stat().st_size > 5000
+
+
 @pytest.mark.parametrize("args, message", [
     (["mesh", "rimless-wheel", "--slope-mean", "-0.5"], "no rolling gait"),
     (["mesh", "rimless-wheel", "--box-size", "0"], "must be a finite number > 0"),
+    (["mesh", "rimless-wheel", "--slope-std", "0.06", "0deg"], "must be a finite number > 0, got 0"),
+    (["mesh", "rimless-wheel", "--slope-std", "0.06", "0.08", "--sizes", "0.1"], "does not apply to a sweep"),
+    (["mesh", "rimless-wheel", "--slope-std", "0.06", "0.08", "--monte-carlo-budget", "1e9"],
+     "--monte-carlo-budget is 1e+09, above its limit"),
     (["mesh", "hopper"], "invalid choice"),
 ])
 def test_mesh_bad_arguments(args, message, tmp_path, capsys):

@@ -191,11 +191,12 @@ def limits_epilog(*flags: str) -> str:
                       f"machine's memory ({budget:.1f} GiB); nothing lifts it"])
 
 
-def add_force_flag(parser: argparse.ArgumentParser) -> None:
-    """``--force``: lift the stated caps (the epilog lists them); the memory limit stays."""
+def add_force_flag(parser: argparse.ArgumentParser, also: str = "") -> None:
+    """``--force``: lift the stated caps (the epilog lists them); the memory limit stays. ``also``: what else
+    it does on this command (``simulate``: load a checkpoint trained on other spec values)."""
     parser.add_argument("--force", action="store_true",
                         help="lift the stated limits on sizes, counts and durations (listed below); "
-                             "never the memory limit")
+                             "never the memory limit" + (f"; {also}" if also else ""))
 
 
 def add_debug_flag(parser: argparse.ArgumentParser, top_level: bool = False) -> None:

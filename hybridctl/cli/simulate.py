@@ -57,7 +57,8 @@ def add_parser(sub) -> None:
     p.add_argument("--out", default="runs/simulate", help="output folder (default: runs/simulate)")
     p.add_argument("--no-html", action="store_true", help="skip the replay.html")
     p.add_argument("--meshcat", action="store_true", help="also show it live in meshcat (localhost)")
-    add_force_flag(p)
+    add_force_flag(p, also="and load a KIND:PATH checkpoint trained on other spec values (another plant) anyway, "
+                           "with a warning naming what differs")
     add_debug_flag(p)
     p.set_defaults(func=run_simulate)
 

@@ -13,11 +13,12 @@ from pathlib import Path
 import numpy as np
 
 from .. import io
-from ..drake import simulate
+from ..drake import build_hybrid_diagram, simulate
 from ..drake.simulate import check_duration
-from ..systems import System, load
+from ..learn.registry import gate_of_kind, load_controller
+from ..systems import System, SwitchedController, load
 from ..viz import plot_trajectory, replay_html
-from .controllers import build_named_diagram, display_name
+from .controllers import controller_parts, display_name
 
 OUTPUTS = ("trajectory.npz", "summary.json", "plot.png", "replay.html")
 """What :func:`simulate_and_write` writes into its folder."""
@@ -41,7 +42,9 @@ def simulate_and_write(system: System | str, controller: str = "energy", out: st
             refused when another run holds it, or when it holds an input (a spec, a model, a
             checkpoint) or files of these names that a simulation did not write.
         force: lift the stated cap on the steps of one run (not the memory limit); the duration
-            is checked before anything is built or written (``drake.simulate.check_duration``).
+            is checked before anything is built or written (``drake.simulate.check_duration``); and load a
+            ``KIND:PATH`` checkpoint trained on other spec values (another plant) anyway, with a warning
+            (:func:`hybridctl.learn.load_controller`'s ``force``), as ``train --resume --force`` does.
 
     Returns:
         The run's summary (``Trajectory.summary``: balanced, return, diverged, ...), plus
@@ -54,7 +57,7 @@ def simulate_and_write(system: System | str, controller: str = "energy", out: st
     duration = check_duration(system, duration, force)
     start = system.nudged_nominal_state() if x0 is None else np.asarray(x0, dtype=float)
     with io.command_folder(out, "simulate", OUTPUTS, OWN) as out:
-        diagram = build_named_diagram(system, controller, meshcat=meshcat)
+        diagram = build_hybrid_diagram(system, _controller(system, controller, force), meshcat=meshcat)
         traj = simulate(diagram, start, duration, realtime_rate=1.0 if meshcat is not None else 0.0, force=force)
         traj.meta["controller"] = controller
         if command is not None:
@@ -70,3 +73,13 @@ def simulate_and_write(system: System | str, controller: str = "energy", out: st
                 replay_html(system, traj.t, traj.x, path=out / "replay.html")
                 written.append("replay.html")
         return {**summary, "written": written}
+
+
+def _controller(system: System, controller: str, force: bool) -> SwitchedController:
+    """The controller named ``controller`` (``controller_parts``); with ``force`` a ``KIND:PATH`` checkpoint
+    trained on other spec values is loaded anyway (``load_controller(..., force=True)`` warns what differs)."""
+    kind, sep, path = controller.partition(":")
+    gate = gate_of_kind(kind) if sep and path else None
+    if force and gate is not None:
+        return load_controller(path, system, gate=gate, force=True)   # on the CPU, as controller_parts
+    return controller_parts(system, controller)
