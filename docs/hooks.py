@@ -90,7 +90,7 @@ def on_config(config):
 # Figures of the results tree that pages show (a page links them as ``results/...png``): added to the
 # site's files from the repository root, so the records stay in one place and the build fails on a
 # missing one (strict mode checks every link).
-RESULT_FIGURES = ("results/matrix/matrix.png",)
+RESULT_FIGURES = ("results/matrix/matrix.png", "results/ch5/mfpt_vs_roughness/mfpt_vs_roughness.png")
 
 
 def on_files(files, config):

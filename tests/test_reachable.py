@@ -298,3 +298,30 @@ def test_samples_per_box_resume_and_round_trip(tmp_path):
         build_mesh(*args, samples_per_box=2, checkpoint=ck, resume=True, progress=False)
     with pytest.raises(ValueError, match="samples_per_box must be an integer >= 1"):
         build_mesh(*args, samples_per_box=0, progress=False)
+
+
+def test_mfpt_vs_roughness_sweep_writes_record_and_skips_unaffordable_monte_carlo(tmp_path):
+    """Issue 50 item 3: the mesh inside the Monte Carlo interval where Monte Carlo is cheap; a sigma whose
+    Monte Carlo would pass the budget is skipped with the reason (not run); a never-failing chain too."""
+    from hybridctl.experiments.mfpt_sweep import mfpt_vs_roughness
+    from hybridctl.io import read_json
+
+    stds = [0.06, 0.08, math.radians(2), math.radians(1)]
+    record = mfpt_vs_roughness("rimless-wheel", tmp_path / "sweep", stds, box_size=1e-2, monte_carlo=300,
+                               monte_carlo_budget=1e5)
+    assert (tmp_path / "sweep" / "mfpt_vs_roughness.png").stat().st_size > 10_000
+    saved = read_json(tmp_path / "sweep" / "mfpt_vs_roughness.json")
+    rows = {round(row["slope_std"], 6): row for row in saved["rows"]}
+    for std in (0.06, 0.08):
+        row = rows[std]
+        lo, hi = row["monte_carlo"]["interval95"]
+        assert row["monte_carlo"]["status"] == "run" and row["monte_carlo"]["censored"] == 0
+        assert lo <= row["mesh_mfpt"] <= hi, (std, row["mesh_mfpt"], lo, hi)
+        assert row["refinement"]["converged"] and len(row["refinement"]["counts"]) >= 2
+    two = rows[round(math.radians(2), 6)]
+    assert two["mesh_mfpt"] > 1e4 and two["monte_carlo"]["status"] == "skipped"
+    assert "budget" in two["monte_carlo"]["reason"] and "episodes" not in two["monte_carlo"]
+    one = rows[round(math.radians(1), 6)]
+    assert one["never_fails"] and one["mesh_mfpt"] is None and "never fails" in one["monte_carlo"]["reason"]
+    assert record["regimes"] == {"monte_carlo": [0.06, 0.08], "mesh_only": [math.radians(2)],
+                                 "never_fails": [math.radians(1)]}

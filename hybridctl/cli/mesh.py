@@ -6,9 +6,10 @@ import argparse
 import math
 
 from ..experiments import MESH_MAPS, mesh_report
+from ..experiments.mfpt_sweep import mfpt_vs_roughness, sweep_line
 from ..analysis import DEFAULT_REFINE_RTOL, DISTURBANCE_RULES
 from ..analysis.reachable import check_disturbances
-from ..limits import MAX_MONTE_CARLO, MAX_REFINED_DISTURBANCES, check_at_most
+from ..limits import MAX_MONTE_CARLO, MAX_REFINED_DISTURBANCES, MAX_SWEEP_MONTE_CARLO_STEPS, check_at_most
 from ._common import (non_negative, USAGE_ERROR, add_backend_flags, add_debug_flag, ray_options_for, check_backend_flags, add_force_flag, add_quiet_flag, cli_errors, finite,
                       limits_epilog, positive)
 
@@ -20,7 +21,12 @@ def add_parser(sub) -> None:
     p.add_argument("map", choices=sorted(MESH_MAPS), help="; ".join(f"{k}: {v}" for k, v in MESH_MAPS.items()))
     p.add_argument("--box-size", type=positive(float), default=1e-3, help="box side (default 1e-3)")
     p.add_argument("--slope-mean", type=finite(float), default=0.15, help="mean terrain slope, rad (default 0.15)")
-    p.add_argument("--slope-std", type=positive(float), default=0.06, help="slope std, rad (default 0.06)")
+    p.add_argument("--slope-std", type=slope_std, nargs="+", default=[0.06], metavar="SIGMA",
+                   help="slope std, rad, or degrees as '2deg' (default 0.06); several values: the MFPT-vs-roughness "
+                        "sweep (mfpt_vs_roughness.json and .png: refined mesh per sigma, Monte Carlo where affordable)")
+    p.add_argument("--monte-carlo-budget", type=positive(float), default=MAX_SWEEP_MONTE_CARLO_STEPS, metavar="STEPS",
+                   help="sweep: run a sigma's Monte Carlo only if --monte-carlo x the mesh's MFPT is at most STEPS "
+                        f"expected steps, else skip it with the reason (default and limit {MAX_SWEEP_MONTE_CARLO_STEPS:.0e})")
     p.add_argument("--disturbances", type=positive(int), default=25,
                    help="slope points of the first grid, doubled until the MFPT settles (--disturbance-rule grid), "
                         "or the slope quantiles (quantiles); default 25")
@@ -55,6 +61,16 @@ def add_parser(sub) -> None:
     add_quiet_flag(p)
     add_debug_flag(p)
     p.set_defaults(func=run_mesh)
+
+
+def slope_std(text: str) -> float:
+    """An argparse type: a slope std in rad, or in degrees written ``2deg``; finite and > 0."""
+    degrees = text.endswith("deg")
+    value = positive(float)(text[:-3] if degrees else text)
+    return math.radians(value) if degrees else value
+
+
+slope_std.__name__ = "float"
 
 
 def result_line(report: dict) -> str:
@@ -92,6 +108,12 @@ def check_mesh_arguments(args: argparse.Namespace) -> None:
     if args.monte_carlo and args.monte_carlo_chunks > args.monte_carlo:
         raise ValueError(f"--monte-carlo-chunks must be in [1, --monte-carlo={args.monte_carlo}], "
                          f"got {args.monte_carlo_chunks}")
+    if len(args.slope_std) > 1:
+        for flag, given in (("--sizes", args.sizes), ("--resume", args.resume)):
+            if given:
+                raise ValueError(f"{flag} does not apply to a sweep of several --slope-std values")
+        check_at_most("--monte-carlo-budget", args.monte_carlo_budget, MAX_SWEEP_MONTE_CARLO_STEPS, args.force,
+                      why="expected simulated steps of one sigma's Monte Carlo")
     check_backend_flags(args)
 
 
@@ -99,6 +121,13 @@ def check_mesh_arguments(args: argparse.Namespace) -> None:
 def run_mesh(args: argparse.Namespace) -> int:
     """Build the mesh and write the MFPT report and figures; exit 2 when the mesh hit --max-states."""
     check_mesh_arguments(args)
+    if len(args.slope_std) > 1:
+        with ray_options_for(args):
+            sweep = _sweep(args)
+        for row in sweep["rows"]:
+            print(sweep_line(row))
+        print(f"wrote {args.out}/mfpt_vs_roughness.json and mfpt_vs_roughness.png")
+        return 0
     with ray_options_for(args):   # --task-cpus/--task-gpus/--task-memory/--runtime-env for the Ray tasks
         report = _mesh_report(args)
     if "error" in report:
@@ -112,7 +141,7 @@ def run_mesh(args: argparse.Namespace) -> int:
 def _mesh_report(args: argparse.Namespace) -> dict:
     """:func:`mesh_report` with the command's flags."""
     return mesh_report(args.map, args.out, box_size=args.box_size, slope_mean=args.slope_mean,
-                       slope_std=args.slope_std, disturbances=args.disturbances, max_states=args.max_states,
+                       slope_std=args.slope_std[0], disturbances=args.disturbances, max_states=args.max_states,
                        monte_carlo=args.monte_carlo, sizes=args.sizes, backend=args.backend,
                        workers=args.workers, resume=args.resume, progress=not args.quiet,
                        command=args.command_line, overwrite=args.overwrite,
@@ -120,3 +149,14 @@ def _mesh_report(args: argparse.Namespace) -> dict:
                        address=args.address, monte_carlo_chunks=args.monte_carlo_chunks,
                        disturbance_rule=args.disturbance_rule, refine_rtol=args.refine_rtol,
                        max_disturbances=args.max_disturbances, tails=args.tails)
+
+
+def _sweep(args: argparse.Namespace) -> dict:
+    """:func:`mfpt_vs_roughness` with the command's flags."""
+    return mfpt_vs_roughness(args.map, args.out, args.slope_std, box_size=args.box_size, slope_mean=args.slope_mean,
+                             disturbances=args.disturbances, max_states=args.max_states, monte_carlo=args.monte_carlo,
+                             monte_carlo_budget=args.monte_carlo_budget, monte_carlo_chunks=args.monte_carlo_chunks,
+                             disturbance_rule=args.disturbance_rule, refine_rtol=args.refine_rtol,
+                             max_disturbances=args.max_disturbances, tails=args.tails, backend=args.backend,
+                             workers=args.workers, address=args.address, progress=False,
+                             command=args.command_line, overwrite=args.overwrite, force=args.force)

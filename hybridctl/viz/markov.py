@@ -101,3 +101,52 @@ def plot_mesh_sizes(rows: list[dict], ax=None, path=None, label=None):
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
     return _finish(fig, own, path)
+
+
+def plot_mfpt_vs_roughness(record: dict, ax=None, path=None):
+    """MFPT (log axis) against slope std in degrees: the refined mesh as a line, Monte Carlo as points
+    with 95 % error bars, and the regimes shaded: where Monte Carlo ran, where the mesh is the only
+    estimate, where the chain never fails in float64 (drawn as arrows at the top).
+
+    ``record``: what :func:`hybridctl.experiments.mfpt_vs_roughness` returns (or its JSON).
+    """
+    rows = sorted(record["rows"], key=lambda r: r["slope_std"])
+    fig, ax, own = _figure(ax, size=(6, 4))
+    deg = np.array([r["slope_std_deg"] for r in rows])
+    mesh = np.array([np.inf if r.get("never_fails") else np.nan if r["mesh_mfpt"] is None else r["mesh_mfpt"]
+                     for r in rows], dtype=float)      # JSON writes infinity as null, with never_fails true
+    finite = np.isfinite(mesh)
+    ax.semilogy(deg[finite], mesh[finite], "o-", color="tab:blue", label="refined mesh")
+    mc = [r for r in rows if r["monte_carlo"]["status"] == "run"]
+    if mc:
+        x = np.array([r["slope_std_deg"] for r in mc])
+        y = np.array([r["monte_carlo"]["mean_steps_to_failure"] for r in mc])
+        lo = np.array([r["monte_carlo"]["interval95"][0] for r in mc])
+        hi = np.array([r["monte_carlo"]["interval95"][1] for r in mc])
+        runs = mc[0]["monte_carlo"]["episodes"]
+        ax.errorbar(x, y, yerr=[y - lo, hi - y], fmt="s", ms=4, capsize=3, color="tab:orange",
+                    label=f"Monte Carlo, {runs:,} runs, 95 %")
+    top = np.nanmax(mesh[finite]) * 10 if finite.any() else 1e9
+    never = deg[np.isinf(mesh)]
+    if never.size:
+        ax.scatter(never, np.full(never.size, top), marker="^", color="k", label="never fails (float64)")
+    mids = 0.5 * (deg[1:] + deg[:-1])       # each sigma's band reaches half way to its neighbours
+    first, last = (deg[0] - (mids[0] - deg[0]), deg[-1] + (deg[-1] - mids[-1])) if deg.size > 1 else \
+        (deg[0] - 0.5, deg[0] + 0.5)
+    edges = np.concatenate([[first], mids, [last]])
+    shades = {"run": ("tab:green", "Monte Carlo affordable"), "skipped": ("tab:red", "mesh only"),
+              "never": ("0.6", "chain never fails")}
+    shown = set()
+    for k, (r, m) in enumerate(zip(rows, mesh)):
+        kind = "never" if np.isposinf(m) else r["monte_carlo"]["status"] if np.isfinite(m) else None
+        if kind is None:
+            continue
+        colour, text = shades[kind]
+        ax.axvspan(edges[k], edges[k + 1], color=colour, alpha=0.12, lw=0, label=None if kind in shown else text)
+        shown.add(kind)
+    ax.set(xlabel="slope std sigma (degrees)", ylabel="mean first-passage time (steps)",
+           title=f"{record.get('map', 'mesh')}, mean slope {record.get('slope_mean', float('nan')):g} rad, box "
+                 f"{record.get('box_size', float('nan')):g}")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=7, loc="upper right")
+    return _finish(fig, own, path)
