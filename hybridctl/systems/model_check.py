@@ -119,3 +119,40 @@ def _evaluate(polys, variables: np.ndarray) -> np.ndarray:
     with np.errstate(all="ignore"):
         terms = coefficients * np.prod(variables[:, None, :] ** exponents[None], axis=2)
     return np.stack([np.bincount(owner, weights=row, minlength=len(polys)) for row in terms])
+
+
+_WARNED: set[tuple[str, str]] = set()   # (model file, warning): each said once per process
+
+
+def warn_unenforced(plant, source: str) -> None:
+    """One warning line per model file (once per process) for what a model file states and neither engine applies:
+    an actuator's gear ratio != 1 (MJCF ``gear``, URDF ``<mechanicalReduction>``: Drake keeps it for reflected
+    rotor inertia only, applies u as joint torque and clamps it to the effort limit, as the generated dynamics do),
+    and joint position limits (MJCF ``range``, URDF/SDF ``<limit lower upper>``: Drake's continuous-time plant
+    does not enforce them, nor do the generated dynamics). Takes the finalized plant; imports no pydrake."""
+    import warnings
+    mjcf = source.lower().endswith(".xml")
+    limit_word = "ctrlrange" if mjcf else "effort limit"
+    gear_word = "gear" if mjcf else "mechanical reduction"
+    range_word = "range" if mjcf else "<limit lower upper>"
+    said = []
+    for index in plant.GetJointActuatorIndices():
+        actuator = plant.get_joint_actuator(index)
+        gear = float(actuator.default_gear_ratio())
+        if gear != 1.0:
+            e = float(actuator.effort_limit())
+            said.append(f"actuator {actuator.name()!r} ({gear_word}): gear {gear:g} is not applied: Drake and the "
+                        f"generated dynamics apply u as joint torque within {limit_word} [{-e:g}, {e:g}]")
+    for index in plant.GetJointIndices():
+        joint = plant.get_joint(index)
+        if joint.num_positions() != 1:
+            continue
+        low, high = float(joint.position_lower_limits()[0]), float(joint.position_upper_limits()[0])
+        if np.isfinite(low) or np.isfinite(high):
+            unit = "m" if joint.type_name() == "prismatic" else "rad"
+            said.append(f"joint {joint.name()!r} ({range_word}) has position limits [{low:.6g}, {high:.6g}] {unit}; "
+                        f"neither Drake's continuous plant nor the generated dynamics enforce them")
+    for text in said:
+        if (source, text) not in _WARNED:
+            _WARNED.add((source, text))
+            warnings.warn(f"model file {source}: {text}", UserWarning, stacklevel=4)

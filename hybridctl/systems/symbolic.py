@@ -128,6 +128,7 @@ def parse_plant(request: ModelRequest, plant=None):
         plant.mutable_gravity_field().set_gravity_vector([0.0, 0.0, -float(request.gravity)])
     plant.Finalize()
     check_structure(plant, request)
+    model_check.warn_unenforced(plant, request.source)
     return plant
 
 
