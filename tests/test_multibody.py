@@ -609,3 +609,40 @@ def test_a_cache_entry_under_the_key_of_a_request_that_cannot_be_derived_is_not_
     with pytest.warns(UserWarning, match="model cache .*: its tip body 'hand' is not a body of the model; derived"):
         with pytest.raises(ModelError, match="model.tip_body 'hand' is not a body of the model"):
             symbolic.load_model(bad)
+
+
+# ------------------------------------------------------------- issue 49: a built system saved as a spec file
+def test_save_spec_writes_a_spec_that_loads_to_the_same_dynamics_and_lqr_bit_for_bit(rng, tmp_path):
+    (tmp_path / "pendubot.urdf").write_text(_pendubot_urdf())
+    with pytest.warns(UserWarning, match="moved .* to the nearest equilibrium"):
+        robot = systems.from_drake(str(tmp_path / "pendubot.urdf"), goal=[3.1416, 0, 0, 0], Q=np.diag([10, 5, 1, 1]),
+                                   R=[[2.0]], gravity=9.80665, tip_body="lower_link", tip_point=[0, 0, -1.0],
+                                   dt=0.005, gate__cost_scale=7.5)
+    path = robot.save_spec(tmp_path / "pendubot.toml")
+    text = path.read_text()
+    assert 'family = "multibody"' in text and 'file = { value = "pendubot.urdf"' in text   # next to the spec
+    assert re.search(r"source = \"from_drake argument: \[3.1416, 0.0, 0.0, 0.0\] moved 7.3\d*e-06 to the nearest "
+                     r"equilibrium", text) and 'source = "user override"' in text and "file_sha256" not in text
+    import tomllib
+    doc = tomllib.loads(text)
+    bare = {"system.name", "system.description", "model.family"}
+    assert all("source" in entry for section, table in doc.items() for key, entry in table.items()
+               if f"{section}.{key}" not in bare)
+    again = systems.load(str(path))
+    assert again.goal.tolist() == robot.goal.tolist() and again.dt == 0.005 and again.action_limit == robot.action_limit
+    X = torch.as_tensor(rng.uniform(-4, 4, (64, 4)))
+    U = torch.as_tensor(rng.uniform(-3, 3, (64, 1)))
+    assert torch.equal(again.derivatives(X, U), robot.derivatives(X, U))
+    assert torch.equal(again.step(X, U), robot.step(X, U))
+    for a, b in zip(again.lqr(), robot.lqr()):
+        assert np.array_equal(a, b)
+    with pytest.raises(FileExistsError, match=r"pendubot.toml exists; pass overwrite=True to replace it") as error:
+        robot.save_spec(path)
+    assert "\n" not in str(error.value)
+    robot.save_spec(path, overwrite=True)
+    # a model outside the spec's folder keeps its absolute path; a shipped spec round-trips too
+    (tmp_path / "elsewhere").mkdir()
+    assert f'file = {{ value = "{tmp_path / "pendubot.urdf"}"' in robot.save_spec(tmp_path / "elsewhere/p.toml").read_text()
+    furuta = systems.load("furuta")
+    copy = systems.load(str(furuta.save_spec(tmp_path / "elsewhere/furuta.toml")))
+    assert torch.equal(copy.derivatives(X, U[:, :1]), furuta.derivatives(X, U[:, :1]))

@@ -440,6 +440,13 @@ class System:
         """The unit of the action, as the spec gives it for ``action.limit`` (N m, N); empty if it gives none."""
         return self.spec.units.get("action.limit", "")
 
+    def save_spec(self, path, *, overwrite: bool = False):
+        """Write this system as a complete spec TOML file (every value with its source; the goal it uses, its
+        source saying where it was moved to the nearest equilibrium), atomically; an existing file is refused
+        unless ``overwrite``. ``systems.load(path)`` builds the same dynamics and LQR (:mod:`.spec_writer`)."""
+        from .spec_writer import save_spec
+        return save_spec(self, path, overwrite=overwrite)
+
     def drake_plant(self):
         """A fresh Drake plant (AcrobotPlant, PendulumPlant or continuous MultibodyPlant).
 
