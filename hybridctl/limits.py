@@ -207,3 +207,15 @@ sweep (``hybridctl mesh MAP --slope-std A B ...``); above it that sigma's Monte 
 reason recorded. Measured on one core of the development machine: the rimless wheel's 2,000 runs at
 sigma 2 degrees (6.4e7 steps) take 13-25 s, so 1e8 is under a minute."""
 __all__ += ["MAX_SWEEP_MONTE_CARLO_STEPS"]
+
+
+MAX_SECTION_STEP_SECONDS = 5.0
+"""Wall time one step of a Drake section map (``hybridctl.drake.sections``: the rimless wheel, the compass
+gait) may take; past it the step stops and counts as a fall (the map's ``last_failure`` and ``guard_trips``
+say so). A normal compass-gait step takes about 15 ms here; a falling one whose legs chatter on the ground
+(heel strikes in a Zeno sequence) ran on for minutes before the guard."""
+MAX_SECTION_INTEGRATOR_STEPS = 50_000
+"""Integrator steps one step of a Drake section map may take before it counts as a fall (deterministic,
+unlike the wall-time guard: about 13 s of simulated time at the 1e-3 s largest step; a normal compass-gait
+step takes under 1,000)."""
+__all__ += ["MAX_SECTION_STEP_SECONDS", "MAX_SECTION_INTEGRATOR_STEPS"]

@@ -67,3 +67,49 @@ def test_map_is_a_pure_function_of_state_and_slope():
     for w, g in ((2.0, 0.3), (0.5, 0.0), (1.1, 0.2)):
         used.step([w], g)
     np.testing.assert_array_equal(used.step([1.29], 0.1), DrakeRimlessWheelMap().step([1.29], 0.1))
+
+
+CHATTERING = ([-0.231, 0.0101, -0.1938], 0.0291)   # legs together, heel strikes in a Zeno sequence: ran for minutes
+
+
+@pytest.mark.timeout(60)
+def test_compass_gait_falling_start_returns_within_the_guard():
+    """Before the guard this step never returned (a probe ran 900 s); now it is a fall in well under a second."""
+    import time
+    from hybridctl.drake import DrakeCompassGaitMap
+    walker = DrakeCompassGaitMap()
+    start = time.monotonic()
+    assert walker.step(*CHATTERING) is None
+    assert time.monotonic() - start < 5.0
+    assert walker.last_failure == "heel-strike guard" and walker.guard_trips["heel-strike guard"] == 1
+
+
+@pytest.mark.timeout(60)
+def test_compass_gait_integrator_step_and_wall_time_guards():
+    from hybridctl.drake import DrakeCompassGaitMap
+    walker = DrakeCompassGaitMap(max_integrator_steps=200)
+    walker.max_strikes = None
+    assert walker.step(*CHATTERING) is None and walker.last_failure == "integrator-step guard"
+    walker = DrakeCompassGaitMap(wall_limit=0.05)
+    walker.max_strikes = None
+    assert walker.step(*CHATTERING) is None and walker.last_failure == "wall-time guard"
+    assert walker.guard_trips["wall-time guard"] == 1
+    assert walker.step([-0.0927, -0.1, -1.9771], 0.05) is None and walker.last_failure == "rolled back"
+
+
+def test_compass_gait_parameters_are_set_and_checked():
+    from hybridctl.drake import DrakeCompassGaitMap
+    default = DrakeCompassGaitMap().gait(steps=30)
+    heavy = DrakeCompassGaitMap(mass_hip=10.0, mass_leg=5.0, length_leg=1.0, center_of_mass_leg=0.5, gravity=9.81)
+    np.testing.assert_array_equal(heavy.gait(steps=30), default)
+    long_legs = DrakeCompassGaitMap(length_leg=1.1, center_of_mass_leg=0.55).gait(steps=30)
+    # scaled legs: the same angles, rates slower by sqrt(1.1) (the parameters reach the plant)
+    np.testing.assert_allclose(long_legs, default * [1, 1.1 ** -0.5, 1.1 ** -0.5], atol=1e-6)
+    assert np.abs(DrakeCompassGaitMap(mass_hip=12.0).gait(steps=30) - default).max() > 1e-3
+    np.testing.assert_allclose(DrakeCompassGaitMap(slope=0.06).gait(steps=30), [-0.1099, 0.4361, -2.0680], atol=1e-3)
+    for kwargs, name in (({"mass_hip": -1.0}, "mass_hip"), ({"mass_leg": 0.0}, "mass_leg"),
+                         ({"length_leg": 1e3}, "length_leg"), ({"gravity": float("nan")}, "gravity"),
+                         ({"slope": 1.0}, "slope"), ({"center_of_mass_leg": 1.5}, "center_of_mass_leg"),
+                         ({"hip_pd": (1.0, 2.0)}, "hip_pd"), ({"wall_limit": 0.0}, "wall_limit")):
+        with pytest.raises(ValueError, match=f"^{name} must"):
+            DrakeCompassGaitMap(**kwargs)

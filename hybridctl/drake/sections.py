@@ -16,15 +16,23 @@ pickles as plain parameters; each process builds its own Drake diagram on first 
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 from pydrake.systems.framework import (BasicVector, DiagramBuilder, EventStatus, LeafSystem, PublishEvent,
                                        WitnessFunctionDirection)
 
 from ..analysis.poincare import SectionMap
+from ..limits import MAX_SECTION_INTEGRATOR_STEPS, MAX_SECTION_STEP_SECONDS
 
 APEX = "apex"
 ROLLED_BACK = "rolled back"
+TIMED_OUT = "no section within the simulated-time limit"
+WALL_GUARD = "wall-time guard"
+STEPS_GUARD = "integrator-step guard"
+STRIKES_GUARD = "heel-strike guard"
+GUARDS = (WALL_GUARD, STEPS_GUARD, STRIKES_GUARD)
+"""Why a step stopped early (``last_failure``); each counts as a fall and is tallied in ``guard_trips``."""
 
 
 class SectionObserver(LeafSystem):
@@ -56,17 +64,36 @@ class SectionObserver(LeafSystem):
 
 class _DrakeSectionMap(SectionMap):
     """A Drake hybrid system with a slope parameter as a section map (plain parameters; the
-    diagram is built on first use in each process, since Drake objects do not pickle)."""
+    diagram is built on first use in each process, since Drake objects do not pickle).
+
+    Every step is guarded, so that none hangs: no section within ``timeout`` s of simulated time,
+    more than ``max_integrator_steps`` integrator steps (default
+    :data:`~hybridctl.limits.MAX_SECTION_INTEGRATOR_STEPS`), more than ``max_strikes`` collisions
+    (subclasses; None: no limit) or more than ``wall_limit`` s of wall time (default
+    :data:`~hybridctl.limits.MAX_SECTION_STEP_SECONDS`) each end the step as a fall (None). The
+    reason is in ``last_failure`` and the guards' trips are counted in ``guard_trips`` (per process:
+    worker processes keep their own). Only the wall-time guard depends on the machine; the others
+    keep the map a pure function of (state, disturbance).
+    """
 
     section_index = 0        # the state coordinate whose upward zero crossing is the section
     speed_index = 1          # the rate whose downward zero crossing is failure (turned back)
+    max_strikes: int | None = None    # collisions (stance-toe moves) one step may have
 
-    def __init__(self, timeout: float, accuracy: float, max_step: float):
+    def __init__(self, timeout: float, accuracy: float, max_step: float, wall_limit: float = MAX_SECTION_STEP_SECONDS,
+                 max_integrator_steps: int = MAX_SECTION_INTEGRATOR_STEPS):
+        for name, value in (("timeout", timeout), ("accuracy", accuracy), ("max_step", max_step),
+                            ("wall_limit", wall_limit), ("max_integrator_steps", max_integrator_steps)):
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be finite and > 0, got {value}")
         self.timeout, self.accuracy, self.max_step = timeout, accuracy, max_step
+        self.wall_limit, self.max_integrator_steps = float(wall_limit), int(max_integrator_steps)
+        self.last_failure: str | None = None
+        self.guard_trips = {name: 0 for name in GUARDS}
         self._parts = None
 
     def __getstate__(self):
-        return {k: v for k, v in self.__dict__.items() if k != "_parts"}   # Drake objects do not pickle
+        return {k: v for k, v in self.__dict__.items() if k not in ("_parts", "_guard")}   # Drake objects do not pickle
 
     def __setstate__(self, state):
         self.__dict__.update(state, _parts=None)
@@ -93,18 +120,38 @@ class _DrakeSectionMap(SectionMap):
         context.SetAccuracy(self.accuracy)
         plant_context = plant.GetMyMutableContextFromRoot(context)
         self._configure(plant_context)
+        simulator.set_monitor(lambda root: self._monitor(plant_context))
         self._parts = (simulator, context, plant_context, observer)
+
+    def _monitor(self, plant_context):
+        """After each simulator step: stop the step (as a fall) when a guard trips."""
+        guard = self._guard
+        guard["steps"] += 1
+        toe = plant_context.get_discrete_state_vector().GetAtIndex(0)
+        if toe != guard["toe"]:
+            guard["toe"], guard["strikes"] = toe, guard["strikes"] + 1
+        if self.max_strikes is not None and guard["strikes"] > self.max_strikes:
+            guard["tripped"] = STRIKES_GUARD
+        elif guard["steps"] > self.max_integrator_steps:
+            guard["tripped"] = STEPS_GUARD
+        elif guard["steps"] % 64 == 0 and time.monotonic() > guard["deadline"]:
+            guard["tripped"] = WALL_GUARD
+        else:
+            return EventStatus.DidNothing()
+        return EventStatus.ReachedTermination(None, guard["tripped"])
 
     def _full_state(self, state: np.ndarray) -> list[float]:
         """The plant's continuous state on the section for a section state."""
         raise NotImplementedError
 
     def step(self, state, disturbance):
-        """Simulate from the section state on slope ``disturbance`` to the next section, or None."""
+        """Simulate from the section state on slope ``disturbance`` to the next section, or None
+        (a fall; why in ``last_failure``)."""
         if self._parts is None:
             self._build()
         simulator, context, plant_context, observer = self._parts
         state = np.asarray(state, dtype=np.float64).reshape(-1)
+        self.last_failure = "not finite"
         if not np.all(np.isfinite(state)):
             return None
         context.SetTime(0.0)
@@ -118,10 +165,19 @@ class _DrakeSectionMap(SectionMap):
         integrator = simulator.get_mutable_integrator()
         integrator.Reset()
         integrator.set_maximum_step_size(self.max_step)
+        self._guard = {"steps": 0, "strikes": 0, "toe": 0.0, "tripped": None,
+                       "deadline": time.monotonic() + self.wall_limit}
         simulator.Initialize()
         simulator.AdvanceTo(self.timeout)
-        if observer.last_event != APEX:
+        tripped = self._guard["tripped"]
+        if tripped is not None:
+            self.guard_trips[tripped] += 1
+            self.last_failure = tripped
             return None
+        if observer.last_event != APEX:
+            self.last_failure = observer.last_event or TIMED_OUT
+            return None
+        self.last_failure = None
         x = plant_context.get_continuous_state_vector().CopyToVector()
         return np.delete(x, self.section_index)
 
@@ -169,33 +225,91 @@ class DrakeRimlessWheelMap(_DrakeSectionMap):
     def step(self, state, disturbance):
         """Simulate from the apex with angular velocity ``state[0]`` on slope ``disturbance``."""
         if not float(np.asarray(state).reshape(-1)[0]) > 0:
+            self.last_failure = ROLLED_BACK
             return None
         return super().step(state, disturbance)
 
 
+COMPASS_GAIT_RANGES = {"mass_hip": (1e-3, 1e4), "mass_leg": (1e-3, 1e4), "length_leg": (1e-2, 1e2),
+                       "gravity": (1e-2, 1e3), "slope": (-0.5, 0.5)}
+"""Ranges (inclusive) of :class:`DrakeCompassGaitMap`'s parameters; ``center_of_mass_leg`` is in
+(0, ``length_leg``]."""
+
+
+class HipPD(LeafSystem):
+    """Hip torque ``u = kp (target - (swing - stance)) - kd (swingdot - stancedot)`` from the compass
+    gait's state: a PD on the inter-leg angle toward ``target`` (rad)."""
+
+    def __init__(self, kp: float, kd: float, target: float):
+        super().__init__()
+        self.kp, self.kd, self.target = kp, kd, target
+        self.DeclareVectorInputPort("state", BasicVector(4))
+        self.DeclareVectorOutputPort("hip_torque", BasicVector(1), self._torque)
+
+    def _torque(self, context, output):
+        stance, swing, stancedot, swingdot = self.get_input_port(0).Eval(context)
+        output.SetAtIndex(0, self.kp * (self.target - (swing - stance)) - self.kd * (swingdot - stancedot))
+
+
 class DrakeCompassGaitMap(_DrakeSectionMap):
-    """Mid-stance-to-mid-stance map of Drake's passive ``CompassGait`` (hip torque 0), slope per step.
+    """Mid-stance-to-mid-stance map of Drake's ``CompassGait``, slope per step (the disturbance).
 
     Section: the stance leg passes vertical (stance angle 0, walking forward). Section state:
-    (swing angle, stance rate, swing rate). Failure: the stance leg turns back, or no next
-    section within ``timeout`` s. On Drake's default slope 0.0525 the map has a period-1
-    passive gait near (-0.0927, 0.4239, -1.9771) (see :meth:`gait`).
+    (swing angle, stance rate, swing rate). Failure (None): a stance rate <= 0 on the section, the
+    stance leg turns back, no next section within ``timeout`` s of simulated time (default 5 s: the
+    walker stopped or lies on the ground), more than ``max_strikes`` (2) heel strikes in one step (the
+    legs chatter on the ground, a Zeno fall that once ran for minutes), or the integrator-step and
+    wall-time guards of :class:`_DrakeSectionMap`; ``last_failure`` says which.
+
+    Parameters (Drake's ``CompassGaitParams``, ranges in :data:`COMPASS_GAIT_RANGES`): ``mass_hip``,
+    ``mass_leg`` (kg), ``length_leg`` (m), ``center_of_mass_leg`` (m from the hip), ``gravity``;
+    ``slope`` is the nominal slope (rad) that :meth:`gait` walks on (each step's slope is the
+    disturbance). ``hip_pd=(kp, kd, target)``: a hip-torque controller (:class:`HipPD`); None (default):
+    the passive walker (torque 0). On the defaults the map has a period-1 passive gait near
+    (-0.0927, 0.4239, -1.9771) (see :meth:`gait`).
     """
 
     state_names = ("swing", "stancedot", "swingdot")
     section_index, speed_index = 0, 2
+    max_strikes = 2
 
-    def __init__(self, timeout: float = 5.0, accuracy: float = 1e-10, max_step: float = 1e-3):
-        super().__init__(timeout, accuracy, max_step)
+    def __init__(self, mass_hip: float = 10.0, mass_leg: float = 5.0, length_leg: float = 1.0,
+                 center_of_mass_leg: float = 0.5, gravity: float = 9.81, slope: float = 0.0525,
+                 hip_pd: tuple[float, float, float] | None = None, timeout: float = 5.0, accuracy: float = 1e-10,
+                 max_step: float = 1e-3, **guards):
+        values = {"mass_hip": mass_hip, "mass_leg": mass_leg, "length_leg": length_leg, "gravity": gravity,
+                  "slope": slope}
+        for name, value in values.items():
+            lo, hi = COMPASS_GAIT_RANGES[name]
+            if not (math.isfinite(value) and lo <= value <= hi):
+                raise ValueError(f"{name} must be in [{lo:g}, {hi:g}], got {value}")
+        if not (math.isfinite(center_of_mass_leg) and 0 < center_of_mass_leg <= length_leg):
+            raise ValueError(f"center_of_mass_leg must be in (0, length_leg={length_leg:g}], got {center_of_mass_leg}")
+        if hip_pd is not None:
+            hip_pd = tuple(float(v) for v in hip_pd)
+            if len(hip_pd) != 3 or not all(math.isfinite(v) for v in hip_pd):
+                raise ValueError(f"hip_pd must be three finite numbers (kp, kd, target), got {hip_pd}")
+        super().__init__(timeout, accuracy, max_step, **guards)
+        self.params = {**values, "center_of_mass_leg": center_of_mass_leg}
+        self.slope, self.hip_pd = slope, hip_pd
 
     def _plant(self, builder):
         from pydrake.examples import CompassGait
         from pydrake.systems.primitives import ConstantVectorSource
 
         plant = builder.AddSystem(CompassGait())
-        torque = builder.AddSystem(ConstantVectorSource([0.0]))
+        if self.hip_pd is None:
+            torque = builder.AddSystem(ConstantVectorSource([0.0]))
+        else:
+            torque = builder.AddSystem(HipPD(*self.hip_pd))
+            builder.Connect(plant.get_output_port(0), torque.get_input_port(0))
         builder.Connect(torque.get_output_port(0), plant.get_input_port(0))
         return plant
+
+    def _configure(self, plant_context):
+        params = plant_context.get_mutable_numeric_parameter(0)
+        for name, value in self.params.items():
+            getattr(params, f"set_{name}")(float(value))
 
     def _full_state(self, state):
         return [0.0, *map(float, state)]
@@ -203,12 +317,21 @@ class DrakeCompassGaitMap(_DrakeSectionMap):
     def _reset_abstract(self, plant_context):
         plant_context.get_mutable_abstract_state(0).set_value(True)    # left leg is the stance leg
 
-    def gait(self, slope: float = 0.0525, start=(0.0, 0.4, -2.0), steps: int = 60) -> np.ndarray:
-        """The passive gait's section state on a constant ``slope``, by iterating the map."""
+    def step(self, state, disturbance):
+        """Simulate from mid-stance (swing, stancedot, swingdot) on slope ``disturbance``; None: a fall."""
+        if not float(np.asarray(state, dtype=np.float64).reshape(-1)[1]) > 0:
+            self.last_failure = ROLLED_BACK
+            return None
+        return super().step(state, disturbance)
+
+    def gait(self, slope: float | None = None, start=(0.0, 0.4, -2.0), steps: int = 60) -> np.ndarray:
+        """The gait's section state on a constant ``slope`` (default: the map's ``slope``), by iterating the map."""
+        slope = self.slope if slope is None else slope
         s = np.asarray(start, dtype=np.float64)
         for _ in range(steps):
             nxt = self.step(s, slope)
             if nxt is None:
-                raise ValueError(f"the compass gait fell on slope {slope} while settling into its gait")
+                raise ValueError(f"the compass gait fell on slope {slope} while settling into its gait "
+                                 f"({self.last_failure})")
             s = nxt
         return s
