@@ -71,6 +71,24 @@ def test_balance_map_writes_png_and_json(tmp_path):
     assert "balanced_fraction" in proc.stdout
 
 
+@pytest.mark.parametrize("engine", ["drake", "torch"])
+def test_balance_map_force_loads_a_checkpoint_trained_on_other_spec_values(engine, tmp_path, capsys):
+    """As simulate --force: the refusal names what differs and --force; --force loads it anyway (warned), and the
+    Drake engine's workers rebuild the controller by name with force too."""
+    text = (ROOT / "systems" / "acrobot.toml").read_text()
+    spec = tmp_path / "acrobot_g97.toml"
+    spec.write_text(text.replace("gravity      = { value = 9.8,", "gravity = { value = 9.7,"))
+    args = ("balance-map", str(spec), "--controller", f"ssac:{ROOT / 'models/policies/ssac-acrobot'}", "--grid", "2",
+            "--duration", "0.2", "--engine", engine, "--backend", "serial", "--quiet")
+    code, _, err = run_in_process(capsys, *args, "--out", str(tmp_path / "refused"))
+    assert code == 2 and "params.gravity=9.8; this system has 9.7" in err and "--force" in err
+    with pytest.warns(UserWarning, match="force: loading anyway: .*params.gravity=9.8; this system has 9.7"):
+        code, out, err = run_in_process(capsys, *args, "--force", "--out", str(tmp_path / "forced"))
+    assert code == 0, err
+    result = json.loads((tmp_path / "forced" / "balance_map.json").read_text())
+    assert np.array(result["balanced"]).shape == (2, 2)
+
+
 def test_balance_map_near_hanging_down_spans_the_half_width_around_the_nominal_state(tmp_path, capsys):
     """--near 0.3: the acrobot's th1, th2 within +-0.3 of hanging down (not its default every angle)."""
     out = tmp_path / "near"

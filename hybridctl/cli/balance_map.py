@@ -33,7 +33,8 @@ def add_parser(sub) -> None:
     p.add_argument("--device", help="torch device of the torch engine's rollouts (cpu, cuda, cuda:0; default cpu); "
                                     "refused for --engine drake")
     p.add_argument("--out", default="runs/balance_map", help="output folder")
-    add_force_flag(p)
+    add_force_flag(p, also="and load a KIND:PATH checkpoint trained on other spec values (another plant) anyway, "
+                           "with a warning naming what differs")
     add_quiet_flag(p)
     add_debug_flag(p)
     p.set_defaults(func=run_balance_map)

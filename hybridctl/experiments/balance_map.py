@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import os
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -150,12 +151,16 @@ def near_hanging_down(system: System, half_width: float):
 _WORKER_DIAGRAMS: dict = {}
 
 
-def _worker_diagram(spec_name: str, overrides: dict, controller: str):
-    """The diagram of (system, controller), built once per process and reused for every start."""
-    key = (spec_name, tuple(sorted(overrides.items())), controller)
+def _worker_diagram(spec_name: str, overrides: dict, controller: str, force: bool = False):
+    """The diagram of (system, controller), built once per process and reused for every start (``force``: a
+    checkpoint trained on other spec values loads anyway, as in the parent, which warned)."""
+    key = (spec_name, tuple(sorted(overrides.items())), controller, force)
     if key not in _WORKER_DIAGRAMS:
         _WORKER_DIAGRAMS.clear()     # one diagram per worker: a new map replaces the last one
-        _WORKER_DIAGRAMS[key] = build_named_diagram(load(spec_name, **overrides), controller)
+        with warnings.catch_warnings():
+            if force:
+                warnings.simplefilter("ignore")
+            _WORKER_DIAGRAMS[key] = build_named_diagram(load(spec_name, **overrides), controller, force)
     return _WORKER_DIAGRAMS[key]
 
 
@@ -165,7 +170,7 @@ def _simulate_chunk(args) -> tuple[list[tuple[int, bool, float, bool]], float]:
     cpu = time.process_time()
     torch.set_num_threads(1)
     spec_name, overrides, controller, duration, force, starts = args
-    diagram = _worker_diagram(spec_name, overrides, controller)
+    diagram = _worker_diagram(spec_name, overrides, controller, force)
     results = []
     for index, x0 in starts:
         traj = simulate(diagram, x0, duration, force=force)
@@ -235,15 +240,15 @@ def _grid_starts(system: System, grid: int, axes, ranges):
     return (a1, a2), values1, values2, starts
 
 
-def _torch_controller(system: System, controller: str) -> SwitchedController:
+def _torch_controller(system: System, controller: str, force: bool = False) -> SwitchedController:
     """The :class:`~hybridctl.systems.SwitchedController` of a named controller, built on the CPU, with its
     energy swing-up's law resolved for torch.
 
     Checkpoints load and the spec's gate builds inside ``torch.device("cpu")`` whatever the
     default device, as :func:`hybridctl.learn.run.seeded` builds networks: the rollout moves them
-    to its device."""
+    to its device. ``force``: a checkpoint trained on other spec values loads anyway (warned)."""
     with torch.device("cpu"):
-        parts = resolve_swingup(system, controller_parts(system, controller))
+        parts = resolve_swingup(system, controller_parts(system, controller, force))
     if isinstance(parts.swingup, TrajoptSwingup):
         raise ValueError(f"the torch engine cannot run controller {controller!r}: the trajopt swing-up reads the "
                          f"time, so it runs in Drake only (use --engine drake)")
@@ -251,7 +256,7 @@ def _torch_controller(system: System, controller: str) -> SwitchedController:
 
 
 def torch_rollouts(system: System, controller: str, starts, duration: float | None = None,
-                   device: str | torch.device = "cpu") -> dict:
+                   device: str | torch.device = "cpu", force: bool = False) -> dict:
     """Simulate a named controller from every row of ``starts`` (N, n) at once, in batched torch on ``device``.
 
     The controller's :class:`~hybridctl.systems.SwitchedController` (the one the Drake diagram is built
@@ -260,7 +265,8 @@ def torch_rollouts(system: System, controller: str, starts, duration: float | No
     the Drake blocks), held in between; inside, the gate with hysteresis, the LQR and the saturation
     every ``control.period`` and ``System.step_unchecked`` every ``dt``, in float64, as the Drake diagram
     does (the decision of :class:`hybridctl.envs.SwitchedVectorEnv`). ``duration`` (default: the spec's
-    episode) must be a whole number of swing-up periods.
+    episode) must be a whole number of swing-up periods. ``force``: a ``KIND:PATH`` checkpoint trained on
+    other spec values loads anyway (with ``load_controller``'s warning).
 
     Everything stepped lives on ``device``: the states, the policy (a loaded one is moved there),
     the gate, the LQR gain and the per-run records. The loop copies nothing to the host: the
@@ -278,7 +284,7 @@ def torch_rollouts(system: System, controller: str, starts, duration: float | No
     duration = system.episode_duration if duration is None else float(duration)
     starts = np.atleast_2d(np.asarray(starts, dtype=float))
     n_runs = len(starts)
-    parts = _torch_controller(system, controller)
+    parts = _torch_controller(system, controller, force)
     period = parts.decision_period
     overrides = {**system.spec.overrides, "episode__duration": duration}
     run_system = load(str(system.spec.path), **overrides)
@@ -314,16 +320,19 @@ def _torch_chunk(args) -> tuple[int, dict, float]:
     """Worker: the batched torch rollouts of one chunk of grid starts; returns (index of its first
     start, its ``balanced``/``returns``/``diverged``, the CPU seconds this process spent on it)."""
     cpu = time.process_time()
-    spec_path, overrides, controller, duration, device, threads, first, starts = args
+    spec_path, overrides, controller, duration, device, threads, first, starts, force = args
     if threads is not None:      # a worker process: one thread each, so that the workers share the cores
         torch.set_num_threads(threads)
     check_device_available("--device", torch.device(device))    # a Ray worker's own GPUs
-    result = torch_rollouts(load(spec_path, **overrides), controller, starts, duration, device)
+    with warnings.catch_warnings():
+        if force and threads is not None:     # a worker process: the parent said it
+            warnings.simplefilter("ignore")
+        result = torch_rollouts(load(spec_path, **overrides), controller, starts, duration, device, force)
     return first, {key: result[key] for key in ("balanced", "returns", "diverged")}, time.process_time() - cpu
 
 
 def _torch_map(system: System, controller: str, grid_states: np.ndarray, duration: float, device: torch.device,
-               backend: str, workers: int | None, address: str | None, progress: bool):
+               backend: str, workers: int | None, address: str | None, progress: bool, force: bool = False):
     """(balanced, returns, diverged (grid * grid,), meta) of the torch engine: one batched chunk of
     the starts per worker of ``backend`` (serial: one batch, in this process)."""
     n = len(grid_states)
@@ -335,12 +344,12 @@ def _torch_map(system: System, controller: str, grid_states: np.ndarray, duratio
         # one process needs no pool (spawned workers each import torch and Drake: seconds)
         pool = make_backend("serial" if workers == 1 else "processes", workers if workers > 1 else None, address)
     if pool.name != "serial":
-        _torch_controller(system, controller)   # a bad name or checkpoint fails here, not in a worker
+        _torch_controller(system, controller, force)   # a bad name or checkpoint fails here, not in a worker
     # one chunk per worker: every chunk costs the same (all runs take every decision), so more
     # chunks would only add per-task costs
     threads = None if pool.name == "serial" else 1
     jobs = [(str(system.spec.path), dict(system.spec.overrides), controller, duration, str(device), threads,
-             int(rows[0]), grid_states[rows]) for rows in np.array_split(np.arange(n), min(workers, n))]
+             int(rows[0]), grid_states[rows], force) for rows in np.array_split(np.arange(n), min(workers, n))]
     balanced, returns, diverged = np.zeros(n, dtype=bool), np.zeros(n), np.zeros(n, dtype=bool)
     bar = tqdm(total=n, desc=f"balance map {system.name} (torch)", disable=not progress, unit="run")
     cpu = 0.0
@@ -383,7 +392,8 @@ def balance_map(system: System | str, controller: str = "energy", grid: int = 41
     time alone says little.
 
     The size is checked before any work (:func:`check_balance_map`: grid, duration, all steps
-    together, workers, memory, device); ``force`` lifts the stated caps, not the memory limit. Never
+    together, workers, memory, device); ``force`` lifts the stated caps, not the memory limit, and loads a
+    ``KIND:PATH`` checkpoint trained on other spec values anyway (warned, as ``simulate --force``). Never
     more worker processes start than there are tasks.
     """
     if engine not in ENGINES:
@@ -406,11 +416,11 @@ def balance_map(system: System | str, controller: str = "energy", grid: int = 41
     if engine == "torch":
         balanced, returns, diverged, meta = _torch_map(system, controller, grid_states, duration,
                                                        torch.device("cpu" if device is None else device), backend,
-                                                       workers, address, progress)
+                                                       workers, address, progress, force)
         return BalanceMap(system.name, controller, names, values1, values2, balanced.reshape(grid, grid),
                           returns.reshape(grid, grid), diverged.reshape(grid, grid), duration,
                           time.perf_counter() - start_time, meta=meta, units=units)
-    build_named_diagram(system, controller, log=False)  # bad names/checkpoints fail here, not in a worker
+    build_named_diagram(system, controller, force, log=False)  # bad names/checkpoints fail here, not in a worker
     starts = list(enumerate(grid_states))
     pool = make_backend("ray", workers, address) if backend == "ray" else None   # its size: the cluster's
     if pool is not None:

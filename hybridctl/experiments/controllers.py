@@ -58,14 +58,15 @@ def display_name(controller: str) -> str:
         return f"{kind}:.../{Path(*absolute.parts[-2:])}"
 
 
-def controller_parts(system: System, controller: str = "energy") -> SwitchedController:
+def controller_parts(system: System, controller: str = "energy", force: bool = False) -> SwitchedController:
     """The :class:`~hybridctl.systems.SwitchedController` of a controller given by name (see ``CONTROLLERS``);
     loads checkpoints. What the name leaves open is the spec's (:meth:`SwitchedController.for_system`).
 
     ``KIND:PATH``: the checkpoint's controller through the learner contract
     (:func:`hybridctl.learn.load_controller`), with the gate ``KIND`` selects
     (:func:`hybridctl.learn.registry.gate_of_kind`: ``sac`` none, ``ssac`` the learned one,
-    ``ssac-costgate`` the spec's cost-to-go gate, every other kind the checkpoint's own)."""
+    ``ssac-costgate`` the spec's cost-to-go gate, every other kind the checkpoint's own); ``force``: load a
+    checkpoint trained on other spec values (another plant) anyway, with ``load_controller``'s warning."""
     if controller in HAND_DESIGNED:
         swingup, gate = HAND_DESIGNED[controller]
         return SwitchedController.for_system(system, swingup=swingup(),
@@ -75,18 +76,18 @@ def controller_parts(system: System, controller: str = "energy") -> SwitchedCont
     if gate is not None:
         if not path:
             raise ValueError(f"controller {controller!r} needs a checkpoint path after '{kind}:'")
-        return load_controller(path, system, gate=gate)   # on the CPU, whatever device it trained on
+        return load_controller(path, system, gate=gate, force=force)   # on the CPU, whatever device it trained on
     raise ValueError(f"unknown controller {controller!r}; known: "
                      + ", ".join(f"{k} ({v})" for k, v in CONTROLLERS.items())
                      + f"; checkpoint kinds: {', '.join(checkpoint_kinds())}")
 
 
-def build_named_diagram(system: System, controller: str = "energy", **kwargs) -> HybridDiagram:
+def build_named_diagram(system: System, controller: str = "energy", force: bool = False, **kwargs) -> HybridDiagram:
     """``build_hybrid_diagram`` of the :class:`~hybridctl.systems.SwitchedController` of a controller given by
     name (see ``CONTROLLERS``).
 
     Names are what the command line and worker processes pass around, since
     Drake systems and closures do not pickle. ``kwargs`` go to ``build_hybrid_diagram``
-    (and win over the checkpoint's gate thresholds and periods).
+    (and win over the checkpoint's gate thresholds and periods); ``force`` as in :func:`controller_parts`.
     """
-    return build_hybrid_diagram(system, controller_parts(system, controller), **kwargs)
+    return build_hybrid_diagram(system, controller_parts(system, controller, force), **kwargs)
