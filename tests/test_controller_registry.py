@@ -133,7 +133,7 @@ def test_the_toy_checkpoint_makes_a_torch_balance_map(toy):
 def test_the_toy_checkpoint_fine_tunes_and_its_result_is_a_controller(toy, tmp_path):
     tuner = FineTune("pendulum", f"toy:{toy}", updates=2, n_directions=2, episode_steps=20, backend="serial",
                      eval_episodes=2, chunk_size=2)
-    assert tuner.tunable.gate == "cost-to-go" and tuner.tunable.meta["trained_algorithm"] == "TOY"
+    assert isinstance(tuner.tunable.gate, CostToGoGate) and tuner.tunable.meta["trained_algorithm"] == "TOY"
     tuner.learn(out=tmp_path / "ft", progress=False)
     assert tuner.update == 2 and not np.array_equal(tuner.theta, tuner.theta0)
     pendulum = systems.load("pendulum")

@@ -1,11 +1,14 @@
 """Chunk tasks (:class:`ChunkTask`): a chunk of B episodes of a torch module whose named parameters come from
 the rows of ``thetas``, one ``torch.func.vmap`` forward of ``functional_call`` per env step, over gymnasium envs,
-the MuJoCo batch stepper (one thread), or a hybridctl system's batched torch dynamics (SSAC: gate + LQR inside;
-a recurrent APG-family swing-up with the spec's cost-to-go gate and its hidden state carried per episode), the
-latter on any torch device with no copy to the host until the chunk ends. What every chunk of a batch reads and
-none changes (the policy, its normaliser, the post-processor: :class:`ChunkInputs`) is shipped once per batch
-(``backend.put``; the tasks carry the reference). :func:`chunk_slices` splits a batch into chunks, by default
-from the backend's worker count. Fine-tuning uses them, through :func:`hybridctl.learn.rollouts.rollouts`."""
+the MuJoCo batch stepper (one thread), or a hybridctl system's batched torch dynamics: the chunk's policies as
+the swing-up of a :class:`~hybridctl.systems.SwitchedController` with the chunk's gate object (SSAC's
+``LearnedGate``; the spec's ``CostToGoGate`` of a recurrent APG-family swing-up, its hidden state carried per
+episode; ``NeverGate`` for none) and the spec's LQR, run by
+:func:`~hybridctl.systems.switched.closed_loop_rollout` on any torch device with no copy to the host until the
+chunk ends. What every chunk of a batch reads and none changes (the policy, its gate and normaliser, the
+post-processor: :class:`ChunkInputs`) is shipped once per batch (``backend.put``; the tasks carry the reference).
+:func:`chunk_slices` splits a batch into chunks, by default from the backend's worker count. Fine-tuning uses
+them, through :func:`hybridctl.learn.rollouts.rollouts`."""
 
 from __future__ import annotations
 
@@ -13,7 +16,7 @@ import dataclasses
 import math
 import sys
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import torch
@@ -37,6 +40,7 @@ class Shipped:
     """
 
     _decoded: dict[str, torch.nn.Module] = {}
+    KEEP = 2
 
     def __init__(self, module: torch.nn.Module | None):
         import hashlib
@@ -52,7 +56,8 @@ class Shipped:
         if self.blob is None:
             return None
         if self.key not in Shipped._decoded:
-            Shipped._decoded.clear()   # one module at a time per worker
+            if len(Shipped._decoded) >= Shipped.KEEP:   # a batch's policy and gate at a time per worker
+                del Shipped._decoded[next(iter(Shipped._decoded))]
             Shipped._decoded[self.key] = pickle.loads(self.blob)
         return Shipped._decoded[self.key]
 
@@ -67,8 +72,8 @@ class ChunkInputs:
     names: list[str]              # the perturbed parameters, in the order of a theta row
     normalizer: Any               # frozen observation normaliser (None: observations as they are)
     postprocessor: PostProcessor
-    gate: Shipped | str | None = None   # SSAC's gate, or COST_TO_GO_GATE (the spec's, built in the worker): the
-    #                                     switched dynamics, gate + LQR inside the rollout; None: no gate
+    gate: Shipped | None = None   # a system's gate (a Gate: SSAC's LearnedGate, the spec's CostToGoGate): the
+    #                               switched controller, gate + LQR inside the rollout; None: no gate
 
 
 def shared_value(value: Any) -> Any:
@@ -201,7 +206,8 @@ def run_chunk(task: ChunkTask) -> list[dict]:
                       lambda: [make_env(task.env, task.env_kwargs, task.max_steps) for _ in range(n)])
     module, params = _host_policy(task)
     space = envs[0].action_space
-    obs = np.stack([np.asarray(e.reset(seed=int(s))[0], dtype=np.float64).reshape(-1) for e, s in zip(envs, task.seeds)])
+    obs = np.stack([np.asarray(e.reset(seed=int(s))[0], dtype=np.float64).reshape(-1)
+                    for e, s in zip(envs, task.seeds)])
     z = normalise(task.normalizer, obs)
     history = [z.copy()]          # normalised observations of every member at each step (one copy per step)
     returns, rewards, steps = np.zeros(n), np.zeros(n), np.zeros(n, dtype=int)
@@ -285,98 +291,84 @@ def _run_mujoco_chunk(task: ChunkTask) -> list[dict]:
     return _chunk_results(task, history, returns, steps, terminated, finite, None)
 
 
-COST_TO_GO_GATE = "cost-to-go"
-"""A chunk's gate that is the spec's LQR cost-to-go gate (:class:`~hybridctl.systems.control.CostToGoGate`,
-the APG family's takeover), built by each worker from its own system rather than shipped."""
+class RowPolicies(torch.nn.Module):
+    """The chunk's B policies as one swing-up of a :class:`~hybridctl.systems.SwitchedController`: row b of
+    the states acts through ``module`` with row b of ``params`` (the parameters not in ``params`` the
+    module's own), one vmapped forward (:func:`batched_actions`) per decision."""
+
+    def __init__(self, module: torch.nn.Module, params: dict[str, torch.Tensor]):
+        super().__init__()
+        self.module = module
+        self.params = params      # (B, *shape) per perturbed parameter; plain tensors, not parameters
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return batched_actions(self.module, self.params, x)
 
 
-def _system_decision(system, gate: torch.nn.Module | str | None, device: torch.device,
-                     decision_period: float | None = None
-                     ) -> tuple[Callable[[torch.Tensor, torch.Tensor, torch.Tensor], tuple], int, int]:
-    """(decide, substeps, decisions per episode) of ``system``'s swing-up env: ``decide(x, u, mode)`` ->
-    ``(x_next, diverged, mode)`` is one decision of :class:`~hybridctl.envs.TorchVectorEnv` (the action
-    held over the substeps) or, with a ``gate`` (SSAC's, or :data:`COST_TO_GO_GATE`), of
-    :class:`~hybridctl.envs.SwitchedVectorEnv` (gate + LQR inside, at the env's default K, thresholds
-    and gate stride: the Drake diagram's), on ``device``; a decision lasts ``decision_period`` (None:
-    the spec's swing-up period)."""
-    from ..envs.single import advance, decision_schedule
-    from ..envs.switched import switched_decision
-    from ..systems.control import CostToGoGate
-    _, substeps, decisions = decision_schedule(system, decision_period)
-    if isinstance(gate, str):
-        if gate != COST_TO_GO_GATE:
-            raise ValueError(f"a chunk's gate must be a torch module, {COST_TO_GO_GATE!r} or None, got {gate!r}")
-        gate = CostToGoGate(system).to(device)
-    if gate is None:
-        return (lambda x, u, mode: (*advance(system, x, u, substeps), mode)), substeps, decisions
-    K = torch.as_tensor(system.lqr()[0], dtype=torch.float64, device=device)
-    stride = max(1, int(round(system.control_period / system.dt)))
-    gate_dtype = next((p.dtype for p in gate.parameters()), torch.float64)
+class RecurrentRowPolicies(RowPolicies):
+    """:class:`RowPolicies` of a recurrent module (``forward(x, state) -> (action, state)``), each row's
+    state carried through its episode from the module's zero ``initial_state``."""
 
-    def decide(x, u, mode):
-        with torch.no_grad():
-            x, diverged, mode, _ = switched_decision(system, gate, x, u, mode, K, substeps, stride, gate_dtype,
-                                                     system.gate.on, system.gate.off)
-        return x, diverged, mode
-    return decide, substeps, decisions
+    def forward(self, x: torch.Tensor, state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return batched_recurrent_actions(self.module, self.params, x, state)
+
+    def initial_state(self, batch: int) -> torch.Tensor:
+        return self.module.initial_state(batch).to(next(iter(self.params.values())).device)
 
 
 def _run_system_chunk(task: ChunkTask) -> list[dict]:
-    """A hybridctl system's swing-up: the chunk's episodes on its batched torch dynamics (SSAC: gate + LQR
-    inside; a recurrent policy's state starts at zero and is carried per episode), on ``task.device``, the
-    semantics of its :class:`~hybridctl.envs.TorchVectorEnv` (actions
-    clipped, reward 0 and the last finite state on divergence, truncation after the episode's decisions,
-    the thesis success test on the last states of a truncated episode).
+    """A hybridctl system's swing-up: the chunk's episodes as one
+    :func:`~hybridctl.systems.switched.closed_loop_rollout` of the switched controller (the chunk's policies
+    as its swing-up, :class:`RowPolicies`; the chunk's gate: SSAC's learned one, the spec's cost-to-go gate
+    of an APG-family source, or none (:class:`~hybridctl.systems.switched.NeverGate`); the LQR, the hysteresis
+    and the gate period of the spec, as the Drake diagram's) on ``task.device``, with the semantics of the
+    system's :class:`~hybridctl.envs.TorchVectorEnv` / :class:`~hybridctl.envs.SwitchedVectorEnv`: actions
+    clipped, a recurrent policy's state carried per episode, an episode ends where it diverges (the rollout
+    goes on deciding from its last finite state, ``on_divergence="continue"``; its reward counts 0 there and
+    nothing after), truncation after the episode's decisions, the thesis success test on the last states
+    of a truncated episode.
 
     No copy to the host until the chunk ends: returns, step counts, terminations and states stay on the
-    device; every episode starts together, so the loop runs a known number of decisions (the episode
+    device; every episode starts together, so the rollout runs a known number of decisions (the episode
     length or ``max_steps``) and asks the device nothing about which episodes still run.
     """
+    from ..envs.single import decision_schedule
     from ..systems.success import is_balanced
+    from ..systems.switched import CostToGoGate, NeverGate, SwitchedController, closed_loop_rollout
     device = torch.device(task.device)
     if device.type == "cuda":
         from .config_check import check_device_available
         check_device_available("the rollout device", device)
     system = load_system(task.system, **(task.system_overrides or {}))
     n = len(task.seeds)
-    gate = task.shared.gate
-    gate = gate.get().to(device) if isinstance(gate, Shipped) else gate
-    decide, _, decisions = _system_decision(system, gate, device, task.decision_period)
+    _, _, decisions = decision_schedule(system, task.decision_period)
     module = task.module.to(device)
-    recurrent = is_recurrent(module)
-    hidden = module.initial_state(n).to(device) if recurrent else None
-    dtype = next(module.parameters()).dtype
     params = unflatten(module, task.names, torch.as_tensor(task.thetas, dtype=torch.float64, device=device))
+    swingup = (RecurrentRowPolicies if is_recurrent(module) else RowPolicies)(module, params)
+    gate = NeverGate() if task.shared.gate is None else task.shared.gate.get()
+    if isinstance(gate, CostToGoGate):   # the same gate on this worker's system object (the LQR's error shared)
+        gate = CostToGoGate.of(gate, system)
+    controller = SwitchedController.for_system(system, swingup=swingup, gate=gate, decision_period=task.decision_period)
     x0 = np.concatenate([system.sample_initial_states(1, np.random.default_rng(int(s))) for s in task.seeds])
-    x = torch.as_tensor(x0, dtype=torch.float64, device=device)
     horizon = int(min(task.max_steps or decisions, decisions))
-    states = torch.empty((horizon + 1, n, x.shape[1]), dtype=torch.float64, device=device)
-    states[0] = x
-    mode = torch.zeros(n, dtype=torch.bool, device=device)           # every episode starts in swing-up
+    rollout = closed_loop_rollout(system, controller, x0, horizon, on_divergence="continue", device=device)
+    states = rollout.states.transpose(0, 1).contiguous()              # (horizon + 1, n, states)
     returns = torch.zeros(n, dtype=torch.float64, device=device)
     steps = torch.zeros(n, dtype=torch.long, device=device)
     active = torch.ones(n, dtype=torch.bool, device=device)
     terminated = torch.zeros(n, dtype=torch.bool, device=device)
-    bad_action = torch.zeros((), dtype=torch.bool, device=device)
-    limit = system.action_limit
     for k in range(horizon):
-        if recurrent:
-            u, hidden = batched_recurrent_actions(module, params, x.to(dtype), hidden)
-            u = u.to(torch.float64)
-        else:
-            u = batched_actions(module, params, x.to(dtype)).to(torch.float64)
-        bad_action |= ~torch.isfinite(u).all()
-        x, diverged, mode = decide(x, u.clamp(-limit, limit), mode)
-        reward = torch.where(diverged, 0.0, system.reward(x))
+        diverged = rollout.diverged[:, k]
+        reward = torch.where(diverged, 0.0, system.reward(states[k + 1]))
         returns = torch.where(active, returns + reward, returns)
         steps += active.long()
-        states[k + 1] = x
         terminated |= active & diverged
         active &= ~diverged
     # one copy to the host per chunk
     states_np, returns_np = states.cpu().numpy(), returns.cpu().numpy()
     steps_np, terminated_np = steps.cpu().numpy(), terminated.cpu().numpy()
-    if bad_action.cpu().numpy():
+    if not rollout.actions_finite.cpu().numpy():
+        limit = system.action_limit
         raise ValueError(f"actions must be finite (clipped to [-{limit}, {limit}]); got NaN or Inf")
     # the env's success test: an episode truncated after its decisions, balanced over its last states
     success = np.zeros(n, dtype=bool)

@@ -53,7 +53,7 @@ from ..analysis.postprocess import PostProcessor
 from ..envs.mujoco_batch import supports as batch_supports
 from ..parallel import BACKENDS, make_backend
 from ..systems import load as load_system
-from ..systems.switched import CostToGoGate, LearnedGate, NeverGate, SwitchedController
+from ..systems.switched import CostToGoGate, NeverGate, SwitchedController
 from . import checkpoint as ckpt
 from .checkpoint import PROGRESS_FILE, Saved
 from .chunk_tasks import (AUTO_CHUNK_MAX, AUTO_CHUNK_MAX_ACCELERATOR, ChunkInputs, ChunkTask, Shipped, chunk_slices,
@@ -262,14 +262,13 @@ class FineTune(RandomSearchLearner):
                  for rows in chunk_slices(len(seeds), self.config.chunk_size, getattr(backend, "workers", 1), largest)]
         return rollouts(tasks, backend)
 
-    def _shipped(self) -> tuple[Shipped, Shipped | str | None]:
-        """The policy and gate (None: no gate; the cost-to-go gate's name: built by each worker) as bytes
-        for the workers, made once: the parameters they keep are never changed (the perturbed ones travel
-        in the chunks' theta rows)."""
+    def _shipped(self) -> tuple[Shipped, Shipped | None]:
+        """The policy and gate (a :class:`~hybridctl.systems.switched.Gate`; None: no gate) as bytes for the
+        workers, made once: the parameters they keep are never changed (the perturbed ones travel in the
+        chunks' theta rows)."""
         if getattr(self, "_shipped_pair", None) is None:
             gate = self.tunable.gate
-            gate = Shipped(gate) if isinstance(gate, torch.nn.Module) else gate
-            self._shipped_pair = (Shipped(self.tunable.module), gate)
+            self._shipped_pair = (Shipped(self.tunable.module), None if gate is None else Shipped(gate))
         return self._shipped_pair
 
     def perturbed_rollouts(self, thetas: np.ndarray, seeds: list[int], backend) -> list[dict]:
@@ -333,8 +332,8 @@ class FineTune(RandomSearchLearner):
             raise ValueError(f"this FineTune tunes {self.tunable.source} on {self.env_name}; a controller of "
                              f"{system.name} needs a source of that system")
         gate_meta = self.tunable.meta.get("gate") or {}
-        gate = self.tunable.gate   # None: no gate; a str: the spec's cost-to-go gate; else the learned gate
-        gate = NeverGate() if gate is None else CostToGoGate(system) if isinstance(gate, str) else LearnedGate(gate)
+        gate = self.tunable.gate   # None: no gate; the spec's cost-to-go gate (of ``system``) or the learned gate
+        gate = NeverGate() if gate is None else CostToGoGate(system) if isinstance(gate, CostToGoGate) else gate
         return SwitchedController.for_system(system, swingup=self.tuned_module(), gate=gate,
                                              gate_on=gate_meta.get("gate_on"), gate_off=gate_meta.get("gate_off"),
                                              decision_period=self.tunable.decision_period)

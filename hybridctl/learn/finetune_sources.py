@@ -16,9 +16,8 @@ import torch
 
 from ..systems import known_systems
 from ..systems import load as load_system
-from ..systems.switched import CostToGoGate, LearnedGate, NeverGate
+from ..systems.switched import CostToGoGate, Gate, LearnedGate, NeverGate
 from .registry import checkpoint_kinds, gate_of_kind, load_deployed
-from .chunk_tasks import COST_TO_GO_GATE
 from .rollout_envs import make_env
 
 __all__ = ["SELECTIONS", "source_kinds", "AffineNormalizer", "ScaledModule", "TunablePolicy", "parse_source",
@@ -74,11 +73,15 @@ class TunablePolicy:
     ``module`` may define ``parameter_names(select)`` (SB3 policies do: the action path, all, or
     the last layer); otherwise "action" and "all" are every parameter and "last" the last
     ``nn.Linear``'s. ``system``: a hybridctl system name when the policy drives that system's
-    swing-up (sac/ssac/APG-family sources: rollouts on its batched torch env); ``gate``: SSAC's gate,
-    or :data:`~hybridctl.learn.rollouts.COST_TO_GO_GATE` (the spec's LQR cost-to-go gate, the APG
-    family's takeover); ``decision_period``: the swing-up's decision period in seconds (None: the
-    spec's). A recurrent ``module`` (``forward(x, state) -> (action, state)``, ``initial_state``)
-    starts each episode at its zero state.
+    swing-up (sac/ssac/APG-family sources: rollouts on its batched torch env); ``gate``: the
+    :class:`~hybridctl.systems.switched.Gate` the rollouts run the swing-up under (SSAC's
+    :class:`~hybridctl.systems.switched.LearnedGate`, or the spec's LQR
+    :class:`~hybridctl.systems.switched.CostToGoGate`, the APG family's takeover), None (or a
+    ``NeverGate``) for none; a torch classifier becomes a ``LearnedGate`` and the registry's gate name
+    ``"cost-to-go"`` the ``CostToGoGate`` of ``system`` with ``system_overrides``, once, here;
+    ``decision_period``: the swing-up's decision period in seconds (None: the spec's). A recurrent
+    ``module`` (``forward(x, state) -> (action, state)``, ``initial_state``) starts each episode at its
+    zero state.
     """
 
     module: torch.nn.Module
@@ -86,10 +89,22 @@ class TunablePolicy:
     source: str = "module"
     sb3: Any = None                 # the SB3Agent for sb3 sources (written back by save_sb3)
     system: str | None = None
-    gate: torch.nn.Module | str | None = None
+    gate: Gate | None = None
     meta: dict = field(default_factory=dict)
     system_overrides: dict = field(default_factory=dict)   # the checkpoint's spec overrides (reward, starts)
     decision_period: float | None = None
+
+    def __post_init__(self):
+        gate = self.gate
+        if gate is None or isinstance(gate, NeverGate):
+            self.gate = None
+        elif isinstance(gate, str):
+            if gate != "cost-to-go" or self.system is None:
+                raise ValueError(f"a TunablePolicy's gate by name must be 'cost-to-go' (the spec's cost-to-go gate) "
+                                 f"with a system, got {gate!r} with system {self.system!r}")
+            self.gate = CostToGoGate(load_system(self.system, **self.system_overrides))
+        elif not isinstance(gate, Gate):
+            self.gate = LearnedGate(gate)   # a torch classifier, e.g. SSAC's GateNet
 
     def parameter_names(self, select: str) -> list[str]:
         """Names of the parameters perturbed under ``select`` (see :data:`SELECTIONS`)."""
@@ -176,10 +191,11 @@ def load_policy(source: str, env: str, trust: bool = False, normalizer: str | No
     if not isinstance(gate, (LearnedGate, CostToGoGate, NeverGate)):
         raise ValueError(f"{path}: fine-tuning runs a swing-up with a learned gate, the spec's cost-to-go gate or "
                          f"none, not {type(gate).__name__}")
-    gate = gate.module if isinstance(gate, LearnedGate) else COST_TO_GO_GATE if isinstance(gate, CostToGoGate) else None
     # the task it was trained on: the spec overrides of its reward and starts (the plain spec would tune
     # it for another reward than it learned)
     overrides = learner.fine_tuning_task()
+    if isinstance(gate, CostToGoGate):   # the spec's gate of the system the rollouts run on
+        gate = CostToGoGate(load_system(env, **overrides))
     period = float(controller.decision_period)
     return TunablePolicy(controller.swingup, None, source, system=env, gate=gate, system_overrides=overrides,
                          decision_period=period,

@@ -5,22 +5,24 @@ What to roll out is a list of tasks (plain, picklable objects) for a :mod:`hybri
 backend; :func:`rollouts` runs them and returns one result dict per episode, in task order.
 Two execution strategies, kept apart because each reproduces its learner's numbers bit for bit:
 
-* :class:`~hybridctl.learn.episode_tasks.RolloutTask` -- ONE episode of a flat-parameter policy (:class:`~hybridctl.learn.flat_policy.PolicySpec`: ARS's
-  linear map, a torch module loaded by ``vector_to_parameters``, or a fixed function) behind a
-  frozen affine normalisation, with optional action / observation noise and pushes
-  (thesis Sec. 4.3). One task per backend job (:func:`~hybridctl.learn.episode_tasks.run_episode`, a gymnasium env), or a
-  whole batch stepped together on the MuJoCo batch stepper
-  (:class:`~hybridctl.envs.mujoco_batch.MujocoBatchEnv`, :func:`~hybridctl.learn.episode_tasks.run_episodes_batched`,
-  ``engine="auto"``). ARS and :func:`~hybridctl.learn.robustness.failure_rates` use it.
-* :class:`~hybridctl.learn.chunk_tasks.ChunkTask` -- a chunk of B episodes of a torch module whose named parameters
-  come from the rows of ``thetas``: one ``torch.func.vmap`` forward of ``functional_call`` per
-  env step, over gymnasium envs, the MuJoCo batch stepper (one thread), or a hybridctl
-  system's batched torch dynamics (SSAC: gate + LQR inside; a recurrent APG-family swing-up with the
-  spec's cost-to-go gate and its hidden state carried per episode), the latter on any torch device
-  with no copy to the host until the chunk ends. What every chunk of a batch reads and none
-  changes (the policy, its normaliser, the post-processor: :class:`~hybridctl.learn.chunk_tasks.ChunkInputs`) is shipped
-  once per batch (``backend.put``; the tasks carry the reference). :func:`~hybridctl.learn.chunk_tasks.chunk_slices` splits
-  a batch into chunks, by default from the backend's worker count. Fine-tuning uses it.
+* one-episode tasks (:mod:`~hybridctl.learn.episode_tasks`: :class:`~hybridctl.learn.episode_tasks.RolloutTask`)
+  -- ONE episode of a flat-parameter policy (:class:`~hybridctl.learn.flat_policy.PolicySpec`: ARS's linear
+  map, a torch module loaded by ``vector_to_parameters``, or a fixed function) behind a frozen affine
+  normalisation, with optional action / observation noise and pushes (thesis Sec. 4.3). One task per
+  backend job (``run_episode``, a gymnasium env), or a whole batch stepped together on the MuJoCo batch
+  stepper (:class:`~hybridctl.envs.mujoco_batch.MujocoBatchEnv`, ``run_episodes_batched``,
+  ``engine="auto"``). ARS and :func:`~hybridctl.learn.robustness.failure_rates` use them.
+* chunk tasks (:mod:`~hybridctl.learn.chunk_tasks`: :class:`~hybridctl.learn.chunk_tasks.ChunkTask`) -- a
+  chunk of B episodes of a torch module whose named parameters come from the rows of ``thetas``: one
+  ``torch.func.vmap`` forward of ``functional_call`` per env step, over gymnasium envs, the MuJoCo batch
+  stepper (one thread), or a hybridctl system's batched torch dynamics: the switched controller's one
+  rollout, :func:`~hybridctl.systems.switched.closed_loop_rollout`, with the chunk's gate object (SSAC's
+  learned gate, the spec's cost-to-go gate of an APG-family swing-up whose hidden state is carried per
+  episode, or none), on any torch device with no copy to the host until the chunk ends. What every chunk
+  of a batch reads and none changes (the policy, its gate and normaliser, the post-processor:
+  ``ChunkInputs``) is shipped once per batch (``backend.put``; the tasks carry the reference);
+  ``chunk_slices`` splits a batch into chunks, by default from the backend's worker count. Fine-tuning
+  uses them.
 
 Every result: ``finite`` (False: only ``steps`` follows), ``return`` (post-processed by the
 task's :class:`~hybridctl.analysis.PostProcessor`, e.g. the dimension reward), ``raw_return``,
@@ -32,8 +34,7 @@ observations, normalised by the frozen normaliser in a chunk) and ``dimensions``
 
 By concern: envs from ids (:mod:`~hybridctl.learn.rollout_envs`), policies as flat parameters
 (:mod:`~hybridctl.learn.flat_policy`), the result format (:mod:`~hybridctl.learn.rollout_results`), the
-one-episode tasks (:mod:`~hybridctl.learn.episode_tasks`) and the chunk tasks
-(:mod:`~hybridctl.learn.chunk_tasks`); this module runs either kind.
+one-episode tasks and the chunk tasks; this module runs either kind.
 """
 
 from __future__ import annotations

@@ -108,9 +108,12 @@ class CostToGoGate(control.CostToGoGate, Gate):
         control.CostToGoGate.__init__(self, system, scale=scale, S=S)
 
     @classmethod
-    def of(cls, law: control.CostToGoGate) -> "CostToGoGate":
-        """The typed gate of a :class:`hybridctl.systems.control.CostToGoGate` (same system, scale and S)."""
-        return law if isinstance(law, cls) else cls(law.system, scale=law.scale, S=law._S_np)
+    def of(cls, law: control.CostToGoGate, system: System | None = None) -> "CostToGoGate":
+        """The typed gate of a :class:`hybridctl.systems.control.CostToGoGate` (same scale and S), on ``system``
+        (None: the law's; another object of the same plant, e.g. a worker's own, with which
+        :func:`gate_command` shares the state error of the LQR)."""
+        system = law.system if system is None else system
+        return law if isinstance(law, cls) and system is law.system else cls(system, scale=law.scale, S=law._S_np)
 
     def numpy_probability(self, x) -> np.ndarray:
         return control.CostToGoGate.numpy_forward(self, x)
@@ -343,8 +346,9 @@ def switched_decision(system: System, gate, x0: torch.Tensor, u: torch.Tensor, m
 
     Every ``gate_stride`` integration steps the gate classifies the state and the hysteresis
     updates the mode (:func:`gate_command`); the command (LQR or ``u``, saturated) is held until the
-    next gate evaluation. A row that diverges (:func:`~hybridctl.systems.control.is_diverged`) is put
-    back to its start state. Returns ``(x, diverged, mode, lqr_steps)``: the states after the decision,
+    next gate evaluation (a :class:`NeverGate` is not evaluated: its mode is off throughout, the same
+    numbers without the gate's work). A row that diverges (:func:`~hybridctl.systems.control.is_diverged`)
+    is put back to its start state. Returns ``(x, diverged, mode, lqr_steps)``: the states after the decision,
     the diverged rows, the final modes and the number of integration steps the LQR acted.
     A pure function (no env state), so ``torch.compile`` can fuse it whole. ``goal`` (n,): the LQR's
     goal where it is not the system's (None: ``system.state_error``). ``restore_diverged`` False: no
@@ -355,8 +359,11 @@ def switched_decision(system: System, gate, x0: torch.Tensor, u: torch.Tensor, m
     diverged = torch.zeros(x0.shape[0], dtype=torch.bool, device=x0.device) if restore_diverged else None
     lqr_steps = torch.zeros(x0.shape[0], dtype=x0.dtype, device=x0.device)
     command = u
+    never = isinstance(gate, NeverGate)     # p = 0 < gate_off: the mode is off and the held action acts
+    if never:
+        command, mode = control.saturate(u, system.action_limit), torch.zeros_like(mode)
     for k in range(substeps):
-        if k % gate_stride == 0:
+        if k % gate_stride == 0 and not never:
             command, mode = gate_command(system, gate, x, u, mode, K, gate_dtype, gate_on, gate_off, goal)
         lqr_steps = lqr_steps + mode.to(x0.dtype)
         x = system.step_unchecked(x, command)
