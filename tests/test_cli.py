@@ -204,10 +204,26 @@ def test_mesh_sweep_of_slope_stds_writes_the_curve(tmp_path, capsys):
     (["mesh", "rimless-wheel", "--slope-std", "0.06", "0.08", "--monte-carlo-budget", "1e9"],
      "--monte-carlo-budget is 1e+09, above its limit"),
     (["mesh", "hopper"], "invalid choice"),
+    (["mesh", "rimless-wheel", "--hip-pd", "1", "1", "0.3"], "--hip-pd applies to the compass-gait map only"),
+    (["mesh", "compass-gait", "--param", "mass_hip=-1"], "mass_hip must be in"),
+    (["mesh", "compass-gait", "--param", "legs=2"], "--param must be NAME=VALUE"),
+    (["mesh", "compass-gait", "--slope-mean", "0.4"], "no compass gait to seed the mesh from"),
 ])
 def test_mesh_bad_arguments(args, message, tmp_path, capsys):
     code, out, err = run_in_process(capsys, *args, "--out", str(tmp_path / "m"), "--quiet")
     assert code == 2 and message in err and "Traceback" not in err, err
+
+
+@pytest.mark.timeout(120)
+def test_mesh_compass_gait_coarse(tmp_path, capsys):
+    """The compass gait meshes from its passive gait (3 states per box key); guard trips are recorded."""
+    out = tmp_path / "cg"
+    code, stdout, err = run_in_process(capsys, "mesh", "compass-gait", "--box-size", "0.3", "--slope-std", "0.01",
+                                       "--disturbances", "3", "--max-disturbances", "5", "--out", str(out), "--quiet")
+    assert code == 0, err
+    report = json.loads((out / "mfpt.json").read_text())
+    assert report["map"] == "compass-gait" and len(report["seed_state"]) == 3
+    assert report["mfpt"]["from_seed"] > 1 and set(report["section_guard"]["trips"]) >= {"wall-time guard"}
 
 
 def test_mesh_cap_reports_incomplete(tmp_path):

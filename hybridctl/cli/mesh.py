@@ -6,6 +6,7 @@ import argparse
 import math
 
 from ..experiments import MESH_MAPS, mesh_report
+from ..experiments.mesh_report import MESH_DEFAULTS
 from ..experiments.mfpt_sweep import mfpt_vs_roughness, sweep_line
 from ..analysis import DEFAULT_REFINE_RTOL, DISTURBANCE_RULES
 from ..analysis.reachable import check_disturbances
@@ -19,10 +20,13 @@ def add_parser(sub) -> None:
     p = sub.add_parser("mesh", help="reachable-state mesh and mean first passage time (thesis Ch. 5)",
                        epilog=limits_epilog("disturbances", "monte-carlo", "workers"))
     p.add_argument("map", choices=sorted(MESH_MAPS), help="; ".join(f"{k}: {v}" for k, v in MESH_MAPS.items()))
-    p.add_argument("--box-size", type=positive(float), default=1e-3, help="box side (default 1e-3)")
-    p.add_argument("--slope-mean", type=finite(float), default=0.15, help="mean terrain slope, rad (default 0.15)")
-    p.add_argument("--slope-std", type=slope_std, nargs="+", default=[0.06], metavar="SIGMA",
-                   help="slope std, rad, or degrees as '2deg' (default 0.06); several values: the MFPT-vs-roughness "
+    p.add_argument("--box-size", type=positive(float), default=None,
+                   help="box side (default 1e-3; compass-gait 0.1)")
+    p.add_argument("--slope-mean", type=finite(float), default=None,
+                   help="mean terrain slope, rad (default 0.15; compass-gait 0.0525)")
+    p.add_argument("--slope-std", type=slope_std, nargs="+", default=None, metavar="SIGMA",
+                   help="slope std, rad, or degrees as '2deg' (default 0.06; compass-gait 0.005); several values: "
+                        "the MFPT-vs-roughness "
                         "sweep (mfpt_vs_roughness.json and .png: refined mesh per sigma, Monte Carlo where affordable)")
     p.add_argument("--monte-carlo-budget", type=positive(float), default=MAX_SWEEP_MONTE_CARLO_STEPS, metavar="STEPS",
                    help="sweep: run a sigma's Monte Carlo only if --monte-carlo x the mesh's MFPT is at most STEPS "
@@ -41,6 +45,11 @@ def add_parser(sub) -> None:
     p.add_argument("--tails", type=positive(float), default=6.0, metavar="STD",
                    help="half-width of the grid in slope std (default 6)")
     p.add_argument("--max-states", type=positive(int), default=1_000_000, help="cap on mesh states")
+    p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
+                   help="compass-gait only: a CompassGaitParams value (mass_hip, mass_leg, length_leg, "
+                        "center_of_mass_leg, gravity), repeatable")
+    p.add_argument("--hip-pd", type=finite(float), nargs=3, metavar=("KP", "KD", "TARGET"),
+                   help="compass-gait only: hip torque KP (TARGET - inter-leg angle) - KD (its rate); default: passive")
     p.add_argument("--monte-carlo", type=non_negative(int), default=0, metavar="EPISODES",
                    help="also estimate the MFPT by Monte Carlo on the true map")
     p.add_argument("--monte-carlo-chunks", type=positive(int), default=1, metavar="N",
@@ -97,10 +106,44 @@ def result_line(report: dict) -> str:
     return line
 
 
+COMPASS_GAIT_PARAMS = ("mass_hip", "mass_leg", "length_leg", "center_of_mass_leg", "gravity")
+
+
+def map_options(args: argparse.Namespace) -> dict:
+    """The compass gait's ``--param`` and ``--hip-pd`` as ``section_map_by_name`` options (refused for other maps)."""
+    if args.map != "compass-gait":
+        for flag, given in (("--param", args.param), ("--hip-pd", args.hip_pd)):
+            if given:
+                raise ValueError(f"{flag} applies to the compass-gait map only, not {args.map}")
+        return {}
+    options = {}
+    for text in args.param:
+        name, sep, value = text.partition("=")
+        if not sep or name not in COMPASS_GAIT_PARAMS:
+            raise ValueError(f"--param must be NAME=VALUE with NAME one of {', '.join(COMPASS_GAIT_PARAMS)}, got {text!r}")
+        try:
+            options[name] = float(value)
+        except ValueError:
+            raise ValueError(f"--param {name} must be a number, got {value!r}") from None
+    if args.hip_pd:
+        options["hip_pd"] = tuple(args.hip_pd)
+    return options
+
+
+def fill_map_defaults(args: argparse.Namespace) -> None:
+    """Put the map's ``MESH_DEFAULTS`` into the flags not given (box size, slope mean and std)."""
+    defaults = MESH_DEFAULTS[args.map]
+    args.box_size = defaults["box_size"] if args.box_size is None else args.box_size
+    args.slope_mean = defaults["slope_mean"] if args.slope_mean is None else args.slope_mean
+    args.slope_std = [defaults["slope_std"]] if args.slope_std is None else args.slope_std
+
+
 def check_mesh_arguments(args: argparse.Namespace) -> None:
     """Refuse, before any work, counts above their limits (``--force`` lifts them): disturbances (and
     their successor table's memory, which nothing lifts), Monte Carlo episodes, local worker
-    processes above the cores."""
+    processes above the cores. Fills the map's defaults and its options (``args.map_options``)."""
+    fill_map_defaults(args)
+    args.map_options = map_options(args)
     check_disturbances(args.disturbances, args.max_states, force=args.force)
     check_at_most("--max-disturbances", args.max_disturbances, MAX_REFINED_DISTURBANCES, force_flag=None,
                   why="points of a refined slope grid")
@@ -148,7 +191,7 @@ def _mesh_report(args: argparse.Namespace) -> dict:
                        checkpoint_every=args.checkpoint_every, checkpoint_minutes=args.checkpoint_minutes,
                        address=args.address, monte_carlo_chunks=args.monte_carlo_chunks,
                        disturbance_rule=args.disturbance_rule, refine_rtol=args.refine_rtol,
-                       max_disturbances=args.max_disturbances, tails=args.tails)
+                       max_disturbances=args.max_disturbances, tails=args.tails, map_options=args.map_options)
 
 
 def _sweep(args: argparse.Namespace) -> dict:
@@ -159,4 +202,5 @@ def _sweep(args: argparse.Namespace) -> dict:
                              disturbance_rule=args.disturbance_rule, refine_rtol=args.refine_rtol,
                              max_disturbances=args.max_disturbances, tails=args.tails, backend=args.backend,
                              workers=args.workers, address=args.address, progress=False,
-                             command=args.command_line, overwrite=args.overwrite, force=args.force)
+                             command=args.command_line, overwrite=args.overwrite, force=args.force,
+                             map_options=args.map_options)

@@ -21,10 +21,10 @@ from pathlib import Path
 from typing import Sequence
 
 from .. import io
-from ..analysis import DEFAULT_REFINE_RTOL, GaussianDisturbance, RimlessWheel, monte_carlo_mfpt, refined_mesh
+from ..analysis import DEFAULT_REFINE_RTOL, GaussianDisturbance, monte_carlo_mfpt, refined_mesh
 from ..limits import MAX_REFINED_DISTURBANCES, MAX_SIMULATION_STEPS, MAX_SWEEP_MONTE_CARLO_STEPS, check_at_most
 from ..viz.markov import plot_mfpt_vs_roughness
-from .mesh_report import section_map_by_name
+from .mesh_report import MESH_DEFAULTS, guard_record, mesh_seed, section_map_by_name
 from .training import MESH_MARKERS, open_run_folder
 
 SWEEP_FILES = ("mfpt_vs_roughness.json", "mfpt_vs_roughness.png")
@@ -36,17 +36,19 @@ first-passage time passes it with probability e^-30, so no run of a sweep is cen
 
 
 def mfpt_vs_roughness(map_name: str = "rimless-wheel", out: str | Path = "runs/roughness",
-                      slope_stds: Sequence[float] = (0.06,), box_size: float = 1e-3, slope_mean: float = 0.15,
+                      slope_stds: Sequence[float] = (0.06,), box_size: float | None = None,
+                      slope_mean: float | None = None,
                       disturbances: int = 25, max_states: int = 1_000_000, monte_carlo: int = 0,
                       monte_carlo_budget: float = MAX_SWEEP_MONTE_CARLO_STEPS, monte_carlo_chunks: int = 1,
                       disturbance_rule: str = "grid", refine_rtol: float = DEFAULT_REFINE_RTOL,
                       max_disturbances: int = MAX_REFINED_DISTURBANCES, tails: float = 6.0,
                       backend: str = "serial", workers: int | None = None, address: str | None = None,
                       progress: bool = False, command: str | None = None, overwrite: bool = False,
-                      force: bool = False) -> dict:
+                      force: bool = False, map_options: dict | None = None) -> dict:
     """Refined mesh MFPT, and Monte Carlo where affordable, for each slope std in ``slope_stds`` (rad).
 
-    Writes ``out/mfpt_vs_roughness.json`` (the returned record) and ``out/mfpt_vs_roughness.png``
+    ``box_size`` and ``slope_mean`` default to the map's ``MESH_DEFAULTS``; ``map_options`` go to
+    ``section_map_by_name``. Writes ``out/mfpt_vs_roughness.json`` (the returned record) and ``out/mfpt_vs_roughness.png``
     (:func:`hybridctl.viz.markov.plot_mfpt_vs_roughness`). Each row: ``slope_std`` (rad and degrees), the
     mesh's states and MFPT from the seed (``inf``, in the JSON null, with ``never_fails`` true: the chain
     never fails in float64; None: the mesh is incomplete), its
@@ -66,13 +68,13 @@ def mfpt_vs_roughness(map_name: str = "rimless-wheel", out: str | Path = "runs/r
         raise ValueError(f"slope_stds must be one or more finite numbers > 0, got {list(slope_stds)!r}")
     check_at_most("monte_carlo_budget", monte_carlo_budget, MAX_SWEEP_MONTE_CARLO_STEPS, force,
                   why="expected simulated steps of one Monte Carlo estimate of a sweep")
-    section_map = section_map_by_name(map_name)
-    seed = RimlessWheel().fixed_point(slope_mean)
-    if not math.isfinite(seed):
-        raise ValueError(f"--slope-mean {slope_mean} has no rolling gait to seed the mesh from")
+    section_map = section_map_by_name(map_name, **(map_options or {}))
+    box_size = MESH_DEFAULTS[map_name]["box_size"] if box_size is None else box_size
+    slope_mean = MESH_DEFAULTS[map_name]["slope_mean"] if slope_mean is None else slope_mean
+    seed = mesh_seed(section_map, slope_mean)
     where = {"backend": backend, "workers": workers, "address": address}
     record = {} if command is None else {"command": command}
-    record.update({"map": map_name, "seed_state": [seed], "slope_mean": slope_mean, "box_size": box_size,
+    record.update({"map": map_name, "seed_state": seed, "slope_mean": slope_mean, "box_size": box_size,
                    "disturbance_rule": disturbance_rule, "first_count": disturbances, "refine_rtol": refine_rtol,
                    "monte_carlo_runs": monte_carlo, "monte_carlo_budget_steps": monte_carlo_budget,
                    "monte_carlo_disturbance": "continuous Gaussian slopes, seed 0", "rows": []})
@@ -83,7 +85,7 @@ def mfpt_vs_roughness(map_name: str = "rimless-wheel", out: str | Path = "runs/r
         for std in sorted(stds):
             slopes = GaussianDisturbance(slope_mean, std, disturbances, rule=disturbance_rule, tails=tails)
             started = time.perf_counter()
-            mesh, _, refinement = refined_mesh(section_map, [[seed]], slopes, box_size, rtol=refine_rtol,
+            mesh, _, refinement = refined_mesh(section_map, [seed], slopes, box_size, rtol=refine_rtol,
                                                max_count=max_disturbances, max_states=max_states,
                                                progress=progress, force=force, **where)
             row = {"slope_std": std, "slope_std_deg": math.degrees(std), "states": mesh.size,
@@ -97,12 +99,14 @@ def mfpt_vs_roughness(map_name: str = "rimless-wheel", out: str | Path = "runs/r
             if progress:
                 print(_row_line(row), flush=True)
         record["regimes"] = regimes(record["rows"])
+        if guard_record(section_map) is not None:
+            record["section_guard"] = guard_record(section_map)
         io.write_json(folder.path / SWEEP_FILES[0], record)
         plot_mfpt_vs_roughness(record, path=folder.path / SWEEP_FILES[1])
     return record
 
 
-def _monte_carlo_row(section_map, seed: float, slopes, mesh_mfpt: float | None, runs: int, budget: float,
+def _monte_carlo_row(section_map, seed: list[float], slopes, mesh_mfpt: float | None, runs: int, budget: float,
                      chunks: int, where: dict) -> dict:
     """Run Monte Carlo at one slope std if asked and affordable, else say why not."""
     if not runs:
@@ -119,7 +123,7 @@ def _monte_carlo_row(section_map, seed: float, slopes, mesh_mfpt: float | None, 
                           f"budget of {budget:.3g}"}
     max_steps = int(min(MAX_SIMULATION_STEPS, max(100_000, math.ceil(CENSOR_FACTOR * mesh_mfpt))))
     started = time.perf_counter()
-    result = monte_carlo_mfpt(section_map, [[seed]], slopes, episodes=runs, max_steps=max_steps, seed=0,
+    result = monte_carlo_mfpt(section_map, [seed], slopes, episodes=runs, max_steps=max_steps, seed=0,
                               chunks=chunks, **where)
     return {"status": "run", "expected_steps": expected, **result.summary(),
             "simulated_steps": float(result.steps.sum()), "seconds": round(time.perf_counter() - started, 3)}
