@@ -29,8 +29,9 @@ class EquilibriumError(ValueError):
 
 def equilibrium_residual(system, x) -> np.ndarray:
     """xdot at state ``x`` with u = 0 from ``system``'s generated (or chain) dynamics, float64."""
-    x = torch.as_tensor(np.asarray(x, dtype=float), dtype=torch.float64).reshape(1, -1)
-    u = torch.zeros(1, system.n_actions, dtype=torch.float64)
+    # on the CPU whatever torch's default device (systems are built inside a training's device scope)
+    x = torch.as_tensor(np.asarray(x, dtype=float), dtype=torch.float64, device="cpu").reshape(1, -1)
+    u = torch.zeros(1, system.n_actions, dtype=torch.float64, device="cpu")
     return system.dynamics.derivatives(x, u)[0].numpy()
 
 
