@@ -19,7 +19,7 @@ __all__ = ["LimitError", "memory_bytes", "cpu_count", "memory_budget", "check_at
            "MAX_MONTE_CARLO",
            "MAX_HIDDEN_UNITS", "MAX_NUM_ENVS", "MAX_ZIP_ENTRY_BYTES", "MAX_ZIP_ENTRIES", "MAX_JSON_BYTES",
            "MAX_SPEC_BYTES", "MAX_MODEL_CACHE_BYTES", "MAX_MODEL_CACHE_DEPTH",
-           "MAX_MODEL_BODIES", "MAX_NAME_CHARS", "MAX_CACHE_INTEGER", "MIN_DT", "MEMORY_FRACTION"]
+           "MAX_MODEL_BODIES", "MAX_FIT_BUDGET_MINUTES", "MAX_FIT_EQUILIBRIUM_CANDIDATES", "MAX_NAME_CHARS", "MAX_CACHE_INTEGER", "MIN_DT", "MEMORY_FRACTION"]
 
 
 class LimitError(ValueError):
@@ -30,6 +30,10 @@ class LimitError(ValueError):
 MAX_SIMULATION_STEPS = 10_000_000
 """Time steps of one simulated trajectory (``--duration`` / the spec's ``dt``): 1e7 steps of the
 acrobot's 4 states and 1 input are 0.4 GB recorded; at dt = 0.01 s it is 27 hours of motion."""
+MAX_FIT_BUDGET_MINUTES = 7 * 24 * 60
+"""``hybridctl fit --budget``: a week; a typo (``--budget 1e9``) is refused."""
+MAX_FIT_EQUILIBRIUM_CANDIDATES = 4096
+"""0/pi combinations ``fit`` tries for the equilibria (12 revolute coordinates, the multibody family's most)."""
 MAX_TOTAL_STEPS = 10_000_000_000
 """Time steps of all simulations of one command together (a balance map: grid^2 x steps):
 about an hour of the torch engine on one core (measured order: 3e6 steps/s)."""

@@ -6,6 +6,7 @@
     hybridctl train ssac acrobot --seed 0 --out runs/train/ssac-acrobot-s0 [--resume] [--polyak 0.9]
     hybridctl mesh rimless-wheel --box-size 1e-3 --monte-carlo 2000 --out runs/mesh
     hybridctl finetune Pendulum-v1 --policy sb3:models/policies/ppo-pendulum/model.zip --updates 200
+    hybridctl fit models/acrobot.urdf --out runs/fit-acrobot [--resume]
     hybridctl demo --out runs/demo
 
 Add --debug to see the traceback of an error. Sizes, counts and durations have limits
@@ -19,12 +20,12 @@ import argparse
 import os
 import sys
 
-from . import balance_map, demo, finetune, mesh, simulate, systems, train
+from . import balance_map, demo, finetune, fit, mesh, simulate, systems, train
 from ._common import CommandParser, add_debug_flag, command_line
 from .. import __version__
 from ..experiments import PRETRAINED_ACROBOT
 
-COMMANDS = (systems, simulate, balance_map, train, mesh, finetune, demo)
+COMMANDS = (systems, simulate, balance_map, train, mesh, finetune, fit, demo)
 """The command modules, in the order ``hybridctl --help`` lists them; each has ``add_parser(sub)``."""
 
 __all__ = ["main", "build_parser", "PRETRAINED_ACROBOT"]

@@ -51,7 +51,7 @@ _FROM_DRAKE = "hybridctl.systems.from_drake default"
 
 def from_drake(model_file: str, goal, Q, R, *, name: str | None = None, actuated_joints=None,
                action_limit: float | None = None, gravity: float | None = None, tip_body: str | None = None,
-               tip_point=None, nominal=None, **overrides: Any) -> System:
+               tip_point=None, nominal=None, settings: dict | None = None, **overrides: Any) -> System:
     """A :class:`System` straight from a URDF/SDF file, without writing a spec.
 
     ``model_file``: a path or a ``package://drake/`` URL. ``goal``: the state to balance at (Drake's
@@ -64,8 +64,9 @@ def from_drake(model_file: str, goal, Q, R, *, name: str | None = None, actuated
     "hybridctl.systems.from_drake default" (Euler, dt = control period = 0.01 s, swing-up
     decisions every 0.1 s, 10 s episodes, reward ``angle_cosine``, success within 0.1 over the
     last 10 states, gate 0.9 / 0.5 with cost scale 1); change any by key as in
-    :func:`load` (``dt=0.005``, ``gate__cost_scale=50``). The result equals a spec file with the
-    same values (``[model] family = "multibody"``).
+    :func:`load` (``dt=0.005``, ``gate__cost_scale=50``). ``settings``: ``{"section.key": (value, source)}``,
+    values set with the source that chose them (``hybridctl fit`` records its measurements so). The result
+    equals a spec file with the same values (``[model] family = "multibody"``).
     """
     def entry(value, source=_FROM_DRAKE):
         if isinstance(value, np.ndarray):
@@ -105,6 +106,10 @@ def from_drake(model_file: str, goal, Q, R, *, name: str | None = None, actuated
     }
     if gravity is not None:
         doc["params"] = {"gravity": entry(float(gravity), "from_drake argument")}
+    for full, (value, source) in (settings or {}).items():
+        section, key = full.split(".", 1)
+        doc.setdefault(section, {})[key] = entry(np.asarray(value) if isinstance(value, (list, tuple)) else value,
+                                                 str(source))
     base = Path(model["file"]) if found else Path.cwd() / path.name   # where errors say the values come from
     return System(spec_from_document(doc, base, **overrides))
 

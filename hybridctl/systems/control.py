@@ -139,8 +139,10 @@ class CostToGoGate(torch.nn.Module):
 
 def lqr_rollouts_balanced(system: System, x0, horizon: float, eps: float | None = None,
                           lookback: int | None = None, K: np.ndarray | None = None,
-                          chunk: int = 65536, device: str | torch.device | None = None) -> np.ndarray:
-    """Run the saturated LQR (acting every ``dt``) from each row of ``x0`` in batched torch.
+                          chunk: int = 65536, device: str | torch.device | None = None,
+                          hold: int = 1) -> np.ndarray:
+    """Run the saturated LQR (acting every ``hold`` integration steps ``dt``, the command held in between)
+    from each row of ``x0`` in batched torch.
 
     Returns a bool array (N,): every one of the last ``lookback`` integration steps
     ends within ``eps`` (L2 of the wrapped state error) of the goal and the state
@@ -155,6 +157,9 @@ def lqr_rollouts_balanced(system: System, x0, horizon: float, eps: float | None 
     steps = int(round(horizon / system.dt))
     if steps < lookback:
         raise ValueError(f"horizon must be >= lookback * dt = {lookback * system.dt}, got {horizon}")
+    if int(hold) != hold or hold < 1:
+        raise ValueError(f"hold must be a whole number of integration steps >= 1, got {hold}")
+    hold = int(hold)
     if device is None:
         device = x0.device if isinstance(x0, torch.Tensor) else "cpu"
     K = system.lqr()[0] if K is None else np.atleast_2d(K)
@@ -172,7 +177,8 @@ def lqr_rollouts_balanced(system: System, x0, horizon: float, eps: float | None 
         for x in torch.split(x_all, chunk):
             close = torch.ones(x.shape[0], dtype=torch.bool, device=x.device)
             for step in range(steps):
-                u = saturate(lqr_command(system.state_error(x), Kt), limit)
+                if step % hold == 0:
+                    u = saturate(lqr_command(system.state_error(x), Kt), limit)
                 x = system.step_unchecked(x, u)
                 x = torch.nan_to_num(x, nan=bound, posinf=bound, neginf=-bound)
                 if step >= steps - lookback:
@@ -183,7 +189,7 @@ def lqr_rollouts_balanced(system: System, x0, horizon: float, eps: float | None 
 
 def lqr_basin_level(system: System, n_samples: int = 20000, horizon: float | None = None,
                     spread: np.ndarray | None = None, seed: int = 0, K: np.ndarray | None = None,
-                    S: np.ndarray | None = None, device: str | torch.device | None = None) -> dict:
+                    S: np.ndarray | None = None, device: str | torch.device | None = None, hold: int = 1) -> dict:
     """Estimate the cost-to-go level V* below which the saturated LQR balances.
 
     Samples states goal + U(-spread, spread), runs the LQR (acting every ``dt``,
@@ -193,7 +199,8 @@ def lqr_basin_level(system: System, n_samples: int = 20000, horizon: float | Non
     (x - goal)' S (x - goal) among failing samples, with the success rate below V*, 2 V*
     and 4 V*. A gate that switches on below V* (``CostToGoGate`` with scale
     V* / ln(1/gate.on)) only hands over states from which every sampled LQR rollout balanced.
-    The rollouts run on ``device`` (None: the CPU), as :func:`lqr_rollouts_balanced`.
+    The rollouts run on ``device`` (None: the CPU), as :func:`lqr_rollouts_balanced`; ``hold``: the LQR
+    acts every ``hold`` integration steps (a control period of ``hold * dt``), its command held in between.
     """
     if n_samples < 10:
         raise ValueError(f"n_samples must be >= 10, got {n_samples}")
@@ -204,10 +211,10 @@ def lqr_basin_level(system: System, n_samples: int = 20000, horizon: float | Non
     rng = np.random.default_rng(seed)
     x0 = system.goal + rng.uniform(-1, 1, size=(n_samples, system.n_states)) * spread
     V = cost_to_go(system.state_error(x0), S)
-    ok = lqr_rollouts_balanced(system, x0, horizon, K=K, device=device)
+    ok = lqr_rollouts_balanced(system, x0, horizon, K=K, device=device, hold=hold)
     failing = V[~ok]
     level = float(failing.min()) if failing.size else float(V.max())
     rates = {f"success_below_{k}x": float(ok[V < k * level].mean()) if np.any(V < k * level) else None
              for k in (1, 2, 4)}
     return {"level": level, "gate_scale": level / np.log(1 / system.gate.on), "n_samples": n_samples,
-            "horizon": horizon, "seed": seed, "success_rate": float(ok.mean()), **rates}
+            "horizon": horizon, "seed": seed, "hold": hold, "success_rate": float(ok.mean()), **rates}
