@@ -31,9 +31,9 @@ def add_parser(sub) -> None:
     p.add_argument("--monte-carlo-budget", type=positive(float), default=MAX_SWEEP_MONTE_CARLO_STEPS, metavar="STEPS",
                    help="sweep: run a sigma's Monte Carlo only if --monte-carlo x the mesh's MFPT is at most STEPS "
                         f"expected steps, else skip it with the reason (default and limit {MAX_SWEEP_MONTE_CARLO_STEPS:.0e})")
-    p.add_argument("--disturbances", type=positive(int), default=25,
+    p.add_argument("--disturbances", type=positive(int), default=None,
                    help="slope points of the first grid, doubled until the MFPT settles (--disturbance-rule grid), "
-                        "or the slope quantiles (quantiles); default 25")
+                        "or the slope quantiles (quantiles); default 25 (compass-gait 5)")
     p.add_argument("--disturbance-rule", choices=DISTURBANCE_RULES, default="grid",
                    help="grid (default): a weighted grid over mean +- --tails std that keeps the tails, refined; "
                         "quantiles: the thesis' equal-probability quantiles (25 reach only +-2.05 std)")
@@ -131,11 +131,12 @@ def map_options(args: argparse.Namespace) -> dict:
 
 
 def fill_map_defaults(args: argparse.Namespace) -> None:
-    """Put the map's ``MESH_DEFAULTS`` into the flags not given (box size, slope mean and std)."""
+    """Put the map's ``MESH_DEFAULTS`` into the flags not given (box size, slope mean and std, disturbances)."""
     defaults = MESH_DEFAULTS[args.map]
     args.box_size = defaults["box_size"] if args.box_size is None else args.box_size
     args.slope_mean = defaults["slope_mean"] if args.slope_mean is None else args.slope_mean
     args.slope_std = [defaults["slope_std"]] if args.slope_std is None else args.slope_std
+    args.disturbances = defaults["disturbances"] if args.disturbances is None else args.disturbances
 
 
 def check_mesh_arguments(args: argparse.Namespace) -> None:

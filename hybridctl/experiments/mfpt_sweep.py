@@ -38,7 +38,7 @@ first-passage time passes it with probability e^-30, so no run of a sweep is cen
 def mfpt_vs_roughness(map_name: str = "rimless-wheel", out: str | Path = "runs/roughness",
                       slope_stds: Sequence[float] = (0.06,), box_size: float | None = None,
                       slope_mean: float | None = None,
-                      disturbances: int = 25, max_states: int = 1_000_000, monte_carlo: int = 0,
+                      disturbances: int | None = None, max_states: int = 1_000_000, monte_carlo: int = 0,
                       monte_carlo_budget: float = MAX_SWEEP_MONTE_CARLO_STEPS, monte_carlo_chunks: int = 1,
                       disturbance_rule: str = "grid", refine_rtol: float = DEFAULT_REFINE_RTOL,
                       max_disturbances: int = MAX_REFINED_DISTURBANCES, tails: float = 6.0,
@@ -47,7 +47,7 @@ def mfpt_vs_roughness(map_name: str = "rimless-wheel", out: str | Path = "runs/r
                       force: bool = False, map_options: dict | None = None) -> dict:
     """Refined mesh MFPT, and Monte Carlo where affordable, for each slope std in ``slope_stds`` (rad).
 
-    ``box_size`` and ``slope_mean`` default to the map's ``MESH_DEFAULTS``; ``map_options`` go to
+    ``box_size``, ``slope_mean`` and ``disturbances`` default to the map's ``MESH_DEFAULTS``; ``map_options`` go to
     ``section_map_by_name``. Writes ``out/mfpt_vs_roughness.json`` (the returned record) and ``out/mfpt_vs_roughness.png``
     (:func:`hybridctl.viz.markov.plot_mfpt_vs_roughness`). Each row: ``slope_std`` (rad and degrees), the
     mesh's states and MFPT from the seed (``inf``, in the JSON null, with ``never_fails`` true: the chain
@@ -71,6 +71,7 @@ def mfpt_vs_roughness(map_name: str = "rimless-wheel", out: str | Path = "runs/r
     section_map = section_map_by_name(map_name, **(map_options or {}))
     box_size = MESH_DEFAULTS[map_name]["box_size"] if box_size is None else box_size
     slope_mean = MESH_DEFAULTS[map_name]["slope_mean"] if slope_mean is None else slope_mean
+    disturbances = MESH_DEFAULTS[map_name]["disturbances"] if disturbances is None else disturbances
     seed = mesh_seed(section_map, slope_mean)
     where = {"backend": backend, "workers": workers, "address": address}
     record = {} if command is None else {"command": command}
