@@ -113,3 +113,14 @@ def test_compass_gait_parameters_are_set_and_checked():
                          ({"hip_pd": (1.0, 2.0)}, "hip_pd"), ({"wall_limit": 0.0}, "wall_limit")):
         with pytest.raises(ValueError, match=f"^{name} must"):
             DrakeCompassGaitMap(**kwargs)
+
+
+def test_compass_gait_hip_pd_changes_the_gait():
+    """A PD on the inter-leg angle (through CompassGait's hip torque input) walks a period-2 gait of its own."""
+    from hybridctl.drake import DrakeCompassGaitMap
+    walker = DrakeCompassGaitMap(hip_pd=(10.0, 1.0, -0.4))
+    gait = walker.gait(steps=40)
+    np.testing.assert_allclose(gait, [-0.5277, 0.5455, -1.1780], atol=2e-3)
+    np.testing.assert_allclose(walker.step(walker.step(gait, 0.0525), 0.0525), gait, atol=1e-5)
+    clone = pickle.loads(pickle.dumps(walker))
+    np.testing.assert_array_equal(clone.step(gait, 0.06), walker.step(gait, 0.06))
