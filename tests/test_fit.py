@@ -1,4 +1,4 @@
-"""``hybridctl fit`` (issue 49, first stages): a spec and the classical controller from a URDF alone."""
+"""``hybridctl fit``: a spec and the classical controller from a URDF alone."""
 
 import json
 import math

@@ -1,4 +1,4 @@
-"""``hybridctl fit MODEL_FILE --out DIR``: a complete spec and the classical controller from a URDF/SDF (issue 49).
+"""``hybridctl fit MODEL_FILE --out DIR``: a complete spec and the classical controller from a URDF/SDF.
 
 Built so far: the model stage (actuators, effort limit, goal and rest equilibria), the LQR stage (control hold,
 Q and R) and the gate stage (the cost-to-go gate's scale), each measured, cached in DIR/stages and resumable.

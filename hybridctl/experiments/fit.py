@@ -1,4 +1,4 @@
-"""``hybridctl fit MODEL_FILE --out DIR``: a complete spec and a controller from a URDF/SDF alone (issue 49).
+"""``hybridctl fit MODEL_FILE --out DIR``: a complete spec and a controller from a URDF/SDF alone.
 
 Built so far, the classical stages; each one measures what it chooses and records why:
 
@@ -17,7 +17,7 @@ model file's sha256, the options, the earlier stages' results); ``resume=True`` 
 match. ``DIR/report.json`` lists every stage (what was tried, what was kept and why, seconds) and is written
 after each stage, so a run stopped by bad input keeps what it had. ``DIR/system.toml`` is the complete spec.
 
-Not built yet (later stages of issue 49): the learned swing-up, the learned gate and the Drake balance-map
+Not built yet (later stages ): the learned swing-up, the learned gate and the Drake balance-map
 verification; until then the classical swing-up is ``hybridctl simulate DIR/system.toml --controller trajopt``.
 """
 
@@ -46,7 +46,7 @@ STAGES = ("model", "lqr", "gate")
 """The stages built so far, in order."""
 NOT_YET_BUILT = ("learned swing-up (--learner)", "learned gate", "Drake balance-map verification",
                  "--backend/--workers/--address/--device")
-"""What issue 49's ``fit`` will add; report.json and ``hybridctl fit --help`` say so."""
+"""What ``fit`` will add; report.json and ``hybridctl fit --help`` say so."""
 OUTPUTS = ("system.toml", "report.json", "stages")
 """What ``fit`` writes into its folder."""
 DT = 0.001
