@@ -117,7 +117,7 @@ def test_mfpt_benchmark_agrees_with_its_peers(tmp_path):
     assert report["benchmark"] == "mfpt"
     entries = {e["family"]: e for e in report["entries"]}
     assert set(entries) == {"mesh-like", "uniform"}
-    assert entries["mesh-like"]["auto_path"] == "direct" and entries["uniform"]["auto_path"] == "krylov"
+    assert entries["mesh-like"]["auto_path"] == "direct-first" and entries["uniform"]["auto_path"] == "krylov"
     for entry in entries.values():
         assert 1_000 <= entry["states"] <= 1_100 and entry["infinite_states"] == 0
         assert entry["spsolve"]["max_rel_diff"] < 1e-9 and _positive_finite(entry["spsolve"]["ratio"])

@@ -167,7 +167,7 @@ def normalised(rows, cols, vals, n):
     return (sp.diags(1 / np.asarray(T.sum(axis=1)).ravel()) @ T).tocsr()
 
 
-@pytest.mark.parametrize("T, path", [(mesh_like(30), "direct"), (uniform(2000), "krylov")], ids=["mesh", "uniform"])
+@pytest.mark.parametrize("T, path", [(mesh_like(30), "direct-first"), (uniform(2000), "krylov")], ids=["mesh", "uniform"])
 def test_auto_equals_spsolve_and_picks_its_path(T, path):
     auto, direct = absorbing_mfpt(T, eigen=False), absorbing_mfpt(T, method="direct", eigen=False)
     finite = np.isfinite(direct.mfpt)
@@ -214,3 +214,47 @@ def test_mfpt_bad_cases_give_one_line(T, kwargs, error, message, monkeypatch):
     with pytest.raises(error, match=message) as info:
         absorbing_mfpt(T, **kwargs)
     assert "\n" not in str(info.value)
+
+
+def birth_death(n, fail=1e-3):
+    """1-D birth-death line: down 0.5, up 0.5 - fail, fail to state 0 with ``fail`` (state 1 steps down into it)."""
+    i = np.arange(1, n)
+    up = np.where(i == n - 1, 0.0, 0.5 - fail)
+    rows, cols = np.r_[i, i, i, i], np.r_[i - 1, np.minimum(i + 1, n - 1), np.zeros(n - 1, int), i]
+    vals = np.r_[np.full(n - 1, 0.5), up, np.full(n - 1, fail), np.maximum(0.5 - up - fail, 0.0)]
+    return normalised(rows, cols, vals, n)
+
+
+def grid_walk(side, fail=1e-4):
+    """2-D grid walk: 4 neighbours, stepping off the grid fails, and ``fail`` per step."""
+    r, c = np.unravel_index(np.arange(side * side), (side, side))
+    rows, cols, vals = [], [], []
+    for dr, dc in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+        rr, cc = r + dr, c + dc
+        off = (rr < 0) | (rr >= side) | (cc < 0) | (cc >= side)
+        j = np.ravel_multi_index((np.clip(rr, 0, side - 1), np.clip(cc, 0, side - 1)), (side, side)) + 1
+        rows.append(np.arange(1, side * side + 1)), cols.append(np.where(off, 0, j)), vals.append(np.full(r.size, 1.0))
+    rows.append(np.arange(1, side * side + 1)), cols.append(np.zeros(r.size, int)), vals.append(np.full(r.size, 4 * fail))
+    return normalised(np.concatenate(rows), np.concatenate(cols), np.concatenate(vals), side * side + 1)
+
+
+@pytest.mark.parametrize("T, solver, path", [(birth_death(3000), "splu", "direct-first"),
+                                             (grid_walk(60), "splu", "direct-first"),
+                                             (mesh_like(60), "splu", "direct-first"),
+                                             (uniform(3000), "bicgstab", "krylov")],
+                         ids=["birth-death", "grid-2d", "mesh-like", "uniform"])
+def test_auto_matches_direct_on_every_benchmark_family(T, solver, path):
+    """Issue 50 item 5: low-dimensional chains are factored at once (no Krylov probe), random rows probed."""
+    auto, direct = absorbing_mfpt(T, eigen=False), absorbing_mfpt(T, method="direct", eigen=False)
+    assert np.isfinite(direct.mfpt).all() and direct.mfpt[1:].min() >= 1
+    np.testing.assert_allclose(auto.mfpt, direct.mfpt, rtol=1e-9)
+    assert auto.solver["solver"] == solver and auto.solver["path"] == path
+
+
+def test_graph_dimension_tells_lines_and_grids_from_random_rows():
+    from hybridctl.analysis.markov import graph_dimension_is_low
+    line = sp.identity(2999, format="csr") - birth_death(3000)[1:, 1:]
+    random_rows = sp.identity(2999, format="csr") - uniform(3000)[1:, 1:]
+    assert graph_dimension_is_low(line) == (True, 15)          # depth counted up to ceil(2999 ** (1/3))
+    low, depth = graph_dimension_is_low(random_rows)
+    assert not low and depth < 10

@@ -7,7 +7,11 @@ is the solution of
 
     (I - Q) t = 1                                                   (exact MFPT)
 
-solved by the solver the chain calls for (``method="auto"``, the default): a short
+solved by the solver the chain calls for (``method="auto"``, the default). A chain whose
+graph is low-dimensional (a birth-death line, a grid walk, a gait's mesh: the breadth-first
+depth of ``I - Q``'s symmetrised pattern is at least ``n ** (1 / DIRECT_MAX_DIMENSION)``) is
+factored at once by SuperLU's complete LU (``splu``, path "direct-first") where a factor of
+:data:`DIRECT_FILL_GUESS` x nnz fits the memory budget. Any other chain gets a short
 unpreconditioned BiCGSTAB probe (enough for chains that mix fast, such as random sparse
 rows), then a sparse LU capped at :data:`FILL_CAP` times the nonzeros of ``I - Q``
 (SuperLU's ILU with no drop tolerance: exact while the fill stays under the cap), and
@@ -59,6 +63,14 @@ FILL_CAP = 60.0
 (12 bytes each; lowered further where the memory budget of :mod:`hybridctl.limits` is smaller).
 Mesh-like chains need 8-36 at 1e3-1e5 states; random sparse rows need 60-560 and more."""
 FACTOR_BYTES_PER_NONZERO = 12
+DIRECT_MAX_DIMENSION = 3.0
+"""Largest graph dimension (``log n / log depth``, depth the breadth-first eccentricity of a pseudo-peripheral
+state) ``method="auto"`` factors at once, without the Krylov probe: 1-D birth-death chains measure 1.0, 2-D grid
+walks 1.7-1.8, mesh-like chains 2.5, random sparse rows 4-7 (whose LU fills in without bound)."""
+DIRECT_FILL_GUESS = 100.0
+"""Nonzeros of the LU factors, per nonzero of ``I - Q``, assumed when checking that a direct-first factor fits
+the memory budget (SuperLU/COLAMD measured 1.3 on birth-death lines, 13-29 on grids, 13-37 on mesh-like chains
+at 1e4-1e6 states); over the budget, the capped factor of the probe path is used instead."""
 EIGEN_MAX_SECONDS = 60.0
 """Wall-time cap of the ARPACK eigen estimate (``method="eigen"`` and the ``eigen=True`` diagnostics):
 without it a slowly mixing 1e5-state mesh ran past 150 s. Hitting it raises :class:`EigenLimitError`
@@ -266,9 +278,63 @@ def _capped_factor(A: sp.csr_matrix, fill_cap: float):
     return spla.spilu(A.tocsc(), drop_tol=0.0, fill_factor=cap), cap
 
 
+def graph_depth(A: sp.spmatrix, enough: int) -> int:
+    """Breadth-first depth of ``A``'s symmetrised pattern from a pseudo-peripheral state (two sweeps from the
+    middle state's component), counted up to ``enough`` (a longer depth returns ``enough``)."""
+    pattern = A.tocsr(copy=True)
+    pattern.data = np.ones_like(pattern.data)
+    pattern = (pattern + pattern.T).tocsr()
+    node = A.shape[0] // 2
+    for _ in range(2):
+        order, predecessors = csgraph.breadth_first_order(pattern, node, directed=False, return_predecessors=True)
+        node = int(order[-1])                  # a state of the last level: as far as the search went
+    depth = 0
+    while depth < enough and predecessors[node] >= 0:
+        node, depth = int(predecessors[node]), depth + 1
+    return depth
+
+
+def graph_dimension_is_low(A: sp.spmatrix) -> tuple[bool, int]:
+    """(whether ``A``'s graph is at most :data:`DIRECT_MAX_DIMENSION`-dimensional, the depth counted)."""
+    n = A.shape[0]
+    needed = int(np.ceil(n ** (1.0 / DIRECT_MAX_DIMENSION)))
+    depth = graph_depth(A, needed)
+    return n <= 2 or depth >= needed, depth
+
+
+def _direct_first(A: sp.csr_matrix, b: np.ndarray, rtol: float, start: float, depth: int):
+    """Complete sparse LU (COLAMD) of a low-dimensional chain with one refinement step; None where SuperLU
+    runs out of memory or the answer misses ``rtol`` (the probe path then takes over)."""
+    try:
+        factor = spla.splu(A.tocsc())
+    except MemoryError:
+        return None
+    except RuntimeError as exc:   # SuperLU: "Factor is exactly singular"
+        raise NearlyNeverFailsError(_never_fails_message("auto", f"the LU factor of I - Q is singular ({exc})")) from None
+    x = factor.solve(b)
+    residual = _relative_residual(A, x, b) if np.all(np.isfinite(x)) else np.inf
+    if rtol < residual <= 1e-3:
+        x = x + factor.solve(b - A @ x)
+        residual = _relative_residual(A, x, b) if np.all(np.isfinite(x)) else np.inf
+    if not residual <= max(rtol, RESIDUAL_TOLERANCE):
+        return None
+    return x, {"solver": "splu", "path": "direct-first", "graph_depth": depth,
+               "fill": (factor.L.nnz + factor.U.nnz) / A.nnz, "converged": True,
+               "relative_residual": residual, "seconds": time.perf_counter() - start}
+
+
 def _auto_solve(A: sp.csr_matrix, b: np.ndarray, rtol: float, fill_cap: float) -> tuple[np.ndarray, dict]:
-    """Probe, capped LU, preconditioned GMRES (see the module docstring); returns x and the solver record."""
+    """Direct-first LU, or probe, capped LU, preconditioned GMRES (see the module docstring); returns x and
+    the solver record."""
     start = time.perf_counter()
+    if not float(fill_cap) >= 1.0:
+        raise ValueError(f"fill_cap must be >= 1 (nonzeros of the factors per nonzero of I - Q), got {fill_cap!r}")
+    fits = DIRECT_FILL_GUESS * FACTOR_BYTES_PER_NONZERO * A.nnz <= memory_budget()
+    low, depth = graph_dimension_is_low(A) if fits and fill_cap >= FILL_CAP else (False, None)
+    if low:                  # a lowered fill_cap asks for the capped LU of the probe path
+        solved = _direct_first(A, b, rtol, start, depth)
+        if solved is not None:
+            return solved
     x, info = spla.bicgstab(A, b, rtol=rtol, atol=0.0, maxiter=PROBE_ITERATIONS)
     if info == 0 and np.all(np.isfinite(x)) and _relative_residual(A, x, b) <= rtol:
         return x, {"solver": "bicgstab", "path": "krylov", "converged": True,
