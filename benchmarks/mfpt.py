@@ -1,10 +1,15 @@
-"""Exact mean first passage time on two families of absorbing chains of 1e3, 1e4 and 1e5 states:
+"""Exact mean first passage time on four families of absorbing chains of 1e4, 1e5 and 1e6 states:
 hybridctl's ``absorbing_mfpt`` (method "auto") against scipy's ``spsolve`` and deeptime's
 ``mfpt`` (if installed) in the same run, with ratios. Prints one JSON document.
 
-    .venv/bin/python benchmarks/mfpt.py [--quick] [--out FILE] [--peer-timeout S] [--repeats N]
+    .venv/bin/python benchmarks/mfpt.py [--quick] [--sizes N ...] [--families F ...] [--out FILE]
+        [--peer-timeout S] [--repeats N]
 
-Families: "mesh-like" imitates a reachable-state mesh of a gait: states on a 2-D lattice, each
+(``--quick``: 1e3 states. deeptime is a peer where importable, e.g. ``PYTHONPATH=/tmp/dtlib``.)
+
+Families: "birth-death": a 1-D line, down 0.5, up 0.5 - 1e-4, failure 1e-4 per step (state 1 steps down
+into it; MFPT about 1e4). "grid-2d": a walk on a square grid, 4 neighbours, stepping off the grid fails,
+plus 1e-6 per step. "mesh-like" imitates a reachable-state mesh of a gait: states on a 2-D lattice, each
 with 8 successors scattered by one cell around a slowly turning, slightly contracting image
 (most states cycle for a long time), failure off the lattice or, rarely, near its edge and
 with a small floor (mean first passage times of 1e2-1e4 steps). "uniform": random sparse rows,
@@ -62,6 +67,33 @@ def uniform_chain(states: int, successors: int = 5, seed: int = 0) -> sp.csr_mat
     return _chain(rows, rng.integers(0, states, size=rows.size), rng.uniform(size=rows.size), states)
 
 
+def birth_death_chain(states: int, fail: float = 1e-4, seed: int = 0) -> sp.csr_matrix:
+    """1-D birth-death line of ``states`` states (failure state 0, reflecting top)."""
+    i = np.arange(1, states)
+    up = np.where(i == states - 1, 0.0, 0.5 - fail)
+    rows, cols = np.r_[i, i, i, i], np.r_[i - 1, np.minimum(i + 1, states - 1), np.zeros(i.size, int), i]
+    vals = np.r_[np.full(i.size, 0.5), up, np.full(i.size, fail), np.maximum(0.5 - up - fail, 0.0)]
+    return _chain(rows, cols, vals, states)
+
+
+def grid_chain(states: int, fail: float = 1e-6, seed: int = 0) -> sp.csr_matrix:
+    """Walk on a square grid of about ``states`` cells: 4 neighbours, off the grid fails, ``fail`` per step."""
+    side = max(int(round(np.sqrt(states))), 2)
+    r, c = np.unravel_index(np.arange(side * side), (side, side))
+    rows, cols, vals = [], [], []
+    for dr, dc in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+        rr, cc = r + dr, c + dc
+        off = (rr < 0) | (rr >= side) | (cc < 0) | (cc >= side)
+        j = np.ravel_multi_index((np.clip(rr, 0, side - 1), np.clip(cc, 0, side - 1)), (side, side)) + 1
+        rows.append(r * side + c + 1), cols.append(np.where(off, 0, j)), vals.append(np.full(r.size, (1 - fail) / 4))
+    rows.append(r * side + c + 1), cols.append(np.zeros(r.size, int)), vals.append(np.full(r.size, fail))
+    return _chain(np.concatenate(rows), np.concatenate(cols), np.concatenate(vals), side * side + 1)
+
+
+FAMILIES = {"birth-death": birth_death_chain, "grid-2d": grid_chain, "mesh-like": mesh_like_chain,
+            "uniform": uniform_chain}
+
+
 def _chain(rows, cols, vals, n) -> sp.csr_matrix:
     """Row-normalised CSR chain from triplets, with state 0 absorbing."""
     T = sp.csr_matrix((np.r_[1.0, vals], (np.r_[0, rows], np.r_[0, cols])), shape=(n, n))
@@ -113,7 +145,7 @@ def peer(fn, T, repeats: int, timeout: float) -> tuple[np.ndarray | None, list |
 
 def bench_chain(family: str, states: int, repeats: int, peer_timeout: float, has_deeptime: bool) -> dict:
     """One chain: auto (hybridctl), spsolve, deeptime; ratios are peer time / auto time (> 1: auto faster)."""
-    T = (mesh_like_chain if family == "mesh-like" else uniform_chain)(states)
+    T = FAMILIES[family](states)
     ours, times = timed(lambda: absorbing_mfpt(T, eigen=False), repeats)
     finite = np.isfinite(ours.mfpt)
     entry = {"family": family, "states": int(T.shape[0]), "nonzeros": int(T.nnz),
@@ -137,30 +169,32 @@ def bench_chain(family: str, states: int, repeats: int, peer_timeout: float, has
     return entry
 
 
-def run(quick: bool, peer_timeout: float, repeats: int) -> dict:
+def run(quick: bool, peer_timeout: float, repeats: int, sizes=None, families=None) -> dict:
     """All chains and the machine record."""
     try:
         import deeptime
         has_deeptime, deeptime_version = True, deeptime.__version__
     except ImportError:
         has_deeptime, deeptime_version = False, "deeptime not installed"
-    sizes = (1_000,) if quick else (1_000, 10_000, 100_000)
+    sizes = sizes or ((1_000,) if quick else (10_000, 100_000, 1_000_000))
     return {"benchmark": "mfpt", "quick": quick, "command": sys.argv,
             "timestamp": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "machine": machine_info(),
             "deeptime": deeptime_version, "repeats": repeats, "peer_timeout_s": peer_timeout,
             "ratio": "peer median seconds / auto median seconds (> 1: auto faster; >= 0.5: within 2x)",
             "entries": [bench_chain(family, n, repeats, peer_timeout, has_deeptime)
-                        for family in ("mesh-like", "uniform") for n in sizes]}
+                        for n in sizes for family in (families or FAMILIES)]}
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="1e3-state chains only (for tests)")
+    parser.add_argument("--sizes", type=int, nargs="+", help="states per chain (default 1e4 1e5 1e6)")
+    parser.add_argument("--families", nargs="+", choices=sorted(FAMILIES), help="default: all four")
     parser.add_argument("--out", type=Path, help="also write the JSON to this file")
     parser.add_argument("--peer-timeout", type=float, default=60.0, help="seconds a peer may run on one chain")
     parser.add_argument("--repeats", type=int, default=3, help="runs of each solver (median reported)")
     args = parser.parse_args(argv)
-    emit(run(args.quick, args.peer_timeout, args.repeats), args.out)
+    emit(run(args.quick, args.peer_timeout, args.repeats, args.sizes, args.families), args.out)
     return 0
 
 

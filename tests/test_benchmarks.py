@@ -108,16 +108,17 @@ def test_mesh_dimension_benchmark_reports_both_methods(tmp_path):
 
 
 def test_mfpt_benchmark_agrees_with_its_peers(tmp_path):
-    """benchmarks/mfpt.py --quick: the auto MFPT equals spsolve's (and deeptime's, if installed) on a mesh-like
-    and a uniform chain, picks the direct and the Krylov path, and reports ratios (no speed thresholds)."""
+    """benchmarks/mfpt.py --quick: the auto MFPT equals spsolve's (and deeptime's, if installed) on a birth-death,
+    a grid, a mesh-like and a uniform chain, picks the direct-first and the Krylov path, and reports ratios (no speed thresholds)."""
     proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "mfpt.py"), "--quick", "--repeats", "1"],
                           cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     report = json.loads(proc.stdout)
     assert report["benchmark"] == "mfpt"
     entries = {e["family"]: e for e in report["entries"]}
-    assert set(entries) == {"mesh-like", "uniform"}
-    assert entries["mesh-like"]["auto_path"] == "direct-first" and entries["uniform"]["auto_path"] == "krylov"
+    assert set(entries) == {"birth-death", "grid-2d", "mesh-like", "uniform"}
+    assert {f: e["auto_path"] for f, e in entries.items()} == {"birth-death": "direct-first", "grid-2d": "direct-first",
+                                                               "mesh-like": "direct-first", "uniform": "krylov"}
     for entry in entries.values():
         assert 1_000 <= entry["states"] <= 1_100 and entry["infinite_states"] == 0
         assert entry["spsolve"]["max_rel_diff"] < 1e-9 and _positive_finite(entry["spsolve"]["ratio"])
