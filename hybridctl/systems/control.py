@@ -109,7 +109,7 @@ class CostToGoGate(torch.nn.Module):
         if not self.scale > 0:
             raise ValueError(f"scale must be > 0, got {self.scale}")
         S = system.lqr()[1] if S is None else np.asarray(S, dtype=float)
-        self.register_buffer("S", torch.as_tensor(S, dtype=torch.float64))
+        self.register_buffer("S", torch.as_tensor(S, dtype=torch.float64, device="cpu"))  # moved with .to(device)
         self._S_np = np.asarray(S, dtype=float)
 
     def cost_to_go(self, x):
