@@ -216,7 +216,7 @@ def test_mfpt_bad_cases_give_one_line(T, kwargs, error, message, monkeypatch):
     assert "\n" not in str(info.value)
 
 
-def birth_death(n, fail=1e-3):
+def birth_death_line(n, fail=1e-3):
     """1-D birth-death line: down 0.5, up 0.5 - fail, fail to state 0 with ``fail`` (state 1 steps down into it)."""
     i = np.arange(1, n)
     up = np.where(i == n - 1, 0.0, 0.5 - fail)
@@ -238,7 +238,7 @@ def grid_walk(side, fail=1e-4):
     return normalised(np.concatenate(rows), np.concatenate(cols), np.concatenate(vals), side * side + 1)
 
 
-@pytest.mark.parametrize("T, solver, path", [(birth_death(3000), "splu", "direct-first"),
+@pytest.mark.parametrize("T, solver, path", [(birth_death_line(3000), "splu", "direct-first"),
                                              (grid_walk(60), "splu", "direct-first"),
                                              (mesh_like(60), "splu", "direct-first"),
                                              (uniform(3000), "bicgstab", "krylov")],
@@ -253,7 +253,7 @@ def test_auto_matches_direct_on_every_benchmark_family(T, solver, path):
 
 def test_graph_dimension_tells_lines_and_grids_from_random_rows():
     from hybridctl.analysis.markov import graph_dimension_is_low
-    line = sp.identity(2999, format="csr") - birth_death(3000)[1:, 1:]
+    line = sp.identity(2999, format="csr") - birth_death_line(3000)[1:, 1:]
     random_rows = sp.identity(2999, format="csr") - uniform(3000)[1:, 1:]
     assert graph_dimension_is_low(line) == (True, 15)          # depth counted up to ceil(2999 ** (1/3))
     low, depth = graph_dimension_is_low(random_rows)
