@@ -57,6 +57,7 @@ def finetune_and_report(env: str, policy: str, out: str | Path, config: FineTune
     report dict.
     """
     config = config or FineTuneConfig()
+    config.validate()   # every setting is checked before --out is made or locked (FineTune checks it again)
     inputs = {"--policy": parse_source(policy)[1], "--normalizer": normalizer}
     with open_run_folder(out, resume=resume, overwrite=overwrite, markers=FINETUNE_MARKERS, inputs=inputs) as folder:
         tuner = FineTune(env, policy, config, trust=trust, normalizer=normalizer)
