@@ -139,6 +139,21 @@ HEAVY_TESTS = frozenset({
 """Single heavy tests outside :data:`HEAVY_FILES`, by ``file::name`` (every parametrisation of it)."""
 
 
+SLOW_TESTS = frozenset({
+    # moved out of `make test` to keep it under 5 minutes from a clean clone on 2 cores; `make test-all`
+    # runs them. Each is a second check of a path other default tests cover (seconds: clean clone, idle).
+    "test_compiled.py::test_compiled_sac_gradients_equal_eager",          # 14.7 s, cold torch.compile
+    "test_compiled.py::test_compiled_switched_env_equals_eager",          # 8.9 s
+    "test_compiled.py::test_compiled_gate_fit_follows_the_eager_fit",     # 6.5 s
+    "test_multibody.py::test_the_command_line_trains_fine_tunes_and_simulates_a_multibody_system_by_name",  # 16.3 s
+    "test_sb3_baselines.py::test_two_chunks_then_resume_trains_only_the_difference",   # 13 s setup
+    "test_safe_runs.py::test_kill_9_ars_then_resume_continues_from_the_checkpoint",    # 6.7 s
+    "test_run_folders.py::test_two_training_runs_started_together_one_refused_one_consistent_run",  # 7.4 s
+    "test_drake_hybrid.py::test_balance_map_workers_keep_the_systems_overrides",       # 6.4 s
+})
+"""Tests marked slow here rather than in their files, by ``file::name``."""
+
+
 def pytest_collection_modifyitems(config, items):
     """Mark the tests of :data:`HEAVY_FILES` and :data:`HEAVY_TESTS` ``heavy`` (``make test-fast`` leaves
     them out); a name in HEAVY_TESTS that no longer exists is an error, so the list cannot rot."""
@@ -148,7 +163,9 @@ def pytest_collection_modifyitems(config, items):
         collected.add(name)
         if item.path.name in HEAVY_FILES or name in HEAVY_TESTS:
             item.add_marker(pytest.mark.heavy)
+        if name in SLOW_TESTS:
+            item.add_marker(pytest.mark.slow)
     files = {item.path.name for item in items}
-    stale = sorted(t for t in HEAVY_TESTS if t.split("::")[0] in files and t not in collected)
+    stale = sorted(t for t in HEAVY_TESTS | SLOW_TESTS if t.split("::")[0] in files and t not in collected)
     if stale:
-        raise pytest.UsageError(f"tests/conftest.py HEAVY_TESTS names tests that do not exist: {stale}")
+        raise pytest.UsageError(f"tests/conftest.py HEAVY_TESTS / SLOW_TESTS name tests that do not exist: {stale}")
