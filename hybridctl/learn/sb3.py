@@ -1,14 +1,7 @@
 """Stable-Baselines3 checkpoints read WITHOUT unpickling (thesis Ch. 6: random search over SB3 weights).
 
-An SB3 2.x ``model.save("agent.zip")`` writes a zip holding::
-
-    data                       JSON; entries that JSON cannot hold carry ":serialized:" (base64
-                               cloudpickle, NEVER decoded here) next to plain-text fields
-                               (``observation_space``: ``_shape``, ``dtype``, ``low``, ``high``;
-                               ``policy_class``: ``__module__``; ``policy_kwargs``: the repr of
-                               each entry, e.g. ``activation_fn``)
-    policy.pth                 the policy state dict (read with ``torch.load(weights_only=True)``)
-    *.optimizer.pth, pytorch_variables.pth, _stable_baselines3_version, system_info.txt
+An SB3 2.x ``model.save("agent.zip")`` zip (its entries: :mod:`hybridctl.learn.sb3_zip`) holds JSON
+with cloudpickled entries beside plain-text fields, and the policy's state dict.
 
 :func:`load_sb3` reads only the plain JSON/text fields and the state dict and rebuilds the
 deterministic (maximum-likelihood) action path of an ``MlpPolicy`` with Box spaces as
