@@ -233,10 +233,15 @@ def test_a_saved_map_names_its_axes_with_units_and_titles_no_absolute_path(tmp_p
 
 @pytest.mark.xdist_group("ray")
 def test_drake_balance_map_is_the_same_on_every_backend(local_ray, tmp_path):
-    """Serial, local processes and Ray (the session's local instance): the same map, cell for cell."""
+    """Serial, local processes and Ray (the session's local instance): the same map, cell for cell, with a
+    checkpoint's controller that each worker rebuilds from its name (the one Drake-engine pool of `make test`:
+    the demo and the notebooks map in their own process there)."""
+    from pathlib import Path
+
     from hybridctl.cli import main
 
-    maps = {backend: balance_map("acrobot", "energy", grid=3, duration=1.0, backend=backend, workers=2,
+    checkpoint = Path(__file__).resolve().parents[1] / "models" / "policies" / "ssac-acrobot"   # any worker's folder
+    maps = {backend: balance_map("acrobot", f"ssac:{checkpoint}", grid=3, duration=1.0, backend=backend, workers=2,
                                  progress=False) for backend in ("serial", "processes", "ray")}
     for backend, bmap in maps.items():
         assert bmap.meta["backend"] == backend

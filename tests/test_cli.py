@@ -22,8 +22,9 @@ def run(*args, check=True):
 
 
 def run_in_process(capsys, *args) -> tuple[int, str, str]:
-    """(exit code, stdout, stderr) of ``hybridctl ARGS`` called in this process (no interpreter start:
-    the bad-input cases run in milliseconds; the subprocess tests above cover the console script)."""
+    """(exit code, stdout, stderr) of ``hybridctl ARGS`` called in this process (no interpreter start, seconds
+    each: torch and Drake are imported already). ``python -m hybridctl.cli`` itself: test_simulate_writes_all_outputs,
+    test_debug_flag_shows_the_traceback, test_output_into_a_closed_pipe_is_not_an_error."""
     try:
         code = main(list(args))
     except SystemExit as stop:
@@ -60,15 +61,17 @@ def test_simulate_force_loads_a_checkpoint_trained_on_other_spec_values_from_a_s
     assert code == 0 and json.loads((tmp_path / "forced" / "summary.json").read_text())["system"] == "acrobot"
 
 
-def test_balance_map_writes_png_and_json(tmp_path):
+def test_balance_map_writes_png_and_json(tmp_path, capsys):
     out = tmp_path / "map"
-    proc = run("balance-map", "pendulum", "--grid", "3", "--workers", "1", "--quiet", "--out", str(out))
+    code, stdout, err = run_in_process(capsys, "balance-map", "pendulum", "--grid", "3", "--workers", "1", "--quiet",
+                                       "--out", str(out))
+    assert code == 0, err
     result = json.loads((out / "balance_map.json").read_text())
     assert 0.0 <= result["balanced_fraction"] <= 1.0
     assert np.array(result["balanced"]).shape == (3, 3)
     assert result["balanced_fraction"] == pytest.approx(np.mean(result["balanced"]))
     assert (out / "balance_map.png").exists()
-    assert "balanced_fraction" in proc.stdout
+    assert "balanced_fraction" in stdout
 
 
 @pytest.mark.parametrize("engine", ["drake", "torch"])
@@ -100,7 +103,13 @@ def test_balance_map_near_hanging_down_spans_the_half_width_around_the_nominal_s
     assert result["values2"] == pytest.approx([-0.3, 0.0, 0.3])
 
 
-def test_demo_balances_the_acrobot_and_the_cartpole(tmp_path, capsys):
+def test_demo_balances_the_acrobot_and_the_cartpole(tmp_path, capsys, monkeypatch):
+    # its two 2 x 2 maps in this process (a one-core machine's demo): two pools of 2 spawned workers, each
+    # importing torch and Drake first, cost about 20 s here; the map is the same on every backend and the pool
+    # with a checkpoint's controller is test_balance_engines.py's
+    import importlib
+
+    monkeypatch.setattr(importlib.import_module("hybridctl.experiments.balance_map"), "cpu_count", lambda: 1)
     code, stdout, err = run_in_process(capsys, "demo", "--grid", "2", "--quiet", "--out", str(tmp_path))
     assert code == 0, err
     proc = type("Proc", (), {"stdout": stdout})
@@ -165,12 +174,12 @@ def test_train_ars_bad_arguments(args, message, tmp_path, capsys):
     assert code == 2 and message in err and "Traceback" not in err, err
 
 
-def test_mesh_writes_matrix_report_and_figures(tmp_path):
+def test_mesh_writes_matrix_report_and_figures(tmp_path, capsys):
     import scipy.sparse as sp
     out = tmp_path / "mesh"
-    proc = run("mesh", "rimless-wheel", "--box-size", "0.01", "--monte-carlo", "500", "--sizes", "0.1",
-               "--out", str(out), "--quiet")
-    assert "MFPT from the seed" in proc.stdout
+    code, stdout, err = run_in_process(capsys, "mesh", "rimless-wheel", "--box-size", "0.01", "--monte-carlo", "500",
+                                       "--sizes", "0.1", "--out", str(out), "--quiet")
+    assert code == 0 and "MFPT from the seed" in stdout, err
     report = json.loads((out / "mfpt.json").read_text())
     T = sp.load_npz(out / "transition_matrix.npz")
     assert T.shape[0] == report["mesh"]["states"] + 1 and np.allclose(T.sum(axis=1), 1.0)
@@ -226,9 +235,10 @@ def test_mesh_compass_gait_coarse(tmp_path, capsys):
     assert report["mfpt"]["from_seed"] > 1 and set(report["section_guard"]["trips"]) >= {"wall-time guard"}
 
 
-def test_mesh_cap_reports_incomplete(tmp_path):
-    proc = run("mesh", "rimless-wheel", "--max-states", "20", "--out", str(tmp_path / "m"), "--quiet", check=False)
-    assert proc.returncode == 2 and "incomplete" in proc.stdout
+def test_mesh_cap_reports_incomplete(tmp_path, capsys):
+    code, stdout, _ = run_in_process(capsys, "mesh", "rimless-wheel", "--max-states", "20", "--out", str(tmp_path / "m"),
+                                     "--quiet")
+    assert code == 2 and "incomplete" in stdout
     assert "incomplete" in json.loads((tmp_path / "m" / "mfpt.json").read_text())["error"]
 
 
