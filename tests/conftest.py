@@ -165,7 +165,10 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(pytest.mark.heavy)
         if name in SLOW_TESTS:
             item.add_marker(pytest.mark.slow)
-    files = {item.path.name for item in items}
-    stale = sorted(t for t in HEAVY_TESTS | SLOW_TESTS if t.split("::")[0] in files and t not in collected)
+    # a name is stale when its file's module lacks it (not when a node id or -k selected other tests only)
+    modules = {item.path.name: item.module for item in items if getattr(item, "module", None) is not None}
+    stale = sorted(t for t in HEAVY_TESTS | SLOW_TESTS
+                   if t.split("::")[0] in modules and t not in collected
+                   and not hasattr(modules[t.split("::")[0]], t.split("::")[1]))
     if stale:
         raise pytest.UsageError(f"tests/conftest.py HEAVY_TESTS / SLOW_TESTS name tests that do not exist: {stale}")
