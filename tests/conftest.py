@@ -75,9 +75,11 @@ def pytest_sessionstart(session):
                                 + "; ".join(missing))
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture
 def local_ray():
-    """One real local Ray instance (2 CPUs, bound to 127.0.0.1, no dashboard) for the whole test session.
+    """One real local Ray instance (2 CPUs, bound to 127.0.0.1, no dashboard), started by the first test that
+    asks for it and shared by the next ones; stopped after the last test that may use it
+    (:func:`pytest_runtest_teardown`) or at the end of the session.
 
     Tests that use it carry ``@pytest.mark.xdist_group("ray")`` so that ``make test`` (``--dist loadgroup``)
     runs them on one process, which starts the instance once. hybridctl's Ray backend joins a running
@@ -87,15 +89,47 @@ def local_ray():
     import sys
 
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")     # nothing leaves the machine
-    started = not ray.is_initialized()
-    if started:
+    if not ray.is_initialized():
         # the workers import hybridctl and these test modules as this process does
         env = {"env_vars": {"PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}}
         ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False,
                  _node_ip_address="127.0.0.1", runtime_env=env)   # a new instance, never a head running here
-    yield ray
-    if started:
+        _LOCAL_RAY["started"] = True
+    return ray
+
+
+_LOCAL_RAY = {"started": False}
+"""Whether :func:`local_ray` started the instance that is running now (it stops only that one)."""
+
+
+def _stop_local_ray() -> None:
+    if _LOCAL_RAY["started"]:
+        import ray
+
         ray.shutdown()
+        _LOCAL_RAY["started"] = False
+
+
+def _may_use_local_ray(item) -> bool:
+    return "local_ray" in getattr(item, "fixturenames", ()) or any(
+        marker.args[:1] == ("ray",) for marker in item.iter_markers("xdist_group"))
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_teardown(item, nextitem):
+    """Stop the local Ray instance after the last test that may use it, not at the end of the session: its
+    idle processes (raylet, GCS, workers) would take CPU from every later test. "Last" in collection order,
+    which the process that runs the xdist group "ray" follows too; a later request would start it again."""
+    yield
+    if _LOCAL_RAY["started"] and _may_use_local_ray(item):
+        items = item.session.items
+        if not any(_may_use_local_ray(later) for later in items[items.index(item) + 1:]):
+            _stop_local_ray()
+
+
+def pytest_sessionfinish(session):
+    """The local Ray instance, if a test started it and it still runs."""
+    _stop_local_ray()
 
 
 # The edit-test loop's tier (`make test-fast`): every test except the whole-workflow ones below, which
