@@ -184,6 +184,11 @@ SLOW_TESTS = frozenset({
     "test_safe_runs.py::test_kill_9_ars_then_resume_continues_from_the_checkpoint",    # 6.7 s
     "test_run_folders.py::test_two_training_runs_started_together_one_refused_one_consistent_run",  # 7.4 s
     "test_drake_hybrid.py::test_balance_map_workers_keep_the_systems_overrides",       # 6.4 s
+    # the CLI's SSAC train/resume/simulate/balance-map round trip: test_safe_runs' CLI SSAC resume,
+    # test_cli's train/resume and its ssac:PATH simulate and balance-map runs cover each step
+    "test_ssac.py::test_cli_train_resume_simulate_and_balance_map",                    # 6.0 s CPU (shared machine)
+    # the finetune command: test_finetune_sb3's CLI run (report, before/after) and test_finetune's API resume
+    "test_finetune.py::test_cli_finetune_reports_before_and_after_and_resumes",        # 8.6 s CPU (shared machine)
 })
 """Tests marked slow here rather than in their files, by ``file::name``."""
 
