@@ -151,10 +151,8 @@ HEAVY_TESTS = frozenset({
     # single tests over about 5 s on 2 busy cores (pytest --durations=0), each a whole workflow
     "test_multibody.py::test_the_command_line_trains_fine_tunes_and_simulates_a_multibody_system_by_name",
     "test_cli.py::test_demo_balances_the_acrobot_and_the_cartpole",
-    "test_cli.py::test_mesh_writes_matrix_report_and_figures",
     "test_cli.py::test_debug_flag_shows_the_traceback",
     "test_cli.py::test_output_into_a_closed_pipe_is_not_an_error",
-    "test_cli.py::test_balance_map_writes_png_and_json",
     "test_ssac.py::test_gate_is_refit_on_schedule_and_env_uses_it",
     "test_ssac.py::test_overlapped_gate_refit_gives_the_one_thread_numbers",
     "test_ssac.py::test_cli_train_resume_simulate_and_balance_map",
@@ -169,6 +167,56 @@ HEAVY_TESTS = frozenset({
     "test_parallel.py::test_an_unguarded_script_gets_one_line_naming_the_guard",
     "test_compiled.py::test_compiled_sac_gradients_equal_eager",
     "test_drake_hybrid.py::test_balance_map_workers_keep_the_systems_overrides",
+    # about 1 s of CPU or more each (all parametrisations together for the many-case ones), so that
+    # `make test-fast` stays near a minute; each file keeps its quicker tests there
+    "test_apg.py::test_benchmark_reports_ratios_and_batched_equals_loop",                 # a subprocess
+    "test_apg.py::test_ce_apg_improves_a_short_pendulum_swing_up",
+    "test_apg_study.py::test_run_one_writes_a_record_and_resumes_by_skipping",
+    "test_architecture.py::test_light_rooms_do_not_load_heavy_dependencies",             # subprocesses
+    "test_architecture.py::test_learners_and_their_plots_do_not_need_drake",             # subprocesses
+    "test_bad_checkpoints.py::test_every_key_set_to_a_hostile_value_loads_or_raises_the_documented_error",  # 185
+    "test_bad_input.py::test_cli_rejects_bad_input_in_one_line",                          # 57 command lines
+    "test_balance_engines.py::test_both_engines_agree_on_a_grid",
+    "test_cli.py::test_simulate_writes_all_outputs",                                      # a subprocess
+    "test_cli.py::test_mesh_compass_gait_coarse",
+    "test_cli.py::test_train_spec_overrides_are_recorded_and_checked_on_resume",
+    "test_cli.py::test_train_sac_set_flags_resume_in_process",
+    "test_cli.py::test_train_reward_flag_goes_with_spec_overrides",
+    "test_cli.py::test_version_and_help_examples_parse_as_printed",
+    "test_device_ssac.py::test_ssac_warm_starts_trains_and_refits_with_every_tensor_on_its_device",
+    "test_drake_sections.py::test_compass_gait_parameters_are_set_and_checked",
+    "test_drake_sections.py::test_compass_gait_hip_pd_changes_the_gait",
+    "test_finetune.py::test_apg_source_fine_tunes_saves_and_drives_drake",
+    "test_finetune.py::test_a_system_checkpoint_is_tuned_on_the_reward_and_starts_it_was_trained_on",
+    "test_finetune.py::test_ssac_source_fine_tunes_the_swing_up_inside_the_switched_controller",
+    "test_finetune.py::test_a_fine_tuned_checkpoint_loads_from_any_working_folder",
+    "test_finetune_agents.py::test_one_agent_files_record_and_resume",
+    "test_finetune_sb3.py::test_cli_fine_tunes_a_zip_and_sb3_loads_the_result",
+    "test_hostile_files.py::test_a_spoiled_sb3_zip_gives_one_line",                        # 26 zips
+    "test_hostile_files.py::test_twenty_thousand_welded_links_are_refused_before_drake_parses_them",
+    "test_markov.py::test_near_singular_chain_fails_fast_with_a_message",
+    "test_matrix.py::test_a_second_driver_writing_the_matrix_is_refused_at_once",
+    "test_mesh_report_backends.py::test_monte_carlo_and_sizes_use_the_backend_and_give_the_same_numbers",  # 10 pools
+    "test_multibody.py::test_the_acrobot_urdf_swings_up_like_the_chain_acrobot_on_both_engines",
+    "test_multibody.py::test_a_tampered_cache_entry_is_derived_anew_with_one_warning",
+    "test_reachable.py::test_mfpt_vs_roughness_sweep_writes_record_and_skips_unaffordable_monte_carlo",
+    "test_reachable.py::test_refinement_stops_at_its_cap_and_calls_a_never_failing_chain_infinite",
+    "test_sac.py::test_resume_continues_steps_weights_and_replay",
+    "test_sac.py::test_callback_objects_get_every_hook_with_the_agent",
+    "test_sac.py::test_tiny_run_writes_progress_checkpoint_and_curves",
+    "test_sac.py::test_same_seed_same_weights_different_seed_different",
+    "test_safe_runs.py::test_a_folder_the_command_made_is_written_again",
+    "test_safe_runs.py::test_mesh_refuses_a_folder_that_holds_a_run",
+    "test_safe_runs.py::test_cli_resume_without_gate_data_refuses_before_training_and_force_continues",
+    "test_sb3.py::test_module_imports_and_reads_zips_without_sb3",                        # a subprocess
+    "test_shipped_models.py::test_shipped_ssac_cartpole_reproduces_its_evaluation_and_balances_from_hanging_down_in_drake",
+    "test_ssac.py::test_save_load_keeps_policy_gate_and_resume_restores_gate_data",
+    "test_ssac.py::test_same_seed_repeats",
+    "test_ssac.py::test_nan_loss_stops_and_keeps_the_last_checkpoint",
+    "test_ssac.py::test_a_failed_overlapped_refit_raises_in_training",
+    "test_trajopt.py::test_cache_round_trips_and_refuses_corrupt_or_pickled_files",
+    "test_trajopt.py::test_a_cache_entry_claiming_huge_gains_is_recomputed_without_allocating_them",
+    "test_viz.py::test_acrobot_replay_renders_in_chromium",                               # headless Chromium
 })
 """Single heavy tests outside :data:`HEAVY_FILES`, by ``file::name`` (every parametrisation of it)."""
 
