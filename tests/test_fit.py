@@ -8,7 +8,7 @@ import pytest
 
 from hybridctl.cli import main
 from hybridctl.experiments import fit as fit_module
-from hybridctl.experiments.fit import fit
+from hybridctl.experiments.fit import FitSettings, fit
 from hybridctl.systems import load
 
 PENDUBOT = """<?xml version="1.0"?>
@@ -40,20 +40,21 @@ def write_model(folder, name="pendubot.urdf", effort=LIMIT, transmission=TRANSMI
     return path
 
 
+SMALL = FitSettings(screen_samples=300, gate_samples=500)
+"""Fewer starts: the same stages, a test's time."""
+
+
 @pytest.fixture(scope="module")
 def fitted(tmp_path_factory):
     root = tmp_path_factory.mktemp("fit")
     model = write_model(root / "model")
-    with pytest.MonkeyPatch.context() as mp:     # fewer starts: the same stages, a test's time
-        mp.setattr(fit_module, "SCREEN_SAMPLES", 300)
-        mp.setattr(fit_module, "GATE_SAMPLES", 500)
-        result = fit(model, root / "out", progress=False)
+    result = fit(model, root / "out", progress=False, learner=None, settings=SMALL)
     return model, result
 
 
 def test_fit_writes_a_spec_whose_goal_is_the_upright(fitted):
     model, result = fitted
-    assert result.computed == ["model", "lqr", "gate"]
+    assert result.computed == ["model", "lqr", "gate", "reward"]
     system = load(str(result.system_file))
     np.testing.assert_allclose(system.goal, [math.pi, 0, 0, 0], atol=1e-12)
     np.testing.assert_allclose(system.initial_state.nominal, [0, 0, 0, 0], atol=1e-12)
@@ -65,7 +66,7 @@ def test_fit_writes_a_spec_whose_goal_is_the_upright(fitted):
     assert system.gate.cost_scale > 0 and system.control_period >= system.dt
     system.lqr()                                    # an equilibrium: Drake's LQR about it solves
     report = json.loads((result.out / "report.json").read_text())
-    assert [s["name"] for s in report["stages"]] == ["model", "lqr", "gate"]
+    assert [s["name"] for s in report["stages"]] == ["model", "lqr", "gate", "reward"]
     for stage in report["stages"]:
         assert stage["seconds"] >= 0 and "tried" in stage and "kept" in stage and "why" in stage
     assert report["not_yet_built"]
@@ -73,15 +74,12 @@ def test_fit_writes_a_spec_whose_goal_is_the_upright(fitted):
 
 def test_resume_skips_finished_stages(fitted):
     model, result = fitted
-    stamps = {n: json.loads((result.out / "stages" / f"{n}.json").read_text())["finished_at"] for n in fit_module.STAGES}
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(fit_module, "SCREEN_SAMPLES", 300)
-        mp.setattr(fit_module, "GATE_SAMPLES", 500)
-        again = fit(model, result.out, resume=True, progress=False)
+    stamps = {n: json.loads((result.out / "stages" / f"{n}.json").read_text())["finished_at"] for n in fit_module.CLASSICAL}
+    again = fit(model, result.out, resume=True, progress=False, learner=None, settings=SMALL)
     assert again.computed == []
     assert all(s["cached"] for s in again.report["stages"])
     assert stamps == {n: json.loads((result.out / "stages" / f"{n}.json").read_text())["finished_at"]
-                      for n in fit_module.STAGES}
+                      for n in fit_module.CLASSICAL}
     assert load(str(again.system_file)).spec.values["gate.cost_scale"] == result.system.gate.cost_scale
 
 
@@ -119,3 +117,126 @@ def test_goal_that_is_no_equilibrium_is_one_line(tmp_path, capsys):
 def test_out_beside_the_model_is_refused(tmp_path, capsys):
     model = write_model(tmp_path / "m")
     refused(capsys, model, "--out", tmp_path / "m")
+
+
+# ------------------------------------------------------------------ the learned stages, on a tiny budget
+TINY_SSAC = {"gate_warm_samples": 500, "gate_warm_fit_steps": 50, "num_envs": 8, "exploration_steps": 200,
+             "replay_batch_size": 128, "minibatch_size": 64, "steps_per_update": 200, "updates_per_round": 1,
+             "buffer_size": 20000, "needle_buffer_size": 5000, "checkpoint_every": 400, "log_every": 400,
+             "tensorboard": False, "gate_refit_every": 400, "gate_refit_steps": 20, "gate_relabel_per_refit": 64}
+"""A learner run of a test's size: every stage runs as in a real fit, with no time to learn."""
+TINY = FitSettings(screen_samples=300, gate_samples=500, learned_gate_samples=2000,
+                   learner_max_steps=800, eval_episodes=2, learner_settings=TINY_SSAC, verify_grid=2,
+                   verify_duration=1.0, swingup_knots=21)
+
+
+@pytest.fixture(scope="module")
+def fitted_learned(tmp_path_factory):
+    root = tmp_path_factory.mktemp("fit-learned")
+    model = write_model(root / "model")
+    return model, fit(model, root / "out", progress=False, settings=TINY, budget_minutes=30)
+
+
+def test_every_stage_runs_and_the_fitted_controller_is_a_named_controller(fitted_learned, capsys):
+    model, result = fitted_learned
+    assert result.computed == list(fit_module.STAGES)
+    report = json.loads((result.out / "report.json").read_text())
+    assert [s["name"] for s in report["stages"]] == list(fit_module.STAGES)
+    system = load(str(result.system_file))
+    sources = system.spec.sources
+    for key in ("reward.kind", "model.tip_point", "control.swingup_period", "episode.duration", "gate.warm_near"):
+        assert sources[key].startswith("fit: "), key
+    assert system.spec.values["reward.kind"] == "tip_height"        # link2 rises most; no prismatic joint
+    swingup = result.stages["swingup"]
+    assert swingup["found"] and 1.0 <= swingup["duration_s"] <= 8.0
+    assert abs(round(1.0 / system.swingup_period) * system.swingup_period - 1.0) < 1e-9   # divides the episode
+    learner = result.stages["learner"]
+    assert learner["steps"] == 800 and (result.out / "learner" / "final" / "model.pt").is_file()
+    verify = result.stages["verify"]
+    assert verify["gate"] in ("learned", "cost-to-go")
+    assert set(verify["torch_maps"]) == {"learned/rest", "learned/start_range", "cost-to-go/rest",
+                                         "cost-to-go/start_range"}
+    for name in ("rest", "start_range"):
+        drake = verify["drake_maps"][name]
+        assert drake["starts"] == 4 and 0 <= drake["balanced"] <= 4
+        assert (result.out / drake["plot"]).is_file()
+    assert report["controller"]["gate"] == verify["gate"]
+    assert (result.out / "replay.html").is_file()
+    # fitted:DIR is a controller like any other, on the fitted spec, from Python and from the CLI
+    from hybridctl.experiments import build_named_diagram
+    build_named_diagram(system, f"fitted:{result.out}")
+    assert main(["simulate", str(result.system_file), "--controller", f"fitted:{result.out}", "--duration", "0.5",
+                 "--no-html", "--out", str(result.out.parent / "sim")]) == 0
+
+
+def test_a_resumed_fit_reuses_every_stage_and_the_learner_run(fitted_learned):
+    model, result = fitted_learned
+    again = fit(model, result.out, resume=True, progress=False, settings=TINY, budget_minutes=30)
+    assert again.computed == []
+    assert again.report["controller"] == result.report["controller"]
+
+
+def test_a_learner_killed_mid_run_continues_its_checkpoint(tmp_path, fitted_learned):
+    """The learner stage resumes SSAC on the fitted spec file (a robot no shipped name finds)."""
+    from hybridctl.experiments.training import train_and_evaluate
+    spec = fitted_learned[1].system_file
+    run = tmp_path / "learner"
+    train_and_evaluate("ssac", str(spec), out=run, settings={**TINY_SSAC, "total_steps": 400}, eval_episodes=1,
+                       progress=False, report=None)
+    resumed = train_and_evaluate("ssac", str(spec), out=run, settings={**TINY_SSAC, "total_steps": 800},
+                                 resume=True, eval_episodes=1, progress=False, report=None)
+    assert resumed.evaluation["env_steps"] == 800
+
+
+def test_fitted_needs_a_verified_fit(tmp_path, fitted):
+    from hybridctl.experiments.fit import fitted_controller
+    with pytest.raises(ValueError, match="no report.json"):
+        fitted_controller(tmp_path)
+    _, classical = fitted
+    with pytest.raises(ValueError, match="no verified controller"):
+        fitted_controller(classical.out)
+
+
+def test_the_cli_says_when_no_swing_up_was_found(fitted_learned, monkeypatch, capsys):
+    """Exit 1 and one error line saying what to try when nothing balances; the report says what each stage
+    reached. (The tiny learner's 800 steps rarely swing up; the exit code follows the report either way.)"""
+    import functools
+
+    from hybridctl.cli import fit as cli_fit
+    model, result = fitted_learned
+    monkeypatch.setattr(cli_fit, "fit", functools.partial(fit, settings=TINY))
+    code = main(["fit", str(model), "--out", str(result.out), "--resume", "--budget", "30"])
+    report = json.loads((result.out / "report.json").read_text())
+    assert all(stage["cached"] for stage in report["stages"])
+    err = capsys.readouterr().err
+    if report["swingup_found"]:
+        assert code == 0
+    else:
+        assert code == 1 and "--resume and a larger --budget" in err.strip().splitlines()[-1]
+        assert "Traceback" not in err
+
+
+def test_the_learner_stops_at_the_budget_and_keeps_its_checkpoint(fitted_learned, tmp_path):
+    """A learner whose step cap lies far beyond the budget stops when the budget (less the verification's
+    estimate) is spent, writes final/ and says so; a resumed stage continues from there."""
+    import dataclasses
+    import time
+
+    from hybridctl.experiments import fit_learn
+    _, result = fitted_learned
+    system = load(str(result.system_file))
+    settings = dataclasses.replace(TINY, learner_max_steps=10 ** 7, verify_reserve=1e-3)
+    stage = functools_partial_stage(fit_learn.stage_learner, result, settings, system, tmp_path)
+    first = stage(deadline=time.monotonic() + 20)
+    assert first["stopped_by_budget"] and 0 < first["steps"] < 10 ** 7
+    assert (tmp_path / "learner" / "final" / "model.pt").is_file()
+    second = stage(deadline=time.monotonic() + 20)
+    assert second["steps_before"] >= first["steps"] and second["steps"] > first["steps"]
+
+
+def functools_partial_stage(function, result, settings, system, folder):
+    """``function`` (a learned stage) on a fitted folder's records, writing into ``folder``."""
+    def run(deadline):
+        return function(str(result.out), {"seed": 0}, result.stages, settings, False, system=system, folder=folder,
+                        spec_file=result.system_file, deadline=deadline)
+    return run

@@ -67,6 +67,8 @@ EXPECTED_LINES = {
         "furuta: swing-up balanced: True",   # the shipped SSAC Furuta swing-up + cost-to-go gate + LQR, in Drake
         "reaction_wheel: swing-up balanced: True",   # the same for the shipped reaction-wheel swing-up
         "gradients finite: True",            # a PAPG run through the generated dynamics
+        "fit stages: model, lqr, gate, reward, swingup, learned_gate, learner, verify",   # hybridctl fit, every stage
+        "fitted controller builds a Drake diagram: True",   # fitted:DIR is a named controller
     ],
     "03_trajectory_dimension.ipynb": [
         "same curve: True",            # vectorised box count equals the thesis' dict of tuples
@@ -108,6 +110,8 @@ def test_notebook_runs_headless(path, monkeypatch):
     # processes already fill the cores, and each worker would first import torch and Drake (about 10 s a
     # notebook). The map is the same on every backend (test_balance_engines runs the pool, a checkpoint too).
     monkeypatch.setenv("HYBRIDCTL_NOTEBOOK_WORKERS", "1")
+    # Notebook 07's `hybridctl fit` runs every stage at a test's size (the full fit is 20 minutes).
+    monkeypatch.setenv("HYBRIDCTL_NOTEBOOK_QUICK", "1")
     nb = nbformat.read(path, as_version=4)
     client = nbclient.NotebookClient(nb, timeout=300, kernel_name="python3",
                                      resources={"metadata": {"path": str(ROOT)}})

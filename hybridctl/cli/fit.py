@@ -1,27 +1,29 @@
-"""``hybridctl fit MODEL_FILE --out DIR``: a complete spec and the classical controller from a URDF/SDF.
+"""``hybridctl fit MODEL_FILE --out DIR``: a complete spec and a learned switched controller from a URDF/SDF.
 
-Built so far: the model stage (actuators, effort limit, goal and rest equilibria), the LQR stage (control hold,
-Q and R) and the gate stage (the cost-to-go gate's scale), each measured, cached in DIR/stages and resumable.
-Not built yet: the learned swing-up (--learner), the learned gate, the Drake balance-map verification and the
-parallel-work flags; until they land, the swing-up is ``hybridctl simulate DIR/system.toml --controller trajopt``.
+The stages (each measured, cached in DIR/stages, resumable with --resume): model (actuators, effort limit, goal
+and rest equilibria), lqr (control hold, Q and R), gate (the cost-to-go gate's scale), reward (the tip that
+rises most), swingup (Drake's collocation swing-up sets the learner's periods), learned_gate (the thesis' gate
+from the measured basin), learner (SSAC in the budget left), verify (balance maps in torch and Drake keep a
+gate). ``--learner none`` stops after the classical stages.
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 
-from ..experiments.fit import NOT_YET_BUILT, fit
+from ..experiments.fit import LEARNERS, NOT_YET_BUILT, fit
 from ._common import add_debug_flag, cli_errors, positive
 
 EPILOG = ("Writes DIR/system.toml (a complete spec, every chosen value with the measurement that chose it as its "
-          "source), DIR/report.json (each stage: tried, kept, why, seconds) and DIR/stages/*.json (the cache "
-          "--resume reads). Then: hybridctl simulate DIR/system.toml --controller lqr | trajopt. "
-          "Not built yet: " + "; ".join(NOT_YET_BUILT) + ".")
+          "source), DIR/report.json (each stage: tried, kept, why, seconds), DIR/stages/*.json (the cache --resume "
+          "reads), DIR/learner (the SSAC run), DIR/maps (Drake balance maps) and DIR/replay.html. Then: hybridctl "
+          "simulate DIR/system.toml --controller fitted:DIR. Not built yet: " + "; ".join(NOT_YET_BUILT) + ".")
 
 
 def add_parser(sub) -> None:
     """Register ``fit`` on the top-level sub-parsers."""
-    p = sub.add_parser("fit", help="fit a spec and the classical controller (goal, LQR hold, Q/R, gate) to a URDF/SDF",
+    p = sub.add_parser("fit", help="fit a spec and a learned switched controller (swing-up, gate, LQR) to a URDF/SDF",
                        description=__doc__, epilog=EPILOG)
     p.add_argument("model_file", metavar="MODEL_FILE", help="a URDF or SDF file")
     p.add_argument("--out", required=True, help="output folder (made by fit; never one holding a spec or a model)")
@@ -30,7 +32,10 @@ def add_parser(sub) -> None:
     p.add_argument("--action-limit", type=positive(float), help="the largest command (default: the model's effort limit)")
     p.add_argument("--seed", type=int, default=0, help="seed of the sampled starts (default 0)")
     p.add_argument("--resume", action="store_true", help="reuse the stages in --out whose inputs match")
-    p.add_argument("--budget", type=positive(float), default=20.0, help="minutes; no stage starts past it (default 20)")
+    p.add_argument("--budget", type=positive(float), default=20.0,
+                   help="minutes for all stages; the learner gets what the others leave (default 20)")
+    p.add_argument("--learner", default="auto", choices=[*LEARNERS, "none"],
+                   help="auto = ssac (the learner whose gate is learned); none: the classical stages only")
     add_debug_flag(p)
     p.set_defaults(func=run_fit)
 
@@ -39,11 +44,20 @@ def add_parser(sub) -> None:
 def run_fit(args: argparse.Namespace) -> int:
     """Run the stages, print where each came from and what to run next."""
     result = fit(args.model_file, args.out, goal=args.goal, action_limit=args.action_limit, seed=args.seed,
-                 resume=args.resume, budget_minutes=args.budget, command=args.command_line)
+                 resume=args.resume, budget_minutes=args.budget, command=args.command_line,
+                 learner=None if args.learner == "none" else args.learner)
     for stage in result.report["stages"]:
         took = "cached" if stage["cached"] else f"{stage['seconds']:.1f} s"
         print(f"{stage['name']}: {took}")
     print(f"wrote {result.system_file} and {result.out / 'report.json'}")
+    controller = result.report.get("controller")
+    if controller is not None:
+        maps = ", ".join(f"{name} {m['balanced']}/{m['starts']}" for name, m in controller["drake_maps"].items())
+        print(f"kept: SSAC's swing-up, the {controller['gate']} gate, Drake's LQR; Drake balance maps: {maps}")
     for line in result.report["next"]:
         print(f"next: {line}")
+    if result.report.get("swingup_found") is False:
+        print(f"error: no swing-up found within the budget; {result.report['what_to_try']} "
+              f"({result.out / 'report.json'} says what each stage reached)", file=sys.stderr)
+        return 1
     return 0

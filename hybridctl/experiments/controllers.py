@@ -33,6 +33,8 @@ CONTROLLERS = {
                           "+ LQR, as the APG controllers; for a system whose learned gate does not fire",
     "ce-apg:PATH": "learned recurrent swing-up from an APG/PAPG/CEM/CE-APG checkpoint (thesis Ch. 7; also "
                    "apg:, papg:, cem:, shapg:) + cost-to-go gate (hysteresis) + LQR",
+    "fitted:DIR": "the learned switched controller `hybridctl fit` kept in DIR (its report.json: SSAC's swing-up, "
+                  "the learned or cost-to-go gate, Drake's LQR); use it with DIR/system.toml",
     "checkpoint:PATH": "the controller of any checkpoint that drives a system, by its config.json's algorithm "
                        "(hybridctl.learn.load_controller; also ALGORITHM:PATH for any registered learner)",
 }
@@ -72,6 +74,10 @@ def controller_parts(system: System, controller: str = "energy", force: bool = F
         return SwitchedController.for_system(system, swingup=swingup(),
                                              gate=gate(system) if gate is CostToGoGate else gate())
     kind, sep, path = controller.partition(":")
+    if kind == "fitted" and sep:
+        from .fitted import fitted_controller
+        checkpoint, kind = fitted_controller(path)
+        path = str(checkpoint)
     gate = gate_of_kind(kind) if sep else None
     if gate is not None:
         if not path:

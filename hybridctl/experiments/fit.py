@@ -1,35 +1,34 @@
-"""``hybridctl fit MODEL_FILE --out DIR``: a complete spec and a controller from a URDF/SDF alone.
+"""``hybridctl fit MODEL_FILE --out DIR``: a complete spec and a learned switched controller from a model file alone.
 
-Built so far, the classical stages; each one measures what it chooses and records why:
+The stages, in order; each measures what it chooses and records why (``report.json``):
 
 - ``model``: the actuators and their effort limit (none: one line asking for ``--action-limit``); the
   equilibria over the revolute coordinates (every combination of 0 and pi, refined by
   :func:`hybridctl.systems.nearest_equilibrium`, prismatic coordinates at 0); ``goal="auto"`` keeps the one
-  of highest potential energy (the generated model's energy at rest), the rest state the lowest.
+  of highest potential energy, the rest state the lowest.
 - ``lqr``: the control hold, the largest multiple of the integration step at which the saturated LQR still
-  balances at least :data:`HOLD_KEEP` of the samples it balances at the finest hold; then Q and R, screened
-  over :data:`QR_FAMILY` at that hold, the pair with the largest balanced fraction kept.
+  balances at least ``hold_keep`` of the samples it balances at the finest hold; then Q and R, screened
+  over ``qr_family`` at that hold, the pair with the largest balanced fraction kept.
 - ``gate``: the cost-to-go gate's scale V* / ln(1 / gate.on) from the LQR's basin level V*
-  (:func:`hybridctl.systems.control.lqr_basin_level`) at the kept hold, Q and R.
+  (:func:`hybridctl.systems.control.lqr_basin_level`).
+- ``reward``: the tip height of the body that rises most from rest to goal (thesis eq. 3.1).
+- ``swingup``, ``learned_gate``, ``learner``, ``verify``: :mod:`hybridctl.experiments.fit_learn` (the collocation
+  swing-up sets the learner's periods; the learned gate's sampling comes from the measured basin; SSAC in the
+  budget; balance maps in torch and Drake keep a gate).
 
 Each stage's result is cached as ``DIR/stages/NAME.json`` (atomic) with the inputs it was computed from (the
-model file's sha256, the options, the earlier stages' results); ``resume=True`` reuses a stage whose inputs
-match. ``DIR/report.json`` lists every stage (what was tried, what was kept and why, seconds) and is written
-after each stage, so a run stopped by bad input keeps what it had. ``DIR/system.toml`` is the complete spec.
-
-Not built yet (later stages ): the learned swing-up, the learned gate and the Drake balance-map
-verification; until then the classical swing-up is ``hybridctl simulate DIR/system.toml --controller trajopt``.
+model file's sha256, the options, the settings, the earlier stages' results); ``resume=True`` reuses a stage
+whose inputs match, and the learner continues its own newest checkpoint. ``DIR/report.json`` lists every stage
+(what was tried, what was kept and why, seconds) and is written after each stage, so a run stopped by bad input
+keeps what it had. ``DIR/system.toml`` is the complete spec; ``fitted:DIR`` names the controller.
 """
 
 from __future__ import annotations
 
 import hashlib
-import itertools
 import json
 import math
-import sys
 import time
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -37,40 +36,26 @@ from typing import Any
 import numpy as np
 
 from .. import io, limits
-from ..systems import EquilibriumError, System, control, from_drake, nearest_equilibrium
+from ..systems import System, load
+from . import fit_learn
+from .fitted import CHECKPOINT, fitted_controller
+from .fit_stages import (FitError, FitSettings, build_system, settings_dict, stage_gate, stage_lqr, stage_model,
+                         stage_reward)
 
-__all__ = ["fit", "FitResult", "FitError", "STAGES", "OUTPUTS", "NOT_YET_BUILT", "QR_FAMILY", "HOLD_STEPS",
-           "HOLD_KEEP", "DT"]
+__all__ = ["fit", "FitResult", "FitError", "FitSettings", "STAGES", "OUTPUTS", "NOT_YET_BUILT", "LEARNERS",
+           "fitted_controller"]
 
-STAGES = ("model", "lqr", "gate")
-"""The stages built so far, in order."""
-NOT_YET_BUILT = ("learned swing-up (--learner)", "learned gate", "Drake balance-map verification",
-                 "--backend/--workers/--address/--device")
-"""What ``fit`` will add; report.json and ``hybridctl fit --help`` say so."""
-OUTPUTS = ("system.toml", "report.json", "stages")
+STAGES = ("model", "lqr", "gate", "reward", "swingup", "learned_gate", "learner", "verify")
+"""The stages, in order."""
+CLASSICAL = STAGES[:4]
+"""What ``learner=None`` runs: a spec and the classical controller (LQR, cost-to-go gate) only."""
+NOT_YET_BUILT = ("cloning the collocation swing-up into the policy (the learner starts from scratch)",
+                 "learners other than ssac", "--backend/--workers/--address/--device")
+"""What ``fit`` does not do yet; report.json and ``hybridctl fit --help`` say so."""
+LEARNERS = ("auto", "ssac")
+"""``learner``: "auto" is SSAC (thesis Ch. 3), the learner whose gate is learned."""
+OUTPUTS = ("system.toml", "report.json", "stages", "trajopt", "learner", "maps", "replay.html", "replay.json")
 """What ``fit`` writes into its folder."""
-DT = 0.001
-"""The integration step (s) of the fitted spec: fine enough for the holds screened below."""
-HOLD_STEPS = (1, 2, 5, 10, 20, 50)
-"""Control holds screened, in integration steps (0.001 s to 0.05 s)."""
-HOLD_KEEP = 0.9
-"""A hold is kept while its balanced fraction is at least this share of the finest hold's."""
-QR_FAMILY = ((10.0, 1.0, 1.0), (1.0, 1.0, 1.0), (100.0, 1.0, 1.0), (10.0, 10.0, 1.0), (100.0, 10.0, 1.0),
-             (10.0, 1.0, 10.0))
-"""(w_q, w_v, r): Q = diag(w_q on positions, w_v on velocities), R = r / U^2 I (U the action limit). The first
-is the one the hold is screened with."""
-SPREAD = (0.5, 2.0)
-"""Samples around the goal: +-0.5 on each position (rad or m), +-2 on each velocity."""
-SCREEN_SAMPLES = 1000
-GATE_SAMPLES = 2000
-HORIZON = 2.5
-"""s: the LQR rollouts' length (the thesis' gate labels, from_drake's gate.label_horizon)."""
-EQUILIBRIUM_SEARCH = 0.5
-"""How far (rad) nearest_equilibrium may move a 0/pi combination."""
-
-
-class FitError(ValueError):
-    """Input ``fit`` cannot use (one line; the CLI exits with code 2, the finished stages kept)."""
 
 
 @dataclass
@@ -83,6 +68,11 @@ class FitResult:
     computed: list[str] = field(default_factory=list)
     system: System | None = None
 
+    @property
+    def controller(self) -> str | None:
+        """The fitted controller's name (``fitted:DIR``), None before the verification."""
+        return f"fitted:{self.out}" if "verify" in self.stages else None
+
 
 def _sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
@@ -92,160 +82,6 @@ def _digest(data: Any) -> str:
     return hashlib.sha256(json.dumps(io.to_jsonable(data), sort_keys=True).encode()).hexdigest()[:20]
 
 
-def _bar(total: int, desc: str, progress: bool):
-    from tqdm import tqdm
-    return tqdm(total=total, desc=f"fit {desc}", disable=not progress, file=sys.stderr, leave=True)
-
-
-def _build(model_file: str, action_limit, goal, rest, Q=None, R=None, period=DT, settings=None) -> System:
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        if Q is None or R is None:
-            from ..systems.symbolic import ModelRequest, load_model, resolve_source
-            Q, R = np.eye(len(goal)), np.eye(load_model(ModelRequest(source=resolve_source(model_file))).n_u)
-        chosen = {"integrator.dt": (DT, "fit: the integration step fit screens holds on"),
-                  "control.period": (period, "fit: the hold being screened")}
-        return from_drake(model_file, goal=goal, Q=Q, R=R, action_limit=action_limit, nominal=rest,
-                          settings={**chosen, **(settings or {})})
-
-
-# ------------------------------------------------------------------------------------------- stages
-def _stage_model(model_file: str, options: dict, earlier: dict, progress: bool) -> dict:
-    from ..systems.spec import SpecError
-    from ..systems.symbolic import ModelRequest, load_model, resolve_source
-
-    model = load_model(ModelRequest(source=resolve_source(model_file)))    # ModelError: no actuator, a free base...
-    try:
-        probe = _build(model_file, options["action_limit"], np.zeros(2 * len(model.positions)), None)
-    except SpecError as exc:
-        if "action.limit" in str(exc):
-            raise FitError(f"{model_file}: the model's actuators give no finite effort limit; pass --action-limit U "
-                           f"(N m or N, the largest command)") from None
-        raise
-    n = probe.n_states
-    angles = [i for i, revolute in enumerate(model.revolute) if revolute]
-    if 2 ** len(angles) > limits.MAX_FIT_EQUILIBRIUM_CANDIDATES:
-        raise FitError(f"{model_file}: {len(angles)} revolute coordinates give 2^{len(angles)} equilibrium candidates, "
-                       f"above {limits.MAX_FIT_EQUILIBRIUM_CANDIDATES}; pass --goal")
-    tried, found = [], []
-    bar = _bar(2 ** len(angles), "model: equilibria", progress)
-    for combo in itertools.product((0.0, math.pi), repeat=len(angles)):
-        x = np.zeros(n)
-        x[angles] = combo
-        try:
-            eq, _ = nearest_equilibrium(probe, x, tolerance=EQUILIBRIUM_SEARCH)
-        except EquilibriumError:
-            tried.append({"start": x[:n // 2], "equilibrium": None})
-            bar.update()
-            continue
-        eq[angles] = math.pi - (math.pi - eq[angles]) % (2 * math.pi)     # one representative per angle, in (-pi, pi]
-        snapped = np.round(eq / math.pi) * math.pi                        # 0 and pi exactly where they are equilibria
-        eq = np.where(np.abs(eq - snapped) < 1e-9, snapped, eq)
-        energy = float(np.asarray(probe.energy(eq[None]))[0])
-        tried.append({"start": x[:n // 2], "equilibrium": eq[:n // 2], "potential_energy": energy})
-        if not any(np.allclose(eq, f["x"], atol=1e-6) for f in found):
-            found.append({"x": eq, "potential_energy": energy})
-        bar.update()
-    bar.close()
-    if not found:
-        raise FitError(f"{model_file}: no equilibrium with u = 0 near any 0/pi combination of the revolute coordinates; "
-                       f"pass --goal")
-    top = max(found, key=lambda f: f["potential_energy"])
-    low = min(found, key=lambda f: f["potential_energy"])
-    if options["goal"] is None:
-        goal = top["x"]
-        why = (f"highest-potential equilibrium over the revolute coordinates ({top['potential_energy']:.6g} J among "
-               f"{len(found)} equilibria found from {len(tried)} 0/pi combinations)")
-    else:
-        given = np.asarray(options["goal"], dtype=float)
-        if given.shape != (n,):
-            raise FitError(f"--goal needs {n} values ({', '.join(probe.state_names)}), got {given.size}")
-        try:
-            goal, _ = nearest_equilibrium(probe, given)
-        except EquilibriumError as exc:
-            raise FitError(f"--goal: {exc}") from None
-        why = "--goal, an equilibrium with u = 0 (hybridctl.systems.nearest_equilibrium)"
-    return {"tried": tried, "equilibria": found, "goal": goal, "goal_why": why, "rest": low["x"],
-            "rest_why": f"lowest-potential equilibrium ({low['potential_energy']:.6g} J among {len(found)})",
-            "action_limit": probe.action_limit, "actuators": list(probe.action_names),
-            "state_names": list(probe.state_names),
-            "action_limit_why": ("--action-limit" if options["action_limit"] is not None
-                                 else "the model's actuator effort limit")}
-
-
-def _spread(n: int) -> np.ndarray:
-    return np.array([SPREAD[0]] * (n // 2) + [SPREAD[1]] * (n // 2))
-
-
-def _qr(weights, n: int, n_u: int, limit: float):
-    wq, wv, r = weights
-    return np.diag([wq] * (n // 2) + [wv] * (n // 2)), np.eye(n_u) * r / limit ** 2
-
-
-def _stage_lqr(model_file: str, options: dict, earlier: dict, progress: bool) -> dict:
-    m = earlier["model"]
-    goal, rest, limit = np.asarray(m["goal"]), np.asarray(m["rest"]), options["action_limit"]
-    n, n_u = len(goal), len(m["actuators"])
-    system = _build(model_file, limit, goal, rest, *_qr(QR_FAMILY[0], n, n_u, m["action_limit"]))
-    spread = _spread(n)
-    holds = []
-    bar = _bar(len(HOLD_STEPS) + len(QR_FAMILY), "lqr: holds, Q/R", progress)
-    for k in HOLD_STEPS:
-        r = control.lqr_basin_level(system, n_samples=SCREEN_SAMPLES, horizon=HORIZON, spread=spread,
-                                    seed=options["seed"], hold=k)
-        holds.append({"hold_s": k * DT, "steps": k, "balanced": r["success_rate"], "level": r["level"]})
-        bar.update()
-    finest = holds[0]["balanced"]
-    if finest <= 0:
-        bar.close()
-        raise FitError(f"{model_file}: the saturated LQR about the goal balances none of {SCREEN_SAMPLES} starts within "
-                       f"+-{SPREAD[0]} / +-{SPREAD[1]} of it even at a {DT:g} s hold; a larger --action-limit may help")
-    kept_hold = max((h for h in holds if h["balanced"] >= HOLD_KEEP * finest), key=lambda h: h["steps"])
-    screened = []
-    for weights in QR_FAMILY:
-        Q, R = _qr(weights, n, n_u, m["action_limit"])
-        try:
-            K, S = system.lqr(Q, R)
-        except ValueError as exc:
-            screened.append({"w_q": weights[0], "w_v": weights[1], "r": weights[2], "error": str(exc)})
-            bar.update()
-            continue
-        r = control.lqr_basin_level(system, n_samples=SCREEN_SAMPLES, horizon=HORIZON, spread=spread,
-                                    seed=options["seed"], K=K, S=S, hold=kept_hold["steps"])
-        screened.append({"w_q": weights[0], "w_v": weights[1], "r": weights[2], "Q": Q, "R": R,
-                         "balanced": r["success_rate"], "level": r["level"]})
-        bar.update()
-    bar.close()
-    good = [s for s in screened if "error" not in s]
-    if not good:
-        raise FitError(f"{model_file}: no LQR about the goal for any Q/R tried ({screened[0]['error']})")
-    best = max(good, key=lambda s: (s["balanced"], s["level"]))
-    return {"holds": holds, "hold_s": kept_hold["hold_s"], "hold_steps": kept_hold["steps"],
-            "hold_why": (f"the largest hold whose balanced fraction {kept_hold['balanced']:.3g} stays >= {HOLD_KEEP:g} x "
-                         f"the finest ({finest:.3g} at {DT:g} s) among {len(holds)} tried, {SCREEN_SAMPLES} starts"),
-            "qr": screened, "Q": best["Q"], "R": best["R"],
-            "qr_why": (f"Q/R with the largest balanced fraction {best['balanced']:.3g} (basin level {best['level']:.4g}) "
-                       f"among {len(screened)} tried at the {kept_hold['hold_s']:g} s hold")}
-
-
-def _stage_gate(model_file: str, options: dict, earlier: dict, progress: bool) -> dict:
-    m, q = earlier["model"], earlier["lqr"]
-    system = _build(model_file, options["action_limit"], np.asarray(m["goal"]), np.asarray(m["rest"]),
-                    np.asarray(q["Q"]), np.asarray(q["R"]), period=q["hold_s"])
-    bar = _bar(1, "gate: basin level", progress)
-    r = control.lqr_basin_level(system, n_samples=GATE_SAMPLES, horizon=HORIZON, spread=_spread(system.n_states),
-                                seed=options["seed"] + 1, hold=q["hold_steps"])
-    bar.update()
-    bar.close()
-    return {"basin": r, "cost_scale": r["gate_scale"],
-            "why": (f"V*/ln(1/{system.gate.on:g}) with V* = {r['level']:.4g}, the saturated LQR's basin level from "
-                    f"{GATE_SAMPLES} starts (every start below it balanced; {r['success_rate']:.3g} of all)")}
-
-
-_RUN = {"model": _stage_model, "lqr": _stage_lqr, "gate": _stage_gate}
-
-
-# ------------------------------------------------------------------------------------------- fit
 def _parse_goal(goal) -> list[float] | None:
     if goal is None or (isinstance(goal, str) and goal.strip() == "auto"):
         return None
@@ -261,48 +97,75 @@ def _parse_goal(goal) -> list[float] | None:
     return values
 
 
-def fit(model_file, out, *, goal="auto", action_limit: float | None = None, seed: int = 0, resume: bool = False,
-        budget_minutes: float = 20, progress: bool = True, command: str | None = None) -> FitResult:
-    """Fit a spec and the classical controller to ``model_file`` in the folder ``out`` (see the module text).
-
-    ``goal``: "auto" or a state (list or "x1,x2,..."); ``action_limit``: the largest command (default the
-    model's effort limit); ``seed``: the sampled starts; ``resume``: reuse the stages cached in ``out`` whose
-    inputs match; ``budget_minutes``: a stage is not started past it (rerun with ``resume``).
-    Raises :class:`FitError` (one line) on input fit cannot use, with the finished stages kept.
-    """
-    start = time.monotonic()
-    model_path = Path(model_file).expanduser()
+def _check_options(model_path: Path, budget_minutes, action_limit, learner) -> None:
     if not model_path.is_file():
-        raise FitError(f"{model_file}: no such model file")
+        raise FitError(f"{model_path}: no such model file")
     limits.check_at_most("--budget", budget_minutes, limits.MAX_FIT_BUDGET_MINUTES)
     if not budget_minutes > 0:
         raise FitError(f"--budget must be > 0 minutes, got {budget_minutes}")
     if action_limit is not None and not (math.isfinite(action_limit) and action_limit > 0):
         raise FitError(f"--action-limit must be a finite number > 0, got {action_limit}")
+    if learner is not None and learner not in LEARNERS:
+        raise FitError(f"--learner must be one of {', '.join(LEARNERS)}, got {learner!r}")
+
+
+_RUN = {"model": stage_model, "lqr": stage_lqr, "gate": stage_gate, "reward": stage_reward,
+        "swingup": fit_learn.stage_swingup, "learned_gate": fit_learn.stage_learned_gate,
+        "learner": fit_learn.stage_learner, "verify": fit_learn.stage_verify}
+
+
+def fit(model_file, out, *, goal="auto", action_limit: float | None = None, seed: int = 0, resume: bool = False,
+        budget_minutes: float = 20, learner: str | None = "auto", settings: FitSettings | None = None,
+        progress: bool = True, command: str | None = None) -> FitResult:
+    """Fit a spec and a switched controller to ``model_file`` in the folder ``out`` (see the module text).
+
+    ``goal``: "auto" or a state (list or "x1,x2,..."); ``action_limit``: the largest command (default the
+    model's effort limit); ``seed``: every sampled start and the learner; ``resume``: reuse the stages cached in
+    ``out`` whose inputs match (the learner continues its checkpoint); ``budget_minutes``: all stages together
+    (the learner gets what the others leave; no stage starts past it); ``learner``: "auto" / "ssac", or None for
+    the classical stages only (model, lqr, gate, reward); ``settings``: every number the stages use.
+    Raises :class:`FitError` (one line) on input fit cannot use, with the finished stages kept.
+    """
+    start = time.monotonic()
+    model_path = Path(model_file).expanduser()
+    _check_options(model_path, budget_minutes, action_limit, learner)
+    deadline = start + budget_minutes * 60
+    s = settings or FitSettings()
     options = {"goal": _parse_goal(goal), "action_limit": None if action_limit is None else float(action_limit),
-               "seed": int(seed)}
+               "seed": int(seed), "learner": None if learner is None else "ssac"}
     model_ref = str(model_path.resolve())
     sha = _sha256(model_path)
+    stages = CLASSICAL if learner is None else STAGES
     with io.command_folder(out, "fit", OUTPUTS) as folder:
         (folder / "stages").mkdir(exist_ok=True)
         report = {"command": command, "model_file": model_ref, "model_sha256": sha, "options": options,
-                  "stages": [], "not_yet_built": list(NOT_YET_BUILT)}
+                  "settings": settings_dict(s), "budget_minutes": budget_minutes, "stages": [],
+                  "not_yet_built": list(NOT_YET_BUILT)}
         records: dict[str, dict] = {}
         computed: list[str] = []
-        for name in STAGES:
-            inputs = {"model_sha256": sha, "options": options, "earlier": _digest(records), "stage": name}
+        spec_file = folder / "system.toml"
+        for name in stages:
+            inputs = {"model_sha256": sha, "options": options, "settings": _digest(settings_dict(s)),
+                      "earlier": _digest(records), "stage": name}
             path = folder / "stages" / f"{name}.json"
             cached = io.read_json(path) if resume and path.is_file() else None
             if cached is not None and cached.get("inputs") == io.to_jsonable(inputs):
                 records[name] = cached["result"]
                 report["stages"].append({**cached["summary"], "cached": True})
                 continue
-            if time.monotonic() - start > budget_minutes * 60:
+            if time.monotonic() > deadline:
                 raise FitError(f"the budget of {budget_minutes:g} minutes is spent before the {name} stage; rerun with "
                                f"--resume (and a larger --budget)")
+            system = _system(model_ref, options, records, s) if name not in CLASSICAL else None
+            if name in ("learner", "verify"):
+                # the learner trains on the spec file fit wrote, and workers (balance maps) load it by its path
+                system.save_spec(spec_file, overwrite=True)
+                system = load(str(spec_file))
             t0 = time.monotonic()
             try:
-                result = io.to_jsonable(_RUN[name](model_ref, options, records, progress))
+                result = io.to_jsonable(_RUN[name](model_ref, {**options, "command": command}, records, s, progress,
+                                                   system=system, folder=folder, spec_file=spec_file,
+                                                   deadline=deadline))
             except Exception as exc:
                 report["stages"].append({"name": name, "error": str(exc).splitlines()[0] if str(exc) else repr(exc),
                                          "seconds": time.monotonic() - t0})
@@ -315,11 +178,29 @@ def fit(model_file, out, *, goal="auto", action_limit: float | None = None, seed
             computed.append(name)
             report["stages"].append({**summary, "cached": False})
             io.write_json(folder / "report.json", report)
-        system = _final_system(model_ref, options, records)
-        spec_file = system.save_spec(folder / "system.toml", overwrite=True)
+        system = _system(model_ref, options, records, s)
+        system.save_spec(spec_file, overwrite=True)
         report["system"] = "system.toml"
+        if "verify" in records:
+            report["controller"] = {"name": f"fitted:{folder}", "checkpoint": CHECKPOINT,
+                                    "gate": records["verify"]["gate"], "why": records["verify"]["gate_why"],
+                                    "drake_maps": records["verify"]["drake_maps"]}
+            report["replay"] = fit_learn.write_replay(system, folder, records["verify"]["controller"].replace(
+                CHECKPOINT, str(folder / CHECKPOINT)))
+            rest_map = records["verify"]["drake_maps"]["rest"]
+            found = bool(report["replay"].get("balanced")) or rest_map["balanced"] > 0
+            report["swingup_found"] = found
+            if not found:
+                learner = records["learner"]
+                report["what_to_try"] = (f"no start of the rest map balanced and the run from hanging down did not: "
+                                         f"the learner reached {learner['steps']} steps; rerun with --resume and a "
+                                         f"larger --budget (the learner continues its checkpoint)")
+            report["next"] = [f"hybridctl simulate {spec_file} --controller fitted:{folder}",
+                              f"hybridctl balance-map {spec_file} --controller fitted:{folder} --grid 11"]
+        else:
+            report["next"] = [f"hybridctl simulate {spec_file} --controller lqr",
+                              f"hybridctl simulate {spec_file} --controller trajopt"]
         report["seconds"] = time.monotonic() - start
-        report["next"] = [f"hybridctl simulate {spec_file} --controller lqr", f"hybridctl simulate {spec_file} --controller trajopt"]
         io.write_json(folder / "report.json", report)
         return FitResult(out=folder, system_file=spec_file, report=report, stages=records, computed=computed,
                          system=system)
@@ -335,25 +216,62 @@ def _summary(name: str, result: dict) -> dict:
                 "why": {"goal": result["goal_why"], "rest": result["rest_why"], "action_limit": result["action_limit_why"]}}
     if name == "lqr":
         return {"tried": {"holds": result["holds"],
-                          "qr": [{k: v for k, v in s.items() if k not in ("Q", "R")} for s in result["qr"]]},
+                          "qr": [{k: v for k, v in x.items() if k not in ("Q", "R")} for x in result["qr"]]},
                 "kept": {"hold_s": result["hold_s"], "Q": result["Q"], "R": result["R"]},
                 "why": {"hold": result["hold_why"], "qr": result["qr_why"]}}
-    return {"tried": f"lqr_basin_level, {GATE_SAMPLES} starts", "kept": {"cost_scale": result["cost_scale"]},
-            "why": result["why"]}
+    if name == "gate":
+        return {"tried": "lqr_basin_level", "kept": {"cost_scale": result["cost_scale"]}, "why": result["why"]}
+    if name == "reward":
+        return {"tried": {"rises_m": result["rises"]},
+                "kept": {"kind": result["kind"], "tip_body": result["tip_body"], "tip_point": result["tip_point"]},
+                "why": result["why"]}
+    if name == "swingup":
+        return {"tried": result["trajectory"],
+                "kept": {"duration_s": result["duration_s"], "swingup_period": result["swingup_period"],
+                         "gamma": result["gamma"], "episode_s": result["episode_s"]}, "why": result["why"]}
+    if name == "learned_gate":
+        return {"tried": result["info"], "kept": {"works": result["works"]}, "why": result["why"]}
+    if name == "learner":
+        return {"tried": {k: result[k] for k in ("steps_before", "seconds", "stopped_by_budget", "eval_success_rate",
+                                                 "eval_mean_return", "verify_reserve_s")},
+                "kept": {"steps": result["steps"], "checkpoint": result["checkpoint"]},
+                "why": result["why"]}
+    return {"tried": result["torch_maps"], "kept": {"gate": result["gate"], "drake_maps": result["drake_maps"]},
+            "why": result["gate_why"]}
 
 
-def _final_system(model_ref: str, options: dict, records: dict) -> System:
+def _system(model_ref: str, options: dict, records: dict, s: FitSettings) -> System:
+    """The System of every stage finished so far, each chosen value with its stage's reason as the source."""
     m, q, g = records["model"], records["lqr"], records["gate"]
-    settings = {
+    n = len(m["goal"])
+    spread = np.array([s.start_spread] * (n // 2) + [0.0] * (n // 2))
+    chosen = {
         "state.goal": (m["goal"], f"fit: model stage, {m['goal_why']}"),
         "initial_state.nominal": (m["rest"], f"fit: model stage, {m['rest_why']}"),
-        "integrator.dt": (DT, "fit: the integration step fit screens holds on"),
+        "initial_state.low": (-spread, f"fit: rest +- {s.start_spread:g} on each position, at rest (FitSettings)"),
+        "initial_state.high": (spread, f"fit: rest +- {s.start_spread:g} on each position, at rest (FitSettings)"),
+        "integrator.dt": (s.dt, "fit: the integration step fit screens holds on"),
         "control.period": (q["hold_s"], f"fit: lqr stage, {q['hold_why']}"),
         "lqr.Q": (q["Q"], f"fit: lqr stage, {q['qr_why']}"),
         "lqr.R": (q["R"], f"fit: lqr stage, {q['qr_why']}"),
         "gate.cost_scale": (g["cost_scale"], f"fit: gate stage, {g['why']}"),
     }
     if options["action_limit"] is not None:
-        settings["action.limit"] = (options["action_limit"], "fit: --action-limit")
-    return _build(model_ref, options["action_limit"], np.asarray(m["goal"]), np.asarray(m["rest"]),
-                  np.asarray(q["Q"]), np.asarray(q["R"]), period=q["hold_s"], settings=settings)
+        chosen["action.limit"] = (options["action_limit"], "fit: --action-limit")
+    r = records.get("reward")
+    if r is not None:
+        chosen["reward.kind"] = (r["kind"], f"fit: reward stage, {r['why']}")
+        if r["tip_body"] is not None:
+            chosen["model.tip_point"] = (r["tip_point"], f"fit: reward stage, {r['tip_body']}'s centre of mass")
+    p = records.get("swingup")
+    if p is not None:
+        chosen["control.swingup_period"] = (p["swingup_period"], f"fit: swingup stage, {p['why']['period']}")
+        chosen["episode.duration"] = (p["episode_s"], f"fit: swingup stage, {p['why']['episode']}")
+    lg = records.get("learned_gate")
+    if lg is not None:
+        chosen["gate.warm_near"] = (lg["warm_near"], f"fit: learned_gate stage, {lg['spread_why']}")
+        chosen["gate.warm_far"] = (lg["warm_far"], f"fit: learned_gate stage, {lg['spread_why']}")
+    tip = r["tip_body"] if r is not None else None
+    return build_system(model_ref, options["action_limit"], np.asarray(m["goal"]), np.asarray(m["rest"]),
+                        np.asarray(q["Q"]), np.asarray(q["R"]), period=q["hold_s"], settings=chosen, dt=s.dt,
+                        tip_body=tip)

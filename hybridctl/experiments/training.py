@@ -28,7 +28,7 @@ from ..learn.apg import APGConfig
 from ..learn.checkpoint import CheckpointError, newest_checkpoint, read_meta, system_record
 from ..learn.config_check import checkpoint_minutes
 from .resume import resume_settings
-from ..systems import load
+from ..systems import System, load
 
 
 def machine() -> dict:
@@ -281,7 +281,7 @@ def train_and_evaluate(algorithm: str, system: str, out: str | Path | None = Non
                        variant: str | None = None, resume: bool = False, init: str | Path | None = None,
                        eval_episodes: int | None = None, progress: bool = True, command: str | None = None,
                        report: Callable[[str], None] | None = print, force: bool = False,
-                       overwrite: bool = False, spec: dict | None = None) -> TrainingRun:
+                       overwrite: bool = False, spec: dict | None = None, callback=None) -> TrainingRun:
     """Train ``algorithm`` on ``system``, checkpointing into ``out``; evaluate; write ``out/eval.json``.
 
     Args:
@@ -318,6 +318,9 @@ def train_and_evaluate(algorithm: str, system: str, out: str | Path | None = Non
             "upright_centered"}``; keys as :func:`hybridctl.systems.load` takes them). The
             checkpoint records them; on resume, values other than the recorded ones refuse
             (``force``: the checkpoint's are kept).
+        callback: a :class:`~hybridctl.learn.callbacks.Callback` (or a function of the learner called per update)
+            for :meth:`~hybridctl.learn.base.Learner.learn`; returning False stops the run, which still
+            writes ``final/`` and is evaluated (``hybridctl fit`` stops its learner at its budget so).
 
     Raises:
         ValueError: a bad setting, an unknown system, a folder holding another run
@@ -340,7 +343,7 @@ def train_and_evaluate(algorithm: str, system: str, out: str | Path | None = Non
         agent = _starting_learner(algo, algorithm, system, target, system_name, config, settings, variant, init, out,
                                   resume, force, bool(spec), report)
         folder.clear()   # --overwrite: only now that the new run's inputs are read
-        agent.learn(out=out, resume=resume, force=force, progress=progress)
+        agent.learn(out=out, resume=resume, force=force, progress=progress, callback=callback)
         record = _as_record(agent.evaluate(eval_episodes, **algo.record_evaluation))
         if command is not None:
             record["command"] = command
@@ -402,8 +405,15 @@ def _resumed_learner(algo, algorithm: str, system: str, target, system_name: str
     given = {**_preset_changes(algorithm, variant, recorded.get("config", {})), **settings}
     applied = resume_settings(found, recorded.get("config", {}), given, force, report)
     # a learner on gymnasium envs is loaded on the env as given (an id, or a spec file the recorded name
-    # cannot find); one on systems on the recorded system with its spec overrides
-    agent = algo.load(found, system=system if algo.takes_gym_envs else None, force=force, **applied)
+    # cannot find); one on systems on the recorded system with its spec overrides, or on the spec file given
+    # (a robot of the user's, `hybridctl fit`'s system.toml: no shipped name finds it)
+    if algo.takes_gym_envs:
+        on = system
+    elif isinstance(target, System):
+        on = target
+    else:
+        on = load(system) if str(system).endswith(".toml") else None
+    agent = algo.load(found, system=on, force=force, **applied)
     agent.checkpointer.check_resumable(found, force)
     report(f"resuming {found} at {agent.log_key} {agent.progress_count}"
            + (f", training to {getattr(agent.config, agent.budget_field)}" if agent.budget_field in applied else ""))

@@ -25,6 +25,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from . import checkpoint as ckpt
+from ..systems.spec import known_systems
 from ..systems.switched import AlwaysGate, CostToGoGate, LearnedGate, NeverGate, SwitchedController
 
 __all__ = ["register_learner", "registered_learners", "learner_class", "checkpoint_kinds", "gate_of_kind",
@@ -123,7 +124,12 @@ def load_deployed(path, system, *, force: bool = False,
     if isinstance(record, dict) and record.get("kind") != "gymnasium":   # a gymnasium env's learner checks its own
         ignore = ckpt.TRAINING_ONLY_SECTIONS + (() if gate in ("checkpoint", "learned") else (ckpt.GATE_SECTION,))
         ckpt.check_plant(found, record, system, force, ignore=ignore)
-    learner = cls.load(found, system=None, force=force, **cls.deploy_overrides(meta.get("config") or {}))
+    # the learner is rebuilt on its recorded system by name; a robot of the user's (a spec file, `hybridctl
+    # fit`'s system.toml) has no shipped name, so it is built on ``system``, whose plant check_plant just matched
+    on = None
+    if isinstance(record, dict) and record.get("kind") != "gymnasium" and record.get("name") not in known_systems():
+        on = system
+    learner = cls.load(found, system=on, force=force, **cls.deploy_overrides(meta.get("config") or {}))
     controller = learner.controller(system)
     if gate == "learned" and not isinstance(controller.gate, LearnedGate):
         raise ValueError(f"{path} is a {algorithm} checkpoint without a learned gate (its controller's gate is "
