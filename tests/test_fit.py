@@ -240,3 +240,16 @@ def functools_partial_stage(function, result, settings, system, folder):
         return function(str(result.out), {"seed": 0}, result.stages, settings, False, system=system, folder=folder,
                         spec_file=result.system_file, deadline=deadline)
     return run
+
+
+def test_a_cart_with_a_long_light_pole_fits_its_classical_stages(tmp_path):
+    """A prismatic cart (fit_robots' made-up cart): the goal holds the pole up over the cart at 0, the reward is
+    the pole's height minus the cart's distance (tip_height_centered), and the saturated LQR balances."""
+    from hybridctl.reproduce.fit_robots import model_file
+    model = model_file("cart_long_pole", tmp_path / "models")
+    result = fit(model, tmp_path / "out", progress=False, learner=None, settings=SMALL)
+    np.testing.assert_allclose(result.stages["model"]["goal"], [0, math.pi, 0, 0], atol=1e-12)
+    reward = result.stages["reward"]
+    assert reward["kind"] == "tip_height_centered" and reward["tip_body"] == "pole"
+    assert reward["rises"]["pole"] == pytest.approx(1.5) and reward["rises"]["cart"] == pytest.approx(0.0)
+    assert max(q["balanced"] for q in result.stages["lqr"]["qr"] if "balanced" in q) > 0
