@@ -144,7 +144,11 @@ HEAVY_FILES = frozenset({
     "test_sb3_baselines.py",    # Stable-Baselines3 training runs
     "test_run_folders.py",      # concurrent training processes
     "test_device_balance_map.py", "test_device_apg.py", "test_device_finetune.py",   # every backend
+    "test_xdist_groups.py",     # an inner pytest session on 2 processes (1 to 20 s on the shared machine)
+    "test_fit.py",              # a module fixture runs hybridctl fit's stages (about 14 s)
+    "test_learned_gate_basin.py",   # warm-started gates measured on the furuta (about 15 s)
 })
+"""Files whose tests are all heavy; so is every test of the xdist group "ray" (it starts Ray)."""
 
 
 HEAVY_TESTS = frozenset({
@@ -242,13 +246,14 @@ SLOW_TESTS = frozenset({
 
 
 def pytest_collection_modifyitems(config, items):
-    """Mark the tests of :data:`HEAVY_FILES` and :data:`HEAVY_TESTS` ``heavy`` (``make test-fast`` leaves
-    them out); a name in HEAVY_TESTS that no longer exists is an error, so the list cannot rot."""
+    """Mark the tests of :data:`HEAVY_FILES`, :data:`HEAVY_TESTS` and the Ray ones ``heavy`` (``make test-fast``
+    leaves them out) and those of :data:`SLOW_TESTS` ``slow``; a name in HEAVY_TESTS or SLOW_TESTS that no longer
+    exists is an error, so the lists cannot rot."""
     collected = set()
     for item in items:
         name = f"{item.path.name}::{item.originalname}"
         collected.add(name)
-        if item.path.name in HEAVY_FILES or name in HEAVY_TESTS:
+        if item.path.name in HEAVY_FILES or name in HEAVY_TESTS or _may_use_local_ray(item):
             item.add_marker(pytest.mark.heavy)
         if name in SLOW_TESTS:
             item.add_marker(pytest.mark.slow)
