@@ -106,11 +106,11 @@ def test_notebook_is_stored_without_outputs(path):
 def test_notebook_runs_headless(path, monkeypatch):
     # Never start the paced live-meshcat run under test (the kernel inherits this env).
     monkeypatch.delenv("HYBRIDCTL_LIVE_MESHCAT", raising=False)
-    # The Drake balance maps of notebooks 01 and 02 in this process, not on 2 spawned workers: the test
-    # processes already fill the cores, and each worker would first import torch and Drake (about 10 s a
-    # notebook). The map is the same on every backend (test_balance_engines runs the pool, a checkpoint too).
-    monkeypatch.setenv("HYBRIDCTL_NOTEBOOK_WORKERS", "1")
-    # Notebook 07's `hybridctl fit` runs every stage at a test's size (the full fit is 20 minutes).
+    # The notebooks at a test's size: notebook 07's `hybridctl fit` runs every stage small (the full fit is
+    # 20 minutes); notebooks 01 and 02 map 3 x 3 in the kernel's process, not 7 x 7 on 2 spawned workers (the
+    # test processes already fill the cores, and each worker would first import torch and Drake: about 10 s a
+    # notebook; the map is the same on every backend, test_balance_engines runs the pool with a checkpoint);
+    # notebook 03's mesh dimension takes 10 acrobot episodes, not 30.
     monkeypatch.setenv("HYBRIDCTL_NOTEBOOK_QUICK", "1")
     nb = nbformat.read(path, as_version=4)
     client = nbclient.NotebookClient(nb, timeout=300, kernel_name="python3",
