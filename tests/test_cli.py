@@ -23,8 +23,8 @@ def run(*args, check=True):
 
 def run_in_process(capsys, *args) -> tuple[int, str, str]:
     """(exit code, stdout, stderr) of ``hybridctl ARGS`` called in this process (no interpreter start, seconds
-    each: torch and Drake are imported already). ``python -m hybridctl.cli`` itself: test_simulate_writes_all_outputs,
-    test_debug_flag_shows_the_traceback, test_output_into_a_closed_pipe_is_not_an_error."""
+    each: torch and Drake are imported already). ``python -m hybridctl.cli`` itself: test_debug_flag_shows_the_traceback
+    and test_output_into_a_closed_pipe_is_not_an_error here, the installed console script in test_install.py."""
     try:
         code = main(list(args))
     except SystemExit as stop:
@@ -33,9 +33,10 @@ def run_in_process(capsys, *args) -> tuple[int, str, str]:
     return code, out.out, out.err
 
 
-def test_simulate_writes_all_outputs(tmp_path):
+def test_simulate_writes_all_outputs(tmp_path, capsys):
     out = tmp_path / "sim"
-    run("simulate", "pendulum", "--x0", "0.05,0", "--duration", "6", "--out", str(out))
+    code, _, err = run_in_process(capsys, "simulate", "pendulum", "--x0", "0.05,0", "--duration", "6", "--out", str(out))
+    assert code == 0, err
     data = np.load(out / "trajectory.npz")
     assert set(data.files) >= {"t", "x", "u", "gate"}
     assert data["x"].shape == (601, 2) and data["u"].shape == (601, 1)
