@@ -181,7 +181,6 @@ HEAVY_TESTS = frozenset({
     "test_bad_checkpoints.py::test_every_key_set_to_a_hostile_value_loads_or_raises_the_documented_error",  # 185
     "test_bad_input.py::test_cli_rejects_bad_input_in_one_line",                          # 57 command lines
     "test_balance_engines.py::test_both_engines_agree_on_a_grid",
-    "test_cli.py::test_simulate_writes_all_outputs",                                      # a subprocess
     "test_cli.py::test_mesh_compass_gait_coarse",
     "test_cli.py::test_train_spec_overrides_are_recorded_and_checked_on_resume",
     "test_cli.py::test_train_sac_set_flags_resume_in_process",
