@@ -54,7 +54,7 @@ def fitted(tmp_path_factory):
 
 def test_fit_writes_a_spec_whose_goal_is_the_upright(fitted):
     model, result = fitted
-    assert result.computed == ["model", "lqr", "gate", "reward"]
+    assert result.computed == ["model", "lqr", "integrator", "gate", "reward"]
     system = load(str(result.system_file))
     np.testing.assert_allclose(system.goal, [math.pi, 0, 0, 0], atol=1e-12)
     np.testing.assert_allclose(system.initial_state.nominal, [0, 0, 0, 0], atol=1e-12)
@@ -64,9 +64,14 @@ def test_fit_writes_a_spec_whose_goal_is_the_upright(fitted):
     assert "among 6 tried" in system.spec.sources["lqr.Q"]
     assert system.spec.sources["gate.cost_scale"].startswith("fit: gate stage")
     assert system.gate.cost_scale > 0 and system.control_period >= system.dt
+    assert system.spec.sources["integrator.dt"].startswith("fit: integrator stage, the cheapest")
+    assert abs(round(system.control_period / system.dt) * system.dt - system.control_period) < 1e-12
+    integrator = result.stages["integrator"]
+    kept = next(t for t in integrator["tried"] if (t["method"], t["dt"]) == (integrator["method"], integrator["dt"]))
+    assert kept["max_position_error"] <= SMALL.step_tolerance
     system.lqr()                                    # an equilibrium: Drake's LQR about it solves
     report = json.loads((result.out / "report.json").read_text())
-    assert [s["name"] for s in report["stages"]] == ["model", "lqr", "gate", "reward"]
+    assert [s["name"] for s in report["stages"]] == ["model", "lqr", "integrator", "gate", "reward"]
     for stage in report["stages"]:
         assert stage["seconds"] >= 0 and "tried" in stage and "kept" in stage and "why" in stage
     assert report["not_yet_built"]

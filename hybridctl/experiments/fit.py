@@ -9,8 +9,10 @@ The stages, in order; each measures what it chooses and records why (``report.js
 - ``lqr``: the control hold, the largest multiple of the integration step at which the saturated LQR still
   balances at least ``hold_keep`` of the samples it balances at the finest hold; then Q and R, screened
   over ``qr_family`` at that hold, the pair with the largest balanced fraction kept.
+- ``integrator``: the cheapest integrator (Euler or Heun, a step dividing the hold) that keeps the positions
+  within ``step_tolerance`` of a 4x finer Heun reference and the LQR's balanced share.
 - ``gate``: the cost-to-go gate's scale V* / ln(1 / gate.on) from the LQR's basin level V*
-  (:func:`hybridctl.systems.control.lqr_basin_level`).
+  (:func:`hybridctl.learn.gate.measure_basin`).
 - ``reward``: the tip height of the body that rises most from rest to goal (thesis eq. 3.1).
 - ``swingup``, ``learned_gate``, ``learner``, ``verify``: :mod:`hybridctl.experiments.fit_learn` (the collocation
   swing-up sets the learner's periods; the learned gate's sampling comes from the measured basin; SSAC in the
@@ -39,15 +41,15 @@ from .. import io, limits
 from ..systems import System, load
 from . import fit_learn
 from .fitted import CHECKPOINT, fitted_controller
-from .fit_stages import (FitError, FitSettings, build_system, settings_dict, stage_gate, stage_lqr, stage_model,
-                         stage_reward)
+from .fit_stages import (FitError, FitSettings, build_system, settings_dict, stage_gate, stage_integrator, stage_lqr,
+                         stage_model, stage_reward)
 
 __all__ = ["fit", "FitResult", "FitError", "FitSettings", "STAGES", "OUTPUTS", "NOT_YET_BUILT", "LEARNERS",
            "fitted_controller"]
 
-STAGES = ("model", "lqr", "gate", "reward", "swingup", "learned_gate", "learner", "verify")
+STAGES = ("model", "lqr", "integrator", "gate", "reward", "swingup", "learned_gate", "learner", "verify")
 """The stages, in order."""
-CLASSICAL = STAGES[:4]
+CLASSICAL = STAGES[:5]
 """What ``learner=None`` runs: a spec and the classical controller (LQR, cost-to-go gate) only."""
 NOT_YET_BUILT = ("cloning the collocation swing-up into the policy (the learner starts from scratch)",
                  "learners other than ssac", "--backend/--workers/--address/--device")
@@ -109,7 +111,8 @@ def _check_options(model_path: Path, budget_minutes, action_limit, learner) -> N
         raise FitError(f"--learner must be one of {', '.join(LEARNERS)}, got {learner!r}")
 
 
-_RUN = {"model": stage_model, "lqr": stage_lqr, "gate": stage_gate, "reward": stage_reward,
+_RUN = {"model": stage_model, "lqr": stage_lqr, "integrator": stage_integrator, "gate": stage_gate,
+        "reward": stage_reward,
         "swingup": fit_learn.stage_swingup, "learned_gate": fit_learn.stage_learned_gate,
         "learner": fit_learn.stage_learner, "verify": fit_learn.stage_verify}
 
@@ -219,8 +222,10 @@ def _summary(name: str, result: dict) -> dict:
                           "qr": [{k: v for k, v in x.items() if k not in ("Q", "R")} for x in result["qr"]]},
                 "kept": {"hold_s": result["hold_s"], "Q": result["Q"], "R": result["R"]},
                 "why": {"hold": result["hold_why"], "qr": result["qr_why"]}}
+    if name == "integrator":
+        return {"tried": result["tried"], "kept": {"method": result["method"], "dt": result["dt"]}, "why": result["why"]}
     if name == "gate":
-        return {"tried": "lqr_basin_level", "kept": {"cost_scale": result["cost_scale"]}, "why": result["why"]}
+        return {"tried": "measure_basin", "kept": {"cost_scale": result["cost_scale"]}, "why": result["why"]}
     if name == "reward":
         return {"tried": {"rises_m": result["rises"]},
                 "kept": {"kind": result["kind"], "tip_body": result["tip_body"], "tip_point": result["tip_point"]},
@@ -250,7 +255,8 @@ def _system(model_ref: str, options: dict, records: dict, s: FitSettings) -> Sys
         "initial_state.nominal": (m["rest"], f"fit: model stage, {m['rest_why']}"),
         "initial_state.low": (-spread, f"fit: rest +- {s.start_spread:g} on each position, at rest (FitSettings)"),
         "initial_state.high": (spread, f"fit: rest +- {s.start_spread:g} on each position, at rest (FitSettings)"),
-        "integrator.dt": (s.dt, "fit: the integration step fit screens holds on"),
+        "integrator.dt": (records["integrator"]["dt"], f"fit: integrator stage, {records['integrator']['why']}"),
+        "integrator.method": (records["integrator"]["method"], f"fit: integrator stage, {records['integrator']['why']}"),
         "control.period": (q["hold_s"], f"fit: lqr stage, {q['hold_why']}"),
         "lqr.Q": (q["Q"], f"fit: lqr stage, {q['qr_why']}"),
         "lqr.R": (q["R"], f"fit: lqr stage, {q['qr_why']}"),
@@ -273,5 +279,5 @@ def _system(model_ref: str, options: dict, records: dict, s: FitSettings) -> Sys
         chosen["gate.warm_far"] = (lg["warm_far"], f"fit: learned_gate stage, {lg['spread_why']}")
     tip = r["tip_body"] if r is not None else None
     return build_system(model_ref, options["action_limit"], np.asarray(m["goal"]), np.asarray(m["rest"]),
-                        np.asarray(q["Q"]), np.asarray(q["R"]), period=q["hold_s"], settings=chosen, dt=s.dt,
-                        tip_body=tip)
+                        np.asarray(q["Q"]), np.asarray(q["R"]), period=q["hold_s"], settings=chosen,
+                        dt=records["integrator"]["dt"], tip_body=tip)

@@ -18,7 +18,8 @@ import numpy as np
 from .. import limits
 from ..systems import EquilibriumError, System, control, from_drake, nearest_equilibrium
 
-__all__ = ["FitSettings", "FitError", "stage_model", "stage_lqr", "stage_gate", "stage_reward", "build_system"]
+__all__ = ["FitSettings", "FitError", "stage_model", "stage_lqr", "stage_integrator", "stage_gate", "stage_reward",
+           "build_system"]
 
 
 class FitError(ValueError):
@@ -40,6 +41,11 @@ class FitSettings:
     gate_samples: int = 5000              # starts of the basin level that scales both gates (measure_basin)
     horizon: float = 2.5                  # s, LQR rollouts' length (the thesis' gate labels, implementation notes)
     equilibrium_search: float = 0.5       # rad, how far nearest_equilibrium may move a 0/pi combination
+    step_tolerance: float = 0.02          # rad or m: an integrator's positions may differ this much from a 4x finer
+    #                                       Heun reference after step_horizon (hybridctl choice: a tenth of the
+    #                                       thesis' success eps 0.1 and of the gate labels' 0.2)
+    step_horizon: float = 0.5             # s of random held inputs from random states: about a swing's quarter
+    step_samples: int = 256               # trajectories per integrator candidate
     tip_rise_min: float = 0.01            # m, a body whose centre of mass rises less from rest to goal is no tip
     start_spread: float = 0.1             # rad or m, the spec's start range about rest on each position
     swingup_knots: int = 41               # collocation knots (TrajoptSettings' default, measured on every chain)
@@ -207,6 +213,79 @@ def stage_lqr(model_file: str, options: dict, earlier: dict, s: FitSettings, pro
                        f"among {len(screened)} tried at the {kept_hold['hold_s']:g} s hold")}
 
 
+# ------------------------------------------------------------------------------------------- integrator
+def _held_input_run(system: System, x0, inputs, hold: float):
+    """States after holding each row of ``inputs`` (steps, B, m) for ``hold`` seconds from ``x0`` (B, n)."""
+    import torch
+
+    x = torch.as_tensor(x0, dtype=torch.float64)
+    substeps = int(round(hold / system.dt))
+    for u in inputs:
+        u = torch.as_tensor(u, dtype=torch.float64)
+        for _ in range(substeps):
+            x = system.step(x, u)
+    return x
+
+
+def stage_integrator(model_file: str, options: dict, earlier: dict, s: FitSettings, progress: bool, **_) -> dict:
+    """The cheapest integrator (Euler or Heun, a step dividing the hold) whose positions stay within
+    ``s.step_tolerance`` of a 4x finer Heun reference over ``s.step_horizon`` s of random held inputs from
+    random states, and whose saturated LQR balances at least ``s.hold_keep`` of the lqr stage's share."""
+    m, q = earlier["model"], earlier["lqr"]
+    goal, rest, hold = np.asarray(m["goal"]), np.asarray(m["rest"]), q["hold_s"]
+    n = len(goal)
+    rng = np.random.default_rng(options["seed"] + 2)
+    revolute = np.array(m["revolute"], dtype=bool)
+    x0 = rest + np.concatenate([np.where(revolute, rng.uniform(-np.pi, np.pi, (s.step_samples, n // 2)),
+                                         rng.uniform(-0.5, 0.5, (s.step_samples, n // 2))),
+                                rng.uniform(-2.0, 2.0, (s.step_samples, n // 2))], axis=1)
+    n_holds = max(1, int(round(s.step_horizon / hold)))
+    limit = m["action_limit"]
+    inputs = rng.uniform(-limit, limit, (n_holds, s.step_samples, len(m["actuators"])))
+
+    def build(method, dt):
+        return build_system(model_file, options["action_limit"], goal, rest, np.asarray(q["Q"]), np.asarray(q["R"]),
+                            period=hold, dt=dt, settings={"integrator.method": (method, "fit: being screened")})
+
+    reference_dt = s.dt / 4
+    reference = _held_input_run(build("runge_kutta2", reference_dt), x0, inputs, hold).numpy()
+    steps = [k for k in range(1, int(round(hold / s.dt)) + 1) if int(round(hold / s.dt)) % k == 0]
+    candidates = sorted(((method, k * s.dt) for k in steps for method in ("euler", "runge_kutta2")),
+                        key=lambda c: (1 if c[0] == "euler" else 2) / c[1])     # cheapest first: evaluations per s
+    best = max((x for x in q["qr"] if "balanced" in x), key=lambda x: x["balanced"])
+    tried, kept = [], None
+    progress_bar = bar(len(candidates), "integrator: step and method", progress)
+    for method, dt in candidates:
+        system = build(method, dt)
+        with np.errstate(all="ignore"):
+            final = _held_input_run(system, x0, inputs, hold).numpy()
+        error = system.state_error(final) - system.state_error(reference)
+        position = float(np.nanmax(np.abs(np.asarray(error)[:, : n // 2]))) if np.isfinite(final).all() else math.inf
+        entry = {"method": method, "dt": dt, "evaluations_per_s": (1 if method == "euler" else 2) / dt,
+                 "max_position_error": position}
+        if position <= s.step_tolerance:
+            K, S = system.lqr()
+            r = control.lqr_basin_level(system, n_samples=s.screen_samples, horizon=s.horizon,
+                                        spread=screen_spread(n, s), seed=options["seed"], K=K, S=S,
+                                        hold=int(round(hold / dt)))
+            entry["balanced"] = r["success_rate"]
+            if r["success_rate"] >= s.hold_keep * best["balanced"]:
+                kept = entry
+        tried.append(entry)
+        progress_bar.update()
+        if kept is not None:
+            break
+    progress_bar.close()
+    if kept is None:    # the reference itself: the finest Heun step screened
+        kept = {"method": "runge_kutta2", "dt": s.dt, "evaluations_per_s": 2 / s.dt}
+    return {"tried": tried, "method": kept["method"], "dt": kept["dt"],
+            "why": (f"the cheapest of {len(candidates)} (Euler or Heun, steps dividing the {hold:g} s hold) whose "
+                    f"positions stay within {s.step_tolerance:g} of Heun at {reference_dt:g} s after {s.step_horizon:g} s "
+                    f"of random held inputs from {s.step_samples} random states"
+                    + (f" ({kept['max_position_error']:.2g})" if "max_position_error" in kept else "")
+                    + f" and whose LQR balances >= {s.hold_keep:g} x the lqr stage's {best['balanced']:.3g}")}
+
+
 # ------------------------------------------------------------------------------------------- gate
 def stage_gate(model_file: str, options: dict, earlier: dict, s: FitSettings, progress: bool, **_) -> dict:
     """The cost-to-go gate's scale V* / ln(1 / gate.on) from the held LQR's basin level V*, measured on cost-to-go
@@ -214,9 +293,10 @@ def stage_gate(model_file: str, options: dict, earlier: dict, s: FitSettings, pr
     coordinate overstates V*, the furuta's 9 times)."""
     from ..learn.gate import measure_basin
 
-    m, q = earlier["model"], earlier["lqr"]
+    m, q, i = earlier["model"], earlier["lqr"], earlier["integrator"]
     system = build_system(model_file, options["action_limit"], np.asarray(m["goal"]), np.asarray(m["rest"]),
-                          np.asarray(q["Q"]), np.asarray(q["R"]), period=q["hold_s"], dt=s.dt)
+                          np.asarray(q["Q"]), np.asarray(q["R"]), period=q["hold_s"], dt=i["dt"],
+                          settings={"integrator.method": (i["method"], "fit: integrator stage")})
     progress_bar = bar(1, "gate: basin level", progress)
     r = measure_basin(system, n_samples=s.gate_samples, seed=options["seed"] + 1)
     progress_bar.update()

@@ -46,6 +46,9 @@ Ch. 7, analytic policy gradients:
 Every chain: :mod:`~hybridctl.reproduce.matrix`, the learner x system matrix (every shipped swing-up
 and the classical baselines on Drake balance maps near hanging down) -> ``results/matrix/``.
 
+Your robot: :mod:`~hybridctl.reproduce.fit_robots`, ``hybridctl fit`` on the shipped Drake models from their model
+files and on two made-up robots -> ``results/your_robot/fit/ROBOT.json``.
+
 :mod:`~hybridctl.reproduce.common` holds what they share (the machine record, paths as recorded).
 This room sits at the top beside ``cli``: it may import every room below it; nothing imports it.
 """
