@@ -52,7 +52,8 @@ class FitSettings:
     decision_min: float = 0.02            # s, shortest swing-up decision (the thesis' acrobot period)
     decision_max: float = 0.1             # s, longest (from_drake's default)
     gamma_range: tuple = (0.95, 0.995)    # thesis 0.95 to the author's 0.99 and a little above (longer swing-ups)
-    learned_gate_samples: int | None = None   # learned_gate_from_basin's samples (None: its default)
+    learned_gate_samples: int | None = 10_000   # learned_gate_from_basin's samples (None: its 40,000; those took
+    #                                             359 s of the made-up pendubot's 20-minute fit on the shared machine)
     learner_max_steps: int = 3_000_000    # env steps at most (the Furuta's measured run, docs/your_robot.md)
     eval_episodes: int = 20               # deterministic episodes in the learner's eval.json
     learner_settings: dict = field(default_factory=dict)   # SSACConfig fields to change (tests: a tiny run)

@@ -124,10 +124,11 @@ def load_deployed(path, system, *, force: bool = False,
     if isinstance(record, dict) and record.get("kind") != "gymnasium":   # a gymnasium env's learner checks its own
         ignore = ckpt.TRAINING_ONLY_SECTIONS + (() if gate in ("checkpoint", "learned") else (ckpt.GATE_SECTION,))
         ckpt.check_plant(found, record, system, force, ignore=ignore)
-    # the learner is rebuilt on its recorded system by name; a robot of the user's (a spec file, `hybridctl
-    # fit`'s system.toml) has no shipped name, so it is built on ``system``, whose plant check_plant just matched
+    # the learner is rebuilt on its recorded system by name where that name finds the spec it trained on; a robot
+    # of the user's (a spec file, `hybridctl fit`'s system.toml, perhaps named like a shipped one) is built on
+    # ``system``, whose plant check_plant just matched
     on = None
-    if isinstance(record, dict) and record.get("kind") != "gymnasium" and record.get("name") not in known_systems():
+    if isinstance(record, dict) and record.get("kind") != "gymnasium" and not _name_finds_spec(record):
         on = system
     learner = cls.load(found, system=on, force=force, **cls.deploy_overrides(meta.get("config") or {}))
     controller = learner.controller(system)
@@ -142,6 +143,23 @@ def load_deployed(path, system, *, force: bool = False,
         controller = SwitchedController.for_system(system, swingup=controller.swingup, gate=CostToGoGate(system),
                                                    decision_period=controller.decision_period)
     return learner, controller
+
+
+def _name_finds_spec(record: dict) -> bool:
+    """Whether config.json's ``system`` record names a shipped spec that, with its recorded overrides, is the one
+    it trained on (its ``spec_hash``; an old record without one: the name is all there is)."""
+    from ..systems import load as load_system
+    from .plant_record import system_record
+
+    name = record.get("name")
+    if name not in known_systems():
+        return False
+    if "spec_hash" not in record:
+        return True
+    try:
+        return system_record(load_system(name, **(record.get("overrides") or {})))["spec_hash"] == record["spec_hash"]
+    except (KeyError, TypeError, ValueError):
+        return False
 
 
 def load_controller(path, system, *, force: bool = False, gate: str = "checkpoint") -> SwitchedController:

@@ -91,6 +91,7 @@ def main(argv: list[str] | None = None) -> int:
     record = {
         "robot": args.robot, "command": command_line("fit_robots", argv), "seed": args.seed,
         "budget_minutes": args.budget, "minutes": (time.perf_counter() - start) / 60,
+        "stage_minutes": sum(s["seconds"] for s in report["stages"]) / 60,   # every stage's own run, resumed or not
         "model_file": recorded_path(model) if args.robot in MADE_UP else f"models/{SHIPPED[args.robot]}",
         "model_sha256": report["model_sha256"], "run_folder": recorded_path(out),
         "stages": [{"name": s["name"], "seconds": s["seconds"], "cached": s["cached"]} for s in report["stages"]],
