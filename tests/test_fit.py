@@ -258,3 +258,20 @@ def test_a_cart_with_a_long_light_pole_fits_its_classical_stages(tmp_path):
     assert reward["kind"] == "tip_height_centered" and reward["tip_body"] == "pole"
     assert reward["rises"]["pole"] == pytest.approx(1.5) and reward["rises"]["cart"] == pytest.approx(0.0)
     assert max(q["balanced"] for q in result.stages["lqr"]["qr"] if "balanced" in q) > 0
+
+
+def test_a_robot_named_like_a_shipped_system_loads_its_own_checkpoint(fitted_learned, tmp_path):
+    """A user's spec whose name is a shipped system's (fit names a robot by its file: reaction_wheel.urdf):
+    its checkpoint's learner is built on the user's spec, not on the shipped one of that name."""
+    from hybridctl.experiments.training import train_and_evaluate
+    from hybridctl.learn import load_controller
+    text = fitted_learned[1].system_file.read_text()
+    spec = tmp_path / "spec" / "system.toml"
+    spec.parent.mkdir()
+    spec.write_text(text.replace('name = "pendubot"', 'name = "acrobot"', 1))
+    assert load(str(spec)).name == "acrobot"
+    run = tmp_path / "run"
+    train_and_evaluate("ssac", str(spec), out=run, settings={**TINY_SSAC, "total_steps": 400}, eval_episodes=1,
+                       progress=False, report=None)
+    controller = load_controller(run, load(str(spec)))
+    assert controller.decision_period == pytest.approx(load(str(spec)).swingup_period)
