@@ -126,7 +126,9 @@ def test_page_python_blocks_run_as_printed(page, tmp_path):
     (tmp_path / "blocks.json").write_text(json.dumps(blocks))
     driver = tmp_path / "run_blocks.py"
     driver.write_text(DRIVER)
-    env = {**os.environ, "MPLBACKEND": "Agg", "TQDM_DISABLE": "1"}
+    # one torch thread, as in every test (tests/conftest.py): the blocks' torch balance maps and rollouts
+    # otherwise take both cores' threads while the other test process runs, and ran 2-3x slower
+    env = {**os.environ, "MPLBACKEND": "Agg", "TQDM_DISABLE": "1", "OMP_NUM_THREADS": "1"}
     env.pop("HYBRIDCTL_LIVE_MESHCAT", None)
     start = time.perf_counter()
     result = subprocess.run([sys.executable, str(driver), str(tmp_path / "blocks.json")], cwd=work, env=env,
