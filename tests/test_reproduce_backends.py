@@ -20,7 +20,7 @@ PARALLEL = {"cartpole_record": [], "ch3_results": [], "ch6_finetune": ["finetune
             "table51": [], "table71": ["run"], "walker_seeds": []}
 # Stable-Baselines3 training and evaluation in this process (ch6_agents, sb3_baselines); Fig. 7.1's
 # landscape and gradient norms of one population in this process (fig71)
-NOTHING_PARALLEL = {"ch6_agents": [], "fig71": [], "sb3_baselines": []}
+NOTHING_PARALLEL = {"ch6_agents": [], "fig71": [], "sb3_baselines": [], "fit_robots": ["pendubot", "--out", "x"]}
 REPRODUCE = Path(importlib.import_module("hybridctl.reproduce").__file__).parent
 
 
