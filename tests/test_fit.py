@@ -132,7 +132,8 @@ TINY_SSAC = {"gate_warm_samples": 500, "gate_warm_fit_steps": 50, "num_envs": 8,
 """A learner run of a test's size: every stage runs as in a real fit, with no time to learn."""
 TINY = FitSettings(screen_samples=300, gate_samples=500, learned_gate_samples=2000,
                    learner_max_steps=800, eval_episodes=2, learner_settings=TINY_SSAC, verify_grid=2,
-                   verify_duration=1.0, swingup_knots=21)
+                   verify_duration=1.0, swingup_knots=21, track_samples=16,
+                   clone_settings={"rollouts": 16, "steps": 50, "dagger_rounds": 1})
 
 
 @pytest.fixture(scope="module")
@@ -157,10 +158,21 @@ def test_every_stage_runs_and_the_fitted_controller_is_a_named_controller(fitted
     assert abs(round(1.0 / system.swingup_period) * system.swingup_period - 1.0) < 1e-9   # divides the episode
     learner = result.stages["learner"]
     assert learner["steps"] == 800 and (result.out / "learner" / "final" / "model.pt").is_file()
+    # the tracked swing-up was measured at each decision period and cloned; SSAC started from the clone
+    assert swingup["tracked"] and all(0.0 <= f <= 1.0 for f in swingup["tracked"].values())
+    clone = result.stages["clone"]
+    if swingup["tracking_table"]:
+        assert clone["cloned"] and (result.out / "clone" / "model.pt").is_file()
+        assert len(clone["rounds"]) == TINY.clone_settings["dagger_rounds"] + 1
+        assert clone["fraction"] == max(r["fraction"] for r in clone["rounds"])
+        assert learner["started_from"] == "clone"
+    else:
+        assert not clone["cloned"] and learner["started_from"] is None
     verify = result.stages["verify"]
     assert verify["gate"] in ("learned", "cost-to-go")
-    assert set(verify["torch_maps"]) == {"learned/rest", "learned/start_range", "cost-to-go/rest",
-                                         "cost-to-go/start_range"}
+    maps = {f"{g}/{m}" for g in ("learned", "cost-to-go") for m in ("rest", "start_range")}
+    assert set(verify["torch_maps"]) == maps | ({f"clone/{k}" for k in maps} if clone["cloned"] else set())
+    assert verify["checkpoint"] in verify["candidates"] and report["controller"]["checkpoint"] == verify["checkpoint"]
     for name in ("rest", "start_range"):
         drake = verify["drake_maps"][name]
         assert drake["starts"] == 4 and 0 <= drake["balanced"] <= 4
@@ -243,8 +255,10 @@ def test_the_learner_stops_at_the_budget_and_keeps_its_checkpoint(fitted_learned
 
 def functools_partial_stage(function, result, settings, system, folder):
     """``function`` (a learned stage) on a fitted folder's records, writing into ``folder``."""
+    stages = {**result.stages, "clone": {"cloned": False}}   # a new run in ``folder``, which holds no clone
+
     def run(deadline):
-        return function(str(result.out), {"seed": 0}, result.stages, settings, False, system=system, folder=folder,
+        return function(str(result.out), {"seed": 0}, stages, settings, False, system=system, folder=folder,
                         spec_file=result.system_file, deadline=deadline)
     return run
 

@@ -38,6 +38,11 @@ CHOICES = {"obs_transform": OBS_TRANSFORMS, "reward": REWARDS, "gate_class_weigh
            "reward_kind": CH7_REWARD_KINDS, "observation": APG_OBSERVATIONS, "clip_mode": ("norm", "value")}
 """The fixed sets that the configs' ``validate()`` accepts, by field name."""
 
+INIT_NOTES = {"ars": " (the thesis trains 750 identity epochs, then 250 with post-processing)",
+              "sac": " (the replay buffers go on too)",
+              "ssac": " (the replay buffers and the gate data go on too; hybridctl fit starts SSAC from its clone so)",
+              **{name: " (--force to go on under another reward)" for name in APG_METHODS}}
+"""What ``--init`` carries over beyond the policy, per learner."""
 ALIASES = {"total_steps": ("--steps",)}
 """Shorter flags kept from the first command line (``--steps`` for ``total_steps``)."""
 
@@ -342,8 +347,7 @@ def add_common_flags(parser: argparse.ArgumentParser, algorithm: str) -> set[str
     if ALGORITHMS[algorithm].warm_starts:
         actions.append(run.add_argument(
             "--init", metavar="CHECKPOINT", help="start from this checkpoint's policy and normalisation; its "
-            "counters go on, so --epochs is the total (ARS: the thesis trains 750 identity epochs, then 250 with "
-            "post-processing; APG family: --force to go on under another reward)"))
+            "counters go on, so the run's budget is the total" + INIT_NOTES.get(algorithm, "")))
     add_quiet_flag(run)
     add_debug_flag(run)
     options = {s for action in actions for s in action.option_strings}

@@ -581,8 +581,7 @@ class TrajectoryTracker(LeafSystem):
         k = min(max(int(round(t / self.period)), 0), len(g.x0) - 1)
         err = np.asarray(x, dtype=float) - g.x0[k]
         control.wrap_angles(err, self._angles)
-        u = g.u0[k] - g.K[k] @ err - g.k0[k]
-        return np.clip(u, -self._limit, self._limit)
+        return control.saturate(control.tracking_command(err, g.u0[k], g.K[k], g.k0[k]), self._limit)
 
     def _update(self, context: Context, discrete_state: DiscreteValues) -> None:
         x = self.get_input_port(0).Eval(context)

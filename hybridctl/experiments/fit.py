@@ -15,8 +15,10 @@ The stages, in order; each measures what it chooses and records why (``report.js
   (:func:`hybridctl.learn.gate.measure_basin`).
 - ``reward``: the tip height of the body that rises most from rest to goal (thesis eq. 3.1).
 - ``swingup``, ``learned_gate``, ``learner``, ``verify``: :mod:`hybridctl.experiments.fit_learn` (the collocation
-  swing-up sets the learner's periods; the learned gate's sampling comes from the measured basin; SSAC in the
-  budget; balance maps in torch and Drake keep a gate).
+  swing-up, tracked by TVLQR, sets the learner's periods; the learned gate's sampling comes from the measured
+  basin; SSAC in the budget; balance maps in torch and Drake keep a checkpoint and a gate).
+- ``clone``: :mod:`hybridctl.experiments.fit_clone` (the tracked swing-up cloned into SSAC's actor, DART and
+  DAgger; SSAC starts from it, and the verification may keep the clone itself).
 
 Each stage's result is cached as ``DIR/stages/NAME.json`` (atomic) with the inputs it was computed from (the
 model file's sha256, the options, the settings, the earlier stages' results); ``resume=True`` reuses a stage
@@ -39,24 +41,23 @@ import numpy as np
 
 from .. import io, limits
 from ..systems import System, load
-from . import fit_learn
-from .fitted import CHECKPOINT, fitted_controller
+from . import fit_clone, fit_learn
+from .fitted import CHECKPOINT, GATES, fitted_controller
 from .fit_stages import (FitError, FitSettings, build_system, settings_dict, stage_gate, stage_integrator, stage_lqr,
                          stage_model, stage_reward)
 
 __all__ = ["fit", "FitResult", "FitError", "FitSettings", "STAGES", "OUTPUTS", "NOT_YET_BUILT", "LEARNERS",
            "fitted_controller"]
 
-STAGES = ("model", "lqr", "integrator", "gate", "reward", "swingup", "learned_gate", "learner", "verify")
+STAGES = ("model", "lqr", "integrator", "gate", "reward", "swingup", "learned_gate", "clone", "learner", "verify")
 """The stages, in order."""
 CLASSICAL = STAGES[:5]
 """What ``learner=None`` runs: a spec and the classical controller (LQR, cost-to-go gate) only."""
-NOT_YET_BUILT = ("cloning the collocation swing-up into the policy (the learner starts from scratch)",
-                 "learners other than ssac", "--backend/--workers/--address/--device")
+NOT_YET_BUILT = ("learners other than ssac", "--backend/--workers/--address/--device")
 """What ``fit`` does not do yet; report.json and ``hybridctl fit --help`` say so."""
 LEARNERS = ("auto", "ssac")
 """``learner``: "auto" is SSAC (thesis Ch. 3), the learner whose gate is learned."""
-OUTPUTS = ("system.toml", "report.json", "stages", "trajopt", "learner", "maps", "replay.html", "replay.json")
+OUTPUTS = ("system.toml", "report.json", "stages", "trajopt", "clone", "learner", "maps", "replay.html", "replay.json")
 """What ``fit`` writes into its folder."""
 
 
@@ -114,7 +115,7 @@ def _check_options(model_path: Path, budget_minutes, action_limit, learner) -> N
 _RUN = {"model": stage_model, "lqr": stage_lqr, "integrator": stage_integrator, "gate": stage_gate,
         "reward": stage_reward,
         "swingup": fit_learn.stage_swingup, "learned_gate": fit_learn.stage_learned_gate,
-        "learner": fit_learn.stage_learner, "verify": fit_learn.stage_verify}
+        "clone": fit_clone.stage_clone, "learner": fit_learn.stage_learner, "verify": fit_learn.stage_verify}
 
 
 def fit(model_file, out, *, goal="auto", action_limit: float | None = None, seed: int = 0, resume: bool = False,
@@ -160,7 +161,7 @@ def fit(model_file, out, *, goal="auto", action_limit: float | None = None, seed
                 raise FitError(f"the budget of {budget_minutes:g} minutes is spent before the {name} stage; rerun with "
                                f"--resume (and a larger --budget)")
             system = _system(model_ref, options, records, s) if name not in CLASSICAL else None
-            if name in ("learner", "verify"):
+            if name in ("clone", "learner", "verify"):
                 # the learner trains on the spec file fit wrote, and workers (balance maps) load it by its path
                 system.save_spec(spec_file, overwrite=True)
                 system = load(str(spec_file))
@@ -185,11 +186,13 @@ def fit(model_file, out, *, goal="auto", action_limit: float | None = None, seed
         system.save_spec(spec_file, overwrite=True)
         report["system"] = "system.toml"
         if "verify" in records:
-            report["controller"] = {"name": f"fitted:{folder}", "checkpoint": CHECKPOINT,
-                                    "gate": records["verify"]["gate"], "why": records["verify"]["gate_why"],
-                                    "drake_maps": records["verify"]["drake_maps"]}
-            report["replay"] = fit_learn.write_replay(system, folder, records["verify"]["controller"].replace(
-                CHECKPOINT, str(folder / CHECKPOINT)))
+            verified = records["verify"]
+            checkpoint = verified.get("checkpoint", CHECKPOINT)
+            report["controller"] = {"name": f"fitted:{folder}", "checkpoint": checkpoint,
+                                    "gate": verified["gate"], "why": verified["gate_why"],
+                                    "checkpoint_why": verified.get("checkpoint_why"),
+                                    "drake_maps": verified["drake_maps"]}
+            report["replay"] = fit_learn.write_replay(system, folder, f"{GATES[verified['gate']]}:{folder / checkpoint}")
             rest_map = records["verify"]["drake_maps"]["rest"]
             found = bool(report["replay"].get("balanced")) or rest_map["balanced"] > 0
             report["swingup_found"] = found
@@ -236,13 +239,19 @@ def _summary(name: str, result: dict) -> dict:
                          "gamma": result["gamma"], "episode_s": result["episode_s"]}, "why": result["why"]}
     if name == "learned_gate":
         return {"tried": result["info"], "kept": {"works": result["works"]}, "why": result["why"]}
+    if name == "clone":
+        return {"tried": {k: result.get(k) for k in ("rounds", "tracker_fraction", "samples")},
+                "kept": {"cloned": result["cloned"], "round": result.get("kept_round"),
+                         "fraction": result.get("fraction")}, "why": result["why"]}
     if name == "learner":
         return {"tried": {k: result[k] for k in ("steps_before", "seconds", "stopped_by_budget", "eval_success_rate",
                                                  "eval_mean_return", "verify_reserve_s")},
                 "kept": {"steps": result["steps"], "checkpoint": result["checkpoint"]},
                 "why": result["why"]}
-    return {"tried": result["torch_maps"], "kept": {"gate": result["gate"], "drake_maps": result["drake_maps"]},
-            "why": result["gate_why"]}
+    return {"tried": result["torch_maps"],
+            "kept": {"gate": result["gate"], "checkpoint": result.get("checkpoint", CHECKPOINT),
+                     "drake_maps": result["drake_maps"]},
+            "why": {"gate": result["gate_why"], "checkpoint": result.get("checkpoint_why")}}
 
 
 def _system(model_ref: str, options: dict, records: dict, s: FitSettings) -> System:

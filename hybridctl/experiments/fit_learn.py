@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from .fit_stages import FitError, FitSettings, bar
-from .fitted import CHECKPOINT, GATES
+from .fitted import CHECKPOINT, CLONE, GATES
 
 __all__ = ["stage_swingup", "stage_learned_gate", "stage_learner", "stage_verify", "write_replay", "LEARNER_SETTINGS"]
 
@@ -33,7 +33,8 @@ hand over: results/your_robot/learned_gate/diagnosis.json); a checkpoint every m
 
 def stage_swingup(model_file: str, options: dict, earlier: dict, s: FitSettings, progress: bool, *,
                   system, folder: Path, **_) -> dict:
-    """The collocation swing-up from rest, and the learner's decision period, discount and episode from it."""
+    """The collocation swing-up from rest; the learner's decision period (the longest at which the TVLQR-tracked
+    swing-up still balances, measured), discount and episode from it; the kept tracking table for the clone."""
     from ..drake.trajopt import TrajoptError, swingup_trajectory
 
     hold = system.control_period
@@ -47,25 +48,97 @@ def stage_swingup(model_file: str, options: dict, earlier: dict, s: FitSettings,
         progress_bar.update()
         progress_bar.close()
         duration, found, summary = trajectory.duration, True, trajectory.summary()
+    tracked = {}
     if found:
         spacing = duration / (s.swingup_knots - 1)
-        period = _decision_period(min(max(spacing, s.decision_min), s.decision_max), hold)
-        gamma = min(max(1.0 - period / duration, s.gamma_range[0]), s.gamma_range[1])
+        upper = min(max(spacing, s.decision_min), s.decision_max)
         episode = float(math.ceil(duration + s.horizon))
-        why = {"period": (f"the collocation's knot spacing {spacing:.4g} s (a {duration:g} s swing-up over "
-                          f"{s.swingup_knots} knots) within [{s.decision_min:g}, {s.decision_max:g}] s, rounded down "
-                          f"to a multiple of the {hold:g} s hold that divides a second"),
+        tracked = _screen_tracking(system, trajectory, _decision_periods(hold, s.decision_min, upper), episode, s,
+                                   options["seed"], folder, progress)
+        best = max(tracked.values())
+        if best > 0:
+            period = max(p for p, fraction in tracked.items() if fraction >= s.track_keep * best)
+            period_why = (f"the longest decision period (multiples of the {hold:g} s hold that divide a second, from "
+                          f"{s.decision_min:g} s to the collocation's knot spacing {spacing:.4g} s) at which the "
+                          f"TVLQR-tracked swing-up balances at least {s.track_keep:g} of the best period's share of "
+                          f"{s.track_samples} starts: " + ", ".join(f"{p:g} s {f:.2f}" for p, f in tracked.items()))
+        else:
+            period = _decision_period(upper, hold)
+            period_why = (f"the tracked swing-up balanced no start at any period tried "
+                          f"({', '.join(f'{p:g} s' for p in tracked)}): the collocation's knot spacing {spacing:.4g} s "
+                          f"(a {duration:g} s swing-up over {s.swingup_knots} knots) within [{s.decision_min:g}, "
+                          f"{s.decision_max:g}] s, rounded down to a multiple of the {hold:g} s hold that divides a "
+                          f"second")
+        gamma = min(max(1.0 - period / duration, s.gamma_range[0]), s.gamma_range[1])
+        why = {"period": period_why,
                "gamma": (f"1 - period / T = 1 - {period:g} / {duration:g} (the discount looks one swing-up ahead), "
                          f"within {list(s.gamma_range)}"),
                "episode": (f"the {duration:g} s swing-up plus the {s.horizon:g} s LQR horizon of the gate labels, "
                            f"rounded up")}
+        if best > 0:
+            _save_tracking(system, trajectory, period, folder)
     else:
         period = _decision_period(0.05, hold)
         gamma, episode = 0.99, 10.0
         why = {k: f"no collocation swing-up ({summary['error']}): docs/your_robot.md's measured values"
                for k in ("period", "gamma", "episode")}
     return {"found": found, "duration_s": duration, "trajectory": summary, "swingup_period": period,
-            "gamma": gamma, "episode_s": episode, "why": why}
+            "gamma": gamma, "episode_s": episode, "why": why,
+            "tracked": {f"{p:g}": f for p, f in tracked.items()},
+            "tracked_fraction": tracked.get(period, 0.0), "tracking_table": TRACKING_TABLE if tracked.get(period)
+            else None}
+
+
+TRACKING_TABLE = "trajopt/tracking-kept.npz"
+"""The TVLQR table at the kept decision period, in the fit's folder: what the clone stage tracks."""
+
+
+def _decision_periods(hold: float, shortest: float, longest: float) -> list[float]:
+    """Multiples of ``hold`` that divide one second, from ``shortest`` to ``longest`` (at least the longest such
+    multiple up to ``longest``)."""
+    periods = []
+    for k in range(1, int(longest / hold + 1e-9) + 1):
+        period = float(round(k * hold, 12))
+        if period >= shortest - 1e-12 and abs(round(1.0 / period) * period - 1.0) < 1e-9:
+            periods.append(period)
+    return periods or [_decision_period(longest, hold)]
+
+
+def _screen_tracking(system, trajectory, periods: list[float], duration: float, s: FitSettings, seed: int,
+                     folder: Path, progress: bool) -> dict[float, float]:
+    """The share of ``s.track_samples`` starts from the spec's start range that the TVLQR-tracked swing-up (held for
+    each period, the cost-to-go gate and the LQR taking over) balances within ``duration``."""
+    from ..drake.trajopt import TrajoptError, tracking_gains
+    from ..learn.clone import TrackingSwingup, balanced_fraction
+    from ..systems.switched import CostToGoGate, SwitchedController
+
+    starts = system.sample_initial_states(s.track_samples, np.random.default_rng(seed))
+    fractions = {}
+    progress_bar = bar(len(periods), "swingup: tracked at each decision period", progress)
+    for period in periods:
+        try:
+            gains = tracking_gains(system, trajectory, period, cache_dir=folder / "trajopt")
+        except TrajoptError:
+            fractions[period] = 0.0
+        else:
+            controller = SwitchedController.for_system(system, swingup=TrackingSwingup(gains, system),
+                                                       gate=CostToGoGate(system), decision_period=period)
+            fractions[period] = balanced_fraction(system, controller, starts, duration)["fraction"]
+        progress_bar.update()
+    progress_bar.close()
+    return fractions
+
+
+def _save_tracking(system, trajectory, period: float, folder: Path) -> None:
+    """Write the kept period's TVLQR table to :data:`TRACKING_TABLE` (numbers only; read without pickle)."""
+    from .. import io
+    from ..drake.trajopt import tracking_gains
+
+    gains = tracking_gains(system, trajectory, period, cache_dir=folder / "trajopt")
+    arrays = {name: np.asarray(getattr(gains, name), dtype=float) for name in ("x0", "u0", "K", "k0")}
+    path = folder / TRACKING_TABLE
+    path.parent.mkdir(parents=True, exist_ok=True)
+    io.atomic_write(path, lambda f: np.savez(f, period=np.float64(period), **arrays))
 
 
 def _decision_period(at_most: float, hold: float) -> float:
@@ -137,21 +210,30 @@ def stage_learner(model_file: str, options: dict, earlier: dict, s: FitSettings,
             return False if time.monotonic() >= stop_at else None
 
     t0 = time.monotonic()
-    settings = {"seed": options["seed"], "gamma": plan["gamma"], "total_steps": int(s.learner_max_steps),
-                **LEARNER_SETTINGS, **s.learner_settings}
-    record = train_and_evaluate("ssac", str(spec_file), out=run, settings=settings, resume=run.exists(),
-                                eval_episodes=s.eval_episodes, progress=progress, report=None,
-                                command=options.get("command"), callback=StopAtBudget()).evaluation
+    clone = earlier.get("clone") or {}
+    init = folder / CLONE if clone.get("cloned") and before == 0 else None   # a new run starts from the clone
+    record = train_and_evaluate("ssac", str(spec_file), out=run, settings=learner_settings(options, plan, s),
+                                resume=run.exists(), init=init, eval_episodes=s.eval_episodes, progress=progress,
+                                report=None, command=options.get("command"), callback=StopAtBudget()).evaluation
     steps = int(record.get("env_steps", 0))
     stopped = steps < s.learner_max_steps
     return {"algorithm": "ssac", "run": "learner", "checkpoint": CHECKPOINT, "steps": steps,
             "steps_before": before, "seconds": time.monotonic() - t0, "stopped_by_budget": stopped,
             "eval_success_rate": record.get("success_rate"), "eval_mean_return": record.get("mean_return"),
             "verify_reserve_s": reserve, "lqr_maps_s": maps_s,
-            "why": (f"SSAC (thesis Ch. 3, its gate's LQR-active states labelled by LQR rollouts) on system.toml, "
+            "started_from": None if init is None else CLONE,
+            "why": (f"SSAC (thesis Ch. 3, its gate's LQR-active states labelled by LQR rollouts) on system.toml"
+                    + (" from the cloned swing-up, " if init is not None else ", ") +
                     f"{steps} env steps: " + (f"stopped when the budget left only the {reserve:.0f} s kept for the "
                                               f"verification" if stopped else
                                               f"all {s.learner_max_steps} (FitSettings.learner_max_steps)"))}
+
+
+def learner_settings(options: dict, plan: dict, s: FitSettings) -> dict:
+    """SSAC's settings in fit (the clone stage builds its learner with the same): the seed, the swing-up stage's
+    discount, the step budget, :data:`LEARNER_SETTINGS` and ``s.learner_settings``."""
+    return {"seed": options["seed"], "gamma": plan["gamma"], "total_steps": int(s.learner_max_steps),
+            **LEARNER_SETTINGS, **s.learner_settings}
 
 
 def _steps_done(run: Path) -> int:
@@ -167,32 +249,36 @@ def _steps_done(run: Path) -> int:
 
 def stage_verify(model_file: str, options: dict, earlier: dict, s: FitSettings, progress: bool, *,
                  system, folder: Path, **_) -> dict:
-    """Both gates' maps in torch (the gate is kept by them), then the kept controller's maps in Drake."""
+    """Each candidate checkpoint's maps with both gates in torch (the learner's run and, where there is one, the
+    clone it started from): a gate is kept per checkpoint by them, and the checkpoint whose kept gate balances most
+    starts (ties: the learner's); then the kept controller's maps in Drake."""
     from .balance_map import balance_map, grid_axes, near_hanging_down
 
-    checkpoint = str(folder / CHECKPOINT)
     maps = {"rest": near_hanging_down(system, s.verify_near), "start_range": grid_axes(system)}
-    torch_maps = {}
-    for gate in GATES:
-        for name, (axes, ranges) in maps.items():
-            result = balance_map(system, f"{GATES[gate]}:{checkpoint}", grid=s.verify_grid, axes=axes,
-                                 ranges=ranges, engine="torch", progress=False, duration=s.verify_duration)
-            torch_maps[f"{gate}/{name}"] = result.fraction
-    score = {gate: (torch_maps[f"{gate}/rest"], torch_maps[f"{gate}/start_range"]) for gate in GATES}
-    worse = [f"{name} {score['learned'][i]:.3f} < {score['cost-to-go'][i]:.3f} - {s.gate_tolerance:g}"
-             for i, name in enumerate(maps) if score["learned"][i] < score["cost-to-go"][i] - s.gate_tolerance]
-    kept = "cost-to-go" if worse else "learned"
-    if worse:
-        why = (f"the learned gate measurably fails: its torch maps balance fewer starts than the cost-to-go "
-               f"gate's ({'; '.join(worse)})")
-    else:
-        why = (f"the learned gate's torch maps {score['learned']} (rest, start range) are within "
-               f"{s.gate_tolerance:g} of the cost-to-go gate's {score['cost-to-go']} or above")
+    candidates = [CHECKPOINT] + ([CLONE] if (earlier.get("clone") or {}).get("cloned") else [])
+    torch_maps, kept_gates, whys = {}, {}, {}
+    for candidate in candidates:
+        for gate in GATES:
+            for name, (axes, ranges) in maps.items():
+                result = balance_map(system, f"{GATES[gate]}:{folder / candidate}", grid=s.verify_grid, axes=axes,
+                                     ranges=ranges, engine="torch", progress=False, duration=s.verify_duration)
+                torch_maps[f"{gate}/{name}" if candidate == CHECKPOINT else f"{candidate}/{gate}/{name}"] = \
+                    result.fraction
+        key = (lambda gate: f"{gate}/") if candidate == CHECKPOINT else (lambda gate: f"{candidate}/{gate}/")
+        score = {gate: tuple(torch_maps[key(gate) + name] for name in maps) for gate in GATES}
+        kept_gates[candidate], whys[candidate] = _keep_gate(score, list(maps), s.gate_tolerance)
+    totals = {c: sum(torch_maps[(f"{kept_gates[c]}/" if c == CHECKPOINT else f"{c}/{kept_gates[c]}/") + name]
+                     for name in maps) for c in candidates}
+    checkpoint = max(candidates, key=lambda c: (totals[c], c == CHECKPOINT))
+    kept, why = kept_gates[checkpoint], whys[checkpoint]
+    checkpoint_why = (f"{checkpoint} with its {kept} gate balances {totals[checkpoint]:.3f} of the two torch maps "
+                      f"together" + ("" if len(candidates) == 1 else ", against " + ", ".join(
+                          f"{c} {totals[c]:.3f}" for c in candidates if c != checkpoint) + " (ties: the learner's)"))
     drake_maps = {}
     progress_bar = bar(len(maps), "verify: Drake balance maps", progress)
     for name, (axes, ranges) in maps.items():
-        result = balance_map(system, f"{GATES[kept]}:{checkpoint}", grid=s.verify_grid, axes=axes, ranges=ranges,
-                             engine="drake", progress=False, duration=s.verify_duration)
+        result = balance_map(system, f"{GATES[kept]}:{folder / checkpoint}", grid=s.verify_grid, axes=axes,
+                             ranges=ranges, engine="drake", progress=False, duration=s.verify_duration)
         result.save(folder / "maps" / name)
         drake_maps[name] = {"balanced_fraction": result.fraction, "balanced": int(result.balanced.sum()),
                             "starts": int(result.balanced.size), "axes": list(result.axes),
@@ -200,8 +286,20 @@ def stage_verify(model_file: str, options: dict, earlier: dict, s: FitSettings, 
                             "plot": f"maps/{name}/balance_map.png"}
         progress_bar.update()
     progress_bar.close()
-    return {"gate": kept, "gate_why": why, "torch_maps": torch_maps, "drake_maps": drake_maps,
-            "controller": f"{GATES[kept]}:{CHECKPOINT}"}
+    return {"gate": kept, "gate_why": why, "checkpoint": checkpoint, "checkpoint_why": checkpoint_why,
+            "candidates": candidates, "torch_maps": torch_maps, "drake_maps": drake_maps,
+            "controller": f"{GATES[kept]}:{checkpoint}"}
+
+
+def _keep_gate(score: dict, names: list[str], tolerance: float) -> tuple[str, str]:
+    """The learned gate unless one of its torch maps balances ``tolerance`` fewer starts than the cost-to-go gate's."""
+    worse = [f"{name} {score['learned'][i]:.3f} < {score['cost-to-go'][i]:.3f} - {tolerance:g}"
+             for i, name in enumerate(names) if score["learned"][i] < score["cost-to-go"][i] - tolerance]
+    if worse:
+        return "cost-to-go", (f"the learned gate measurably fails: its torch maps balance fewer starts than the "
+                              f"cost-to-go gate's ({'; '.join(worse)})")
+    return "learned", (f"the learned gate's torch maps {score['learned']} (rest, start range) are within "
+                       f"{tolerance:g} of the cost-to-go gate's {score['cost-to-go']} or above")
 
 
 def write_replay(system, folder: Path, controller: str) -> dict:

@@ -52,6 +52,10 @@ class FitSettings:
     decision_min: float = 0.02            # s, shortest swing-up decision (the thesis' acrobot period)
     decision_max: float = 0.1             # s, longest (from_drake's default)
     gamma_range: tuple = (0.95, 0.995)    # thesis 0.95 to the author's 0.99 and a little above (longer swing-ups)
+    track_samples: int = 128              # starts from the spec's range on which the tracked swing-up is measured at
+    #                                       each decision period (and the clone on as many others)
+    track_keep: float = 0.9               # the longest period whose tracked share is >= this x the best's is kept
+    clone_settings: dict = field(default_factory=dict)   # hybridctl.learn.clone.CloneConfig fields to change
     learned_gate_samples: int | None = 10_000   # learned_gate_from_basin's samples (None: its 40,000; those took
     #                                             359 s of the made-up pendubot's 20-minute fit on the shared machine)
     learner_max_steps: int = 3_000_000    # env steps at most (the Furuta's measured run, docs/your_robot.md)

@@ -304,8 +304,10 @@ def train_and_evaluate(algorithm: str, system: str, out: str | Path | None = Non
             a checkpoint of another algorithm or plant, or an incomplete or damaged one (also a
             missing replay.pt / gate_data.pt), refuses naming what differs or the file.
         init: ARS and the APG family: start from this checkpoint's policy and normalisation (the
-            thesis trains ARS 750 identity epochs, then 250 with post-processing); its counters go on,
-            so the budget is the total. A checkpoint of another plant or reward needs ``force``.
+            thesis trains ARS 750 identity epochs, then 250 with post-processing); SAC and SSAC: from its
+            networks, optimisers, replay buffers and gate data (``hybridctl fit`` starts SSAC from its cloned
+            swing-up so). Its counters go on, so the budget is the total. A checkpoint of another plant or
+            reward needs ``force``.
         eval_episodes: deterministic episodes in ``eval.json`` (default SAC/SSAC 100, ARS the
             config's ``eval_episodes``).
         command: the command line, recorded in ``eval.json``.
@@ -381,13 +383,28 @@ def _starting_learner(algo, algorithm: str, system: str, target, system_name: st
     if resume:
         report(f"--resume: no checkpoint under {out}; starting a new run")
     if init is not None:
-        agent = algo.load(init, system=system, force=force, **settings)
+        agent = algo.load(init, system=_loaded_on(algo, system, target) or system, force=force, **settings)
+        if algo.init_keeps_data:   # SAC / SSAC: the replay and gate data go on with the networks, as in a resume
+            agent.checkpointer.check_resumable(init, force)
+            agent.checkpointer.restore(init, bulky=True, force=force)
         agent.warm_started()
         report(f"starting from {init} ({agent.log_key} {agent.progress_count}); training to "
                f"{getattr(agent.config, agent.budget_field)} {agent.unit}s")
         return agent
     report(f"{algo.run_label(config)} on {system}: {config.describe_budget()}")
     return algo(target, config)
+
+
+def _loaded_on(algo, system: str, target):
+    """What a checkpoint is loaded on to go on training: a learner on gymnasium envs on the env as given (an id, or
+    a spec file the recorded name cannot find); one on systems on the system given with spec overrides, on the spec
+    file given (a robot of the user's, `hybridctl fit`'s system.toml: no shipped name finds it), else (None) on the
+    recorded system with its spec overrides."""
+    if algo.takes_gym_envs:
+        return system
+    if isinstance(target, System):
+        return target
+    return load(system) if str(system).endswith(".toml") else None
 
 
 def _resumed_learner(algo, algorithm: str, system: str, target, system_name: str, found: Path, settings: dict,
@@ -407,13 +424,7 @@ def _resumed_learner(algo, algorithm: str, system: str, target, system_name: str
     # a learner on gymnasium envs is loaded on the env as given (an id, or a spec file the recorded name
     # cannot find); one on systems on the recorded system with its spec overrides, or on the spec file given
     # (a robot of the user's, `hybridctl fit`'s system.toml: no shipped name finds it)
-    if algo.takes_gym_envs:
-        on = system
-    elif isinstance(target, System):
-        on = target
-    else:
-        on = load(system) if str(system).endswith(".toml") else None
-    agent = algo.load(found, system=on, force=force, **applied)
+    agent = algo.load(found, system=_loaded_on(algo, system, target), force=force, **applied)
     agent.checkpointer.check_resumable(found, force)
     report(f"resuming {found} at {agent.log_key} {agent.progress_count}"
            + (f", training to {getattr(agent.config, agent.budget_field)}" if agent.budget_field in applied else ""))

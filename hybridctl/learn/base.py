@@ -142,6 +142,8 @@ class Learner:
     """Whether a training run may give spec overrides (``hybridctl train --spec``) for a new run."""
     warm_starts = False
     """Whether a training run may start from another run's checkpoint (``hybridctl train --init``)."""
+    init_keeps_data = False
+    """Whether ``--init`` also restores the checkpoint's bulky files (replay buffers, gate data), as a resume does."""
     record_evaluation: dict = {}
     """The ``evaluate`` options of the evaluation a training run records in ``eval.json``."""
 

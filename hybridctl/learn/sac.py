@@ -245,6 +245,7 @@ class SAC(VectorEnvAgent):
     """
 
     config_class = SACConfig
+    warm_starts = init_keeps_data = True   # --init: networks, optimisers, replay (SSAC: gate data) go on
     algorithm_name = "SAC"
     takes_spec = True
     compatible_algorithms = ("SAC",)  # an SSAC checkpoint holds a whole SAC agent: SAC.load(..., force=True)

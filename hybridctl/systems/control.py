@@ -27,7 +27,7 @@ System = Any
 """A :class:`hybridctl.systems.System` (not imported: the package imports this module, and an import back,
 even under ``TYPE_CHECKING``, would make the two a cycle)."""
 
-__all__ = ["DIVERGENCE_BOUND", "wrap_angle", "wrap_angles", "lqr_command", "cost_to_go", "hysteresis", "saturate",
+__all__ = ["DIVERGENCE_BOUND", "wrap_angle", "wrap_angles", "lqr_command", "tracking_command", "cost_to_go", "hysteresis", "saturate",
            "is_diverged", "CostToGoGate", "lqr_rollouts_balanced", "lqr_basin_level"]
 
 DIVERGENCE_BOUND = 1e6
@@ -51,6 +51,13 @@ def wrap_angles(err, angle_indices):
 def lqr_command(err, K):
     """u = -K e for state errors ``err`` (..., n) and a gain ``K`` (m, n): (..., m), numpy or torch."""
     return -(err @ K.T)
+
+
+def tracking_command(err, u0, K, k0):
+    """The time-varying LQR's u = u0 - K e - k0 (Drake's ``FiniteHorizonLinearQuadraticRegulator``) for state
+    errors ``err`` (..., n) from the nominal state, the rows' nominal inputs ``u0`` (..., m), gains ``K`` (..., m, n)
+    and offsets ``k0`` (..., m): (..., m), numpy or torch. Unsaturated: the caller clips."""
+    return u0 - (K @ err[..., None])[..., 0] - k0
 
 
 def cost_to_go(err, S):
