@@ -291,3 +291,23 @@ def test_a_robot_named_like_a_shipped_system_loads_its_own_checkpoint(fitted_lea
                        progress=False, report=None)
     controller = load_controller(run, load(str(spec)))
     assert controller.decision_period == pytest.approx(load(str(spec)).swingup_period)
+
+
+def test_a_fit_on_other_inputs_sets_the_old_learner_aside(tmp_path):
+    """A learner folder made on other earlier stages is not continued (its gamma may differ): it moves to stale/,
+    kept; one made on the same inputs is continued (a killed run)."""
+    from hybridctl.experiments.fit import _set_aside_stale_run
+    out = tmp_path / "fit"
+    (out / "stages").mkdir(parents=True)
+    (out / "learner").mkdir()
+    (out / "learner" / "mine.txt").write_text("kept")
+    inputs = {"stage": "learner", "earlier": "a"}
+    moved = _set_aside_stale_run(out, "learner", inputs, resume=True)       # no marker: made by another start
+    assert moved and (out / moved / "mine.txt").read_text() == "kept" and not (out / "learner").exists()
+    (out / "learner").mkdir()
+    assert _set_aside_stale_run(out, "learner", inputs, resume=True) is None     # same inputs: continued
+    assert (out / "learner").is_dir()
+    assert _set_aside_stale_run(out, "learner", {**inputs, "earlier": "b"}, resume=True)   # other inputs
+    (out / "learner").mkdir()
+    assert _set_aside_stale_run(out, "learner", {**inputs, "earlier": "b"}, resume=False)  # not a resume
+    assert len(list((out / "stale").iterdir())) == 3

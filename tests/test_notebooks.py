@@ -67,7 +67,7 @@ EXPECTED_LINES = {
         "furuta: swing-up balanced: True",   # the shipped SSAC Furuta swing-up + cost-to-go gate + LQR, in Drake
         "reaction_wheel: swing-up balanced: True",   # the same for the shipped reaction-wheel swing-up
         "gradients finite: True",            # a PAPG run through the generated dynamics
-        "fit stages: model, lqr, integrator, gate, reward, swingup, learned_gate, learner, verify",   # hybridctl fit, every stage
+        "fit stages: model, lqr, integrator, gate, reward, swingup, learned_gate, clone, learner, verify",   # hybridctl fit, every stage
         "fitted controller builds a Drake diagram: True",   # fitted:DIR is a named controller
     ],
     "03_trajectory_dimension.ipynb": [

@@ -22,7 +22,8 @@ The stages, in order; each measures what it chooses and records why (``report.js
 
 Each stage's result is cached as ``DIR/stages/NAME.json`` (atomic) with the inputs it was computed from (the
 model file's sha256, the options, the settings, the earlier stages' results); ``resume=True`` reuses a stage
-whose inputs match, and the learner continues its own newest checkpoint. ``DIR/report.json`` lists every stage
+whose inputs match, and the learner continues its own newest checkpoint (a learner or clone folder made on other
+inputs, or found by a fit that is not a resume, moves to ``DIR/stale/``, kept). ``DIR/report.json`` lists every stage
 (what was tried, what was kept and why, seconds) and is written after each stage, so a run stopped by bad input
 keeps what it had. ``DIR/system.toml`` is the complete spec; ``fitted:DIR`` names the controller.
 """
@@ -42,7 +43,7 @@ import numpy as np
 from .. import io, limits
 from ..systems import System, load
 from . import fit_clone, fit_learn
-from .fitted import CHECKPOINT, GATES, fitted_controller
+from .fitted import CHECKPOINT, CLONE, GATES, fitted_controller
 from .fit_stages import (FitError, FitSettings, build_system, settings_dict, stage_gate, stage_integrator, stage_lqr,
                          stage_model, stage_reward)
 
@@ -57,7 +58,8 @@ NOT_YET_BUILT = ("learners other than ssac", "--backend/--workers/--address/--de
 """What ``fit`` does not do yet; report.json and ``hybridctl fit --help`` say so."""
 LEARNERS = ("auto", "ssac")
 """``learner``: "auto" is SSAC (thesis Ch. 3), the learner whose gate is learned."""
-OUTPUTS = ("system.toml", "report.json", "stages", "trajopt", "clone", "learner", "maps", "replay.html", "replay.json")
+OUTPUTS = ("system.toml", "report.json", "stages", "trajopt", "clone", "learner", "stale", "maps", "replay.html",
+           "replay.json")
 """What ``fit`` writes into its folder."""
 
 
@@ -160,6 +162,10 @@ def fit(model_file, out, *, goal="auto", action_limit: float | None = None, seed
             if time.monotonic() > deadline:
                 raise FitError(f"the budget of {budget_minutes:g} minutes is spent before the {name} stage; rerun with "
                                f"--resume (and a larger --budget)")
+            if name in RUN_FOLDERS:
+                moved = _set_aside_stale_run(folder, name, inputs, resume)
+                if moved:
+                    report.setdefault("set_aside", []).append(moved)
             system = _system(model_ref, options, records, s) if name not in CLASSICAL else None
             if name in ("clone", "learner", "verify"):
                 # the learner trains on the spec file fit wrote, and workers (balance maps) load it by its path
@@ -210,6 +216,34 @@ def fit(model_file, out, *, goal="auto", action_limit: float | None = None, seed
         io.write_json(folder / "report.json", report)
         return FitResult(out=folder, system_file=spec_file, report=report, stages=records, computed=computed,
                          system=system)
+
+
+RUN_FOLDERS = {"clone": CLONE, "learner": "learner"}
+"""Stages whose outputs are run folders, by the folder: a stage recomputed on other inputs does not continue them."""
+
+
+def _set_aside_stale_run(folder: Path, name: str, inputs: dict, resume: bool) -> str | None:
+    """Before ``name``'s stage runs: its run folder, if another start of the stage made it on other inputs (other
+    earlier stages, options or settings) or the fit is not a resume, moves to ``stale/NAME-TIME`` (kept, never
+    removed; with ``resume`` a learner killed mid-run on the same inputs is continued instead). Returns the moved
+    folder's path in ``folder``, if any."""
+    import os
+
+    target = folder / RUN_FOLDERS[name]
+    marker = folder / "stages" / f"{name}.started.json"
+    started = io.read_json(marker) if marker.is_file() else None
+    moved = None
+    if target.exists() and (not resume or started != io.to_jsonable(inputs)):
+        base = folder / "stale" / f"{RUN_FOLDERS[name]}-{time.strftime('%Y%m%dT%H%M%S')}"
+        base.parent.mkdir(exist_ok=True)
+        stale, count = base, 1
+        while stale.exists():
+            count += 1
+            stale = base.with_name(f"{base.name}-{count}")
+        os.replace(target, stale)
+        moved = str(stale.relative_to(folder))
+    io.write_json(marker, inputs)
+    return moved
 
 
 def _summary(name: str, result: dict) -> dict:
