@@ -160,19 +160,19 @@ def test_rollout_labels_put_lqr_active_states_in_the_relabel_pool_not_in_gate_da
 
 
 def test_gate_is_refit_on_schedule_and_env_uses_it(warm):
-    agent = tiny_ssac(warm)
+    agent = tiny_ssac(warm, gate_refit_every=400)
     before = [p.clone() for p in agent.gate.parameters()]
-    agent.learn(total=2000, progress=False)
-    assert agent.num_gate_refits == 2  # at 800 and 1600 env steps
+    agent.learn(total=1000, progress=False)
+    assert agent.num_gate_refits == 2  # at 400 and 800 env steps
     assert any(not torch.equal(a, b) for a, b in zip(before, agent.gate.parameters()))
     assert agent.env.gate is agent.gate
     assert agent.gate_info["last_refit"]["data"] == len(agent.gate_data)
 
 
 def test_same_seed_repeats(warm):
-    a, b = tiny_ssac(warm, seed=3), tiny_ssac(warm, seed=3)
+    a, b = tiny_ssac(warm, seed=3, gate_refit_every=400), tiny_ssac(warm, seed=3, gate_refit_every=400)
     for agent in (a, b):
-        agent.learn(total=1200, progress=False)
+        agent.learn(total=800, progress=False)          # gradient steps and two gate refits (400, 800)
     for x, y in zip([*a.actor.parameters(), *a.gate.parameters()], [*b.actor.parameters(), *b.gate.parameters()]):
         assert torch.equal(x, y)
     assert a.recent_returns == b.recent_returns
@@ -190,17 +190,17 @@ def test_act_uses_the_lqr_where_the_gate_hands_over(warm):
 
 # ------------------------------------------------------------- checkpoints
 def test_save_load_keeps_policy_gate_and_resume_restores_gate_data(tmp_path, warm):
-    agent = tiny_ssac(warm)
-    agent.learn(total=1600, progress=False, out=tmp_path)
+    agent = tiny_ssac(warm, gate_refit_every=400)
+    agent.learn(total=800, progress=False, out=tmp_path)
     loaded = SSAC.load(tmp_path / "final")
     x = torch.as_tensor(systems.load("acrobot").sample_initial_states(16, np.random.default_rng(0)))
     assert torch.equal(loaded.act(x), agent.act(x))
     assert len(loaded.gate_data) == 0  # load() is for inference: no data
-    resumed = tiny_ssac(warm)
-    resumed.learn(total=2400, progress=False, out=tmp_path, resume=True)
-    assert resumed.num_timesteps == 2400
+    resumed = tiny_ssac(warm, gate_refit_every=400)
+    resumed.learn(total=1200, progress=False, out=tmp_path, resume=True)
+    assert resumed.num_timesteps == 1200
     assert resumed.gate_data.n_warm == agent.gate_data.n_warm and len(resumed.gate_data) >= len(agent.gate_data)
-    assert (agent.num_gate_refits, resumed.num_gate_refits) == (2, 3)  # at 800, 1600; then 2400
+    assert (agent.num_gate_refits, resumed.num_gate_refits) == (2, 3)  # at 400, 800; then 1200
     meta = json.loads((tmp_path / "final" / "config.json").read_text())
     assert meta["algorithm"] == "SSAC" and meta["gate"]["gate_on"] == 0.9 and meta["config"]["needle_prob"] == 0.5
     assert meta["gate"]["hidden"] == [32, 32] and {"torch", "hybridctl"} <= set(meta["versions"])
@@ -241,14 +241,14 @@ def test_load_errors(tmp_path, warm):
 
 def test_nan_loss_stops_and_keeps_the_last_checkpoint(tmp_path, warm):
     def poison(agent):
-        if agent.num_timesteps >= 1000:
+        if agent.num_timesteps >= 500:
             agent.replay.data["rewards"][:] = math.nan
 
-    agent = tiny_ssac(warm)
+    agent = tiny_ssac(warm, checkpoint_every=400)
     with pytest.raises(FloatingPointError, match="q_loss became nan"):
         agent.learn(total=2000, progress=False, out=tmp_path, callback=poison)
     good = SSAC.load(tmp_path / "checkpoint")
-    assert good.num_timesteps == 800 and not (tmp_path / "final").exists()
+    assert good.num_timesteps == 400 and not (tmp_path / "final").exists()
 
 
 # ------------------------------------------------------------ Drake integration
@@ -314,8 +314,8 @@ def test_overlapped_gate_refit_gives_the_one_thread_numbers(warm, compile_mode):
     agents = []
     for overlap in (False, True):
         agent = tiny_ssac(warm, gate_refit_overlap=overlap, updates_per_round=3, gate_refit_steps=60,
-                          gate_relabel_per_refit=64, compile=compile_mode)
-        agent.learn(2400, progress=False)
+                          gate_relabel_per_refit=64, compile=compile_mode, gate_refit_every=400)
+        agent.learn(1200, progress=False)             # refits at 400, 800, 1200, each during a round's updates
         agents.append(agent)
     one, two = agents
     assert one.num_gate_refits == two.num_gate_refits >= 2 and two._pending_refit is None
@@ -329,7 +329,7 @@ def test_overlapped_gate_refit_gives_the_one_thread_numbers(warm, compile_mode):
 
 
 def test_a_failed_overlapped_refit_raises_in_training(warm, monkeypatch):
-    agent = tiny_ssac(warm, gate_refit_steps=5)
+    agent = tiny_ssac(warm, gate_refit_steps=5, gate_refit_every=400)
 
     def broken(*args, **kwargs):
         raise FloatingPointError("gate loss is NaN (test)")
