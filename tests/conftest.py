@@ -244,14 +244,25 @@ SLOW_TESTS = frozenset({
 """Tests marked slow here rather than in their files, by ``file::name``."""
 
 
+GROUPED_FILES = {
+    "test_fit.py": "fit",       # two module fixtures run hybridctl fit's stages (about 100 s on 2 busy cores)
+}
+"""Files whose tests all go to one xdist process (``xdist_group``), so that their module-scoped fixtures run once
+in ``make test``, not once on each of the two processes that the tests would otherwise be spread over."""
+
+
+@pytest.hookimpl(tryfirst=True)     # before pytest-xdist's own hook reads the xdist_group markers
 def pytest_collection_modifyitems(config, items):
     """Mark the tests of :data:`HEAVY_FILES`, :data:`HEAVY_TESTS` and the Ray ones ``heavy`` (``make test-fast``
-    leaves them out) and those of :data:`SLOW_TESTS` ``slow``; a name in HEAVY_TESTS or SLOW_TESTS that no longer
-    exists is an error, so the lists cannot rot."""
+    leaves them out), those of :data:`SLOW_TESTS` ``slow`` and those of :data:`GROUPED_FILES` with their
+    ``xdist_group``; a name in HEAVY_TESTS or SLOW_TESTS that no longer exists is an error, so the lists cannot
+    rot."""
     collected = set()
     for item in items:
         name = f"{item.path.name}::{item.originalname}"
         collected.add(name)
+        if item.path.name in GROUPED_FILES and item.get_closest_marker("xdist_group") is None:
+            item.add_marker(pytest.mark.xdist_group(GROUPED_FILES[item.path.name]))
         if item.path.name in HEAVY_FILES or name in HEAVY_TESTS or _may_use_local_ray(item):
             item.add_marker(pytest.mark.heavy)
         if name in SLOW_TESTS:

@@ -264,7 +264,9 @@ def unreachable(tmp_path_factory):
     return outcomes
 
 
+# one xdist worker runs the tests of the probes, so the module fixture starts its 7 interpreters once, not per worker
 @pytest.mark.timeout(120)
+@pytest.mark.xdist_group("unreachable")
 @pytest.mark.parametrize("case, words", [
     ("closed", ["127.0.0.1:", "refused"]), ("unknown", ["nohost.invalid", "unknown host"]),
     ("client", ["ray://127.0.0.1:", "refused"]), ("env", ["RAY_ADDRESS", "nohost.invalid"]),
@@ -280,6 +282,7 @@ def test_an_unreachable_cluster_is_refused_in_one_line_within_the_stated_limit(u
 
 
 @pytest.mark.timeout(120)
+@pytest.mark.xdist_group("unreachable")
 def test_the_cli_refuses_an_unreachable_cluster_in_one_line(unreachable):
     out = unreachable["cli"]
     assert out["error"] == "SystemExit" and out["code"] == 2, out
