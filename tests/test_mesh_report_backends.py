@@ -10,21 +10,28 @@ from hybridctl.experiments.mesh_report import mesh_report
 
 
 def test_monte_carlo_and_sizes_use_the_backend_and_give_the_same_numbers(tmp_path, monkeypatch):
-    made = []
-    real = reachable.make_backend
+    made, used = [], []
+    real, real_backend = reachable.make_backend, reachable._backend
 
     def counting(name, *args, **kwargs):
         made.append(name)
         return real(name, *args, **kwargs)
 
+    def recording(*args):           # the backend each stage runs on
+        used.append(real_backend(*args))
+        return used[-1]
+
     settings = dict(box_size=0.05, monte_carlo=60, monte_carlo_chunks=3, sizes=[0.1], progress=False)
     serial = mesh_report("rimless-wheel", tmp_path / "serial", backend="serial", **settings)
     monkeypatch.setattr(reachable, "make_backend", counting)
+    monkeypatch.setattr(reachable, "_backend", recording)
     pooled = mesh_report("rimless-wheel", tmp_path / "pooled", backend="processes", workers=2, **settings)
     # the meshes of the refined slope grid, two Monte Carlo estimates and two meshes of the sizes (0.05 and
-    # 0.1): all on the pool
+    # 0.1): all on one pool, made once for the whole report (its workers start once, not once per stage)
     grids = len(pooled["disturbance"]["refinement"]["counts"])
-    assert grids >= 2 and made == ["processes"] * (grids + 4)
+    assert grids >= 2 and made == ["processes"] and len(used) == grids + 4
+    assert len({id(pool) for pool in used}) == 1 and used[0].name == "processes"
+    assert used[0]._pool is None                                   # closed at the end of the report
     def numbers(value):    # times left out
         if isinstance(value, dict):
             return {k: numbers(v) for k, v in value.items() if "wall_time" not in k and k != "seconds"}

@@ -26,12 +26,14 @@ continues from it; a worker that dies has its batch rerun by the process backend
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import math
 import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Iterator, Sequence
 
 import numpy as np
 import scipy.sparse as sp
@@ -42,6 +44,37 @@ from ..parallel import make_backend
 from .markov import MFPTResult, _krylov_solve, absorbing_mfpt, states_that_can_fail_surely
 from .mesh import box_keys
 from .poincare import FiniteDisturbances, SectionMap
+
+_SHARED: contextvars.ContextVar[tuple | None] = contextvars.ContextVar("hybridctl_shared_mesh_backend", default=None)
+
+
+@contextlib.contextmanager
+def shared_backend(backend: str = "serial", workers: int | None = None, address: str | None = None) -> Iterator[Any]:
+    """One parallel backend for every :func:`build_mesh` and :func:`monte_carlo_mfpt` inside the block that names
+    the same ``backend``, ``workers`` and ``address``: a job of several stages (the mesh report's refined meshes,
+    Monte Carlo runs and mesh sizes) starts its worker processes once, not once per stage. Closed at the end."""
+    pool = make_backend(backend, workers, address)
+    token = _SHARED.set(((backend, workers, address), pool))
+    try:
+        yield pool
+    finally:
+        _SHARED.reset(token)
+        pool.close()
+
+
+def _backend(backend: str, workers: int | None, address: str | None) -> Any:
+    """The block's shared backend when it matches (:func:`shared_backend`), else a new one."""
+    shared = _SHARED.get()
+    if shared is not None and shared[0] == (backend, workers, address):
+        return shared[1]
+    return make_backend(backend, workers, address)
+
+
+def _release(pool: Any) -> None:
+    """Close ``pool`` unless it is the block's shared backend (the block closes that one)."""
+    shared = _SHARED.get()
+    if shared is None or pool is not shared[1]:
+        pool.close()
 
 FAILURE = 0
 
@@ -356,7 +389,7 @@ def build_mesh(section_map: SectionMap, seeds, disturbances, box_size: float, me
     start = time.perf_counter()
     complete = True
     bar = tqdm(total=len(mesh_states), initial=len(successors), desc="mesh", unit="state", disable=not progress)
-    pool = make_backend(backend, workers, address)
+    pool = _backend(backend, workers, address)
     last_checkpoint = time.monotonic()
     try:
         batches = 0
@@ -394,7 +427,7 @@ def build_mesh(section_map: SectionMap, seeds, disturbances, box_size: float, me
                 break
     finally:
         bar.close()
-        pool.close()
+        _release(pool)
     if path is not None:
         _save_checkpoint(path, mesh_states, successors, box_size, len(values), earlier + time.perf_counter() - start,
                          owners, samples_per_box)
@@ -460,7 +493,7 @@ def monte_carlo_mfpt(section_map: SectionMap, starts, disturbances, episodes: in
     streams = [np.random.default_rng(seed)] if chunks == 1 else \
         [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(chunks)]
     tasks = [(section_map, starts, disturbances, n, max_steps, rng) for n, rng in zip(sizes, streams)]
-    pool = make_backend(backend, workers, address)
+    pool = _backend(backend, workers, address)
     try:
         if progress and chunks > 1:
             from tqdm.auto import tqdm
@@ -472,7 +505,7 @@ def monte_carlo_mfpt(section_map: SectionMap, starts, disturbances, episodes: in
         else:
             parts = pool.map(_monte_carlo_chunk, tasks)
     finally:
-        pool.close()
+        _release(pool)
     passage = np.concatenate([p[0] for p in parts])
     return MonteCarloResult(passage.astype(np.float64), int(sum(p[1] for p in parts)), max_steps)
 

@@ -19,6 +19,7 @@ import scipy.sparse as sp
 from .. import io, viz
 from ..analysis import (DEFAULT_REFINE_RTOL, GaussianDisturbance, RimlessWheel, mesh_sizes, monte_carlo_mfpt,
                         reachable_dimension, refined_mesh)
+from ..analysis.reachable import shared_backend
 from ..limits import MAX_REFINED_DISTURBANCES
 from ..drake import DrakeCompassGaitMap, DrakeRimlessWheelMap
 from .training import MESH_MARKERS, open_run_folder
@@ -139,9 +140,11 @@ def mesh_report(map_name: str = "rimless-wheel", out: str | Path = "runs/mesh", 
     seed = mesh_seed(section_map, slope_mean)
     with open_run_folder(out, resume, overwrite, markers=MESH_MARKERS) as folder:
         folder.clear()   # --overwrite: the mesh reads no input files
-        return _mesh_report_in(folder.path, map_name, section_map, slopes, seed, box_size, slope_mean, slope_std,
-                               disturbances, max_states, monte_carlo, sizes, backend, workers, resume, progress,
-                               command, checkpoint_every, checkpoint_minutes, address, monte_carlo_chunks, refine)
+        with shared_backend(backend, workers, address):   # every stage's meshes and chunks on the same workers
+            return _mesh_report_in(folder.path, map_name, section_map, slopes, seed, box_size, slope_mean, slope_std,
+                                   disturbances, max_states, monte_carlo, sizes, backend, workers, resume,
+                                   progress, command, checkpoint_every, checkpoint_minutes, address,
+                                   monte_carlo_chunks, refine)
 
 
 def _mesh_report_in(out: Path, map_name: str, section_map, slopes, seed: list[float], box_size: float, slope_mean: float,
