@@ -37,7 +37,7 @@ def stage_clone(model_file: str, options: dict, earlier: dict, s: FitSettings, p
         return {"cloned": False, "why": f"nothing to clone: {reason}; SSAC starts from scratch"}
     with np.load(folder / TRACKING_TABLE, allow_pickle=False) as table:   # fit's own file: numbers only
         gains = _Table(float(table["period"]), *(np.array(table[k]) for k in ("x0", "u0", "K", "k0")))
-    config = make_config("ssac", "hybridctl", **learner_settings(options, plan, s))
+    config = make_config("ssac", "hybridctl", **learner_settings(options, plan, s, cloned=True))
     progress_bar = bar(1, "clone: SSAC's gate warm start", progress)
     agent = learner_class("ssac")(str(spec_file), config)
     progress_bar.update()

@@ -102,6 +102,9 @@ class SACConfig:
     # --- schedule -----------------------------------------------------------------
     total_steps: int = 2_000_000        # thesis Sec. 3.4.1 / Table 3.1: 2e6 env interactions
     exploration_steps: int = 50_000     # appendix "Exploration steps" 5e4: uniform random actions, no updates
+    actor_delay: int = 0                # hybridctl: env steps before the first policy step (the critics and alpha
+    #                                     train from the start): a run started from a cloned policy keeps it while
+    #                                     the critics learn its values (0: SAC as published)
     steps_per_update: int = 500         # appendix "Steps per update" (author code min_steps_per_update=500)
     updates_per_round: int = 4          # appendix "Policy/value updates per epoch" 4 (author code iters_per_update=16)
     replay_batch_size: int = 4096       # appendix "Replay batch size" (rows drawn per update)
@@ -160,7 +163,7 @@ class SACConfig:
         check_fields(self, integers_from_1=("steps_per_update", "updates_per_round", "replay_batch_size",
                                             "minibatch_size", "hidden_layers", "hidden_size", "buffer_size",
                                             "needle_buffer_size", "num_envs", "torch_threads", "log_every"),
-                     integers_from_0=("total_steps", "exploration_steps", "checkpoint_every", "seed"),
+                     integers_from_0=("total_steps", "exploration_steps", "actor_delay", "checkpoint_every", "seed"),
                      positive=("lr", "alpha_lr", "alpha_init"), unit_interval=("gamma", "polyak", "needle_prob"))
         if isinstance(self.alpha, str):
             if self.alpha != "auto":
@@ -365,7 +368,8 @@ class SAC(VectorEnvAgent):
         # policy: minimise alpha log pi - min(Q1, Q2) at reparameterised actions (the critics just updated)
         eps_new = torch.randn(act.shape, generator=gen, device=act.device)
         pi_loss, logp = self._grads.actor(obs, eps_new, alpha)
-        self._actor_step()
+        if self.num_timesteps >= self.config.actor_delay:
+            self._actor_step()
 
         out = {"q_loss": q_loss.detach(), "pi_loss": pi_loss.detach()}
         if self.auto_alpha:  # temperature: drive the entropy towards target_entropy
