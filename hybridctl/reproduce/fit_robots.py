@@ -100,6 +100,10 @@ def main(argv: list[str] | None = None) -> int:
         "learned_gate_works": result.stages["learned_gate"]["works"],
         "learner_steps": result.stages["learner"]["steps"],
         "learner_eval_success_rate": result.stages["learner"]["eval_success_rate"],
+        "swingup_period_s": result.stages["swingup"]["swingup_period"],
+        "tracked_by_period": result.stages["swingup"].get("tracked"),
+        "clone": clone_summary(result.stages.get("clone")),
+        "checkpoint": report["controller"].get("checkpoint"), "checkpoint_why": report["controller"].get("checkpoint_why"),
         "gate": report["controller"]["gate"], "gate_why": report["controller"]["why"],
         "torch_maps": result.stages["verify"]["torch_maps"], "drake_maps": report["controller"]["drake_maps"],
         "from_hanging_down": {k: report["replay"].get(k) for k in ("balanced", "first_balance_time")},
@@ -107,6 +111,15 @@ def main(argv: list[str] | None = None) -> int:
     }
     emit(record, Path(args.record) if args.record else RESULTS / "your_robot" / "fit" / f"{args.robot}.json")
     return 0
+
+
+def clone_summary(clone: dict | None) -> dict | None:
+    """The clone stage's record: whether it cloned, the tracker's and the kept clone's held-out shares, the rounds."""
+    if clone is None:
+        return None
+    keys = ("cloned", "tracker_fraction", "fraction", "kept_round", "test_starts", "why")
+    return {**{k: clone.get(k) for k in keys},
+            "rounds": [{k: r[k] for k in ("round", "samples", "fraction", "seconds")} for r in clone.get("rounds", [])]}
 
 
 if __name__ == "__main__":
