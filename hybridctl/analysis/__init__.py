@@ -17,7 +17,7 @@ _HOMES = {
     "postprocess": ("PostProcessor",),
     "refine": ("DEFAULT_REFINE_RTOL", "refined_mesh"),
     "reachable": ("MonteCarloResult", "ReachableMesh", "build_mesh", "failure_states", "mesh_sizes",
-                  "monte_carlo_mfpt", "reachable_dimension"),
+                  "monte_carlo_mfpt", "reachable_dimension", "shared_backend"),
     "variation": ("madogram", "power_variation", "variation_dimension", "variogram"),
 }
 __getattr__, __dir__, __all__ = lazy_exports(__name__, _HOMES)

@@ -18,8 +18,7 @@ import scipy.sparse as sp
 
 from .. import io, viz
 from ..analysis import (DEFAULT_REFINE_RTOL, GaussianDisturbance, RimlessWheel, mesh_sizes, monte_carlo_mfpt,
-                        reachable_dimension, refined_mesh)
-from ..analysis.reachable import shared_backend
+                        reachable_dimension, refined_mesh, shared_backend)
 from ..limits import MAX_REFINED_DISTURBANCES
 from ..drake import DrakeCompassGaitMap, DrakeRimlessWheelMap
 from .training import MESH_MARKERS, open_run_folder
