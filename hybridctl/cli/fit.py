@@ -2,9 +2,10 @@
 
 The stages (each measured, cached in DIR/stages, resumable with --resume): model (actuators, effort limit, goal
 and rest equilibria), lqr (control hold, Q and R), gate (the cost-to-go gate's scale), reward (the tip that
-rises most), swingup (Drake's collocation swing-up sets the learner's periods), learned_gate (the thesis' gate
-from the measured basin), learner (SSAC in the budget left), verify (balance maps in torch and Drake keep a
-gate). ``--learner none`` stops after the classical stages.
+rises most), swingup (Drake's collocation swing-up, tracked by TVLQR, sets the learner's periods), learned_gate
+(the thesis' gate from the measured basin), clone (the tracked swing-up cloned into SSAC's actor), learner (SSAC
+from the clone in the budget left), verify (balance maps in torch and Drake keep a checkpoint and a gate).
+``--learner none`` stops after the classical stages.
 """
 
 from __future__ import annotations
@@ -13,11 +14,12 @@ import argparse
 import sys
 
 from ..experiments.fit import LEARNERS, NOT_YET_BUILT, fit
-from ._common import add_debug_flag, cli_errors, positive
+from ._common import add_backend_flags, add_debug_flag, check_ray_task_flags, cli_errors, positive, ray_options_for
 
 EPILOG = ("Writes DIR/system.toml (a complete spec, every chosen value with the measurement that chose it as its "
           "source), DIR/report.json (each stage: tried, kept, why, seconds), DIR/stages/*.json (the cache --resume "
-          "reads), DIR/learner (the SSAC run), DIR/maps (Drake balance maps) and DIR/replay.html. Then: hybridctl "
+          "reads), DIR/clone (the cloned swing-up), DIR/learner (the SSAC run), DIR/maps (Drake balance maps) and "
+          "DIR/replay.html. Then: hybridctl "
           "simulate DIR/system.toml --controller fitted:DIR. Not built yet: " + "; ".join(NOT_YET_BUILT) + ".")
 
 
@@ -36,6 +38,9 @@ def add_parser(sub) -> None:
                    help="minutes for all stages; the learner gets what the others leave (default 20)")
     p.add_argument("--learner", default="auto", choices=[*LEARNERS, "none"],
                    help="auto = ssac (the learner whose gate is learned); none: the classical stages only")
+    add_backend_flags(p, "processes", "the verification's Drake balance maps")
+    p.add_argument("--device", help="torch device of SSAC, its clone and the torch balance maps (cpu, cuda, cuda:0; "
+                                    "default cpu)")
     add_debug_flag(p)
     p.set_defaults(func=run_fit)
 
@@ -43,9 +48,12 @@ def add_parser(sub) -> None:
 @cli_errors
 def run_fit(args: argparse.Namespace) -> int:
     """Run the stages, print where each came from and what to run next."""
-    result = fit(args.model_file, args.out, goal=args.goal, action_limit=args.action_limit, seed=args.seed,
-                 resume=args.resume, budget_minutes=args.budget, command=args.command_line,
-                 learner=None if args.learner == "none" else args.learner)
+    check_ray_task_flags(args, args.backend)
+    with ray_options_for(args):   # --backend ray: --task-cpus/-gpus/-memory, --runtime-env
+        result = fit(args.model_file, args.out, goal=args.goal, action_limit=args.action_limit, seed=args.seed,
+                     resume=args.resume, budget_minutes=args.budget, command=args.command_line,
+                     learner=None if args.learner == "none" else args.learner, backend=args.backend,
+                     workers=args.workers, address=args.address, device=args.device)
     for stage in result.report["stages"]:
         took = "cached" if stage["cached"] else f"{stage['seconds']:.1f} s"
         print(f"{stage['name']}: {took}")
@@ -53,7 +61,8 @@ def run_fit(args: argparse.Namespace) -> int:
     controller = result.report.get("controller")
     if controller is not None:
         maps = ", ".join(f"{name} {m['balanced']}/{m['starts']}" for name, m in controller["drake_maps"].items())
-        print(f"kept: SSAC's swing-up, the {controller['gate']} gate, Drake's LQR; Drake balance maps: {maps}")
+        swingup = "the cloned swing-up" if controller.get("checkpoint") == "clone" else "SSAC's swing-up"
+        print(f"kept: {swingup}, the {controller['gate']} gate, Drake's LQR; Drake balance maps: {maps}")
     for line in result.report["next"]:
         print(f"next: {line}")
     if result.report.get("swingup_found") is False:

@@ -54,7 +54,7 @@ STAGES = ("model", "lqr", "integrator", "gate", "reward", "swingup", "learned_ga
 """The stages, in order."""
 CLASSICAL = STAGES[:5]
 """What ``learner=None`` runs: a spec and the classical controller (LQR, cost-to-go gate) only."""
-NOT_YET_BUILT = ("learners other than ssac", "--backend/--workers/--address/--device")
+NOT_YET_BUILT = ("learners other than ssac",)
 """What ``fit`` does not do yet; report.json and ``hybridctl fit --help`` say so."""
 LEARNERS = ("auto", "ssac")
 """``learner``: "auto" is SSAC (thesis Ch. 3), the learner whose gate is learned."""
@@ -114,6 +114,19 @@ def _check_options(model_path: Path, budget_minutes, action_limit, learner) -> N
         raise FitError(f"--learner must be one of {', '.join(LEARNERS)}, got {learner!r}")
 
 
+def _check_resources(backend, workers, address, device) -> dict:
+    """The resource options, checked (one-line ValueError naming the flag) before any work."""
+    from ..parallel import BACKENDS, check_backend_arguments
+    from .balance_map import check_device
+
+    if backend is not None and backend not in BACKENDS:
+        raise FitError(f"--backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
+    check_backend_arguments(backend, workers, address, False)
+    if device is not None:
+        check_device("torch", device)
+    return {"backend": backend, "workers": workers, "address": address, "device": device}
+
+
 _RUN = {"model": stage_model, "lqr": stage_lqr, "integrator": stage_integrator, "gate": stage_gate,
         "reward": stage_reward,
         "swingup": fit_learn.stage_swingup, "learned_gate": fit_learn.stage_learned_gate,
@@ -122,7 +135,8 @@ _RUN = {"model": stage_model, "lqr": stage_lqr, "integrator": stage_integrator, 
 
 def fit(model_file, out, *, goal="auto", action_limit: float | None = None, seed: int = 0, resume: bool = False,
         budget_minutes: float = 20, learner: str | None = "auto", settings: FitSettings | None = None,
-        progress: bool = True, command: str | None = None) -> FitResult:
+        progress: bool = True, command: str | None = None, backend: str | None = None, workers: int | None = None,
+        address: str | None = None, device: str | None = None) -> FitResult:
     """Fit a spec and a switched controller to ``model_file`` in the folder ``out`` (see the module text).
 
     ``goal``: "auto" or a state (list or "x1,x2,..."); ``action_limit``: the largest command (default the
@@ -130,11 +144,16 @@ def fit(model_file, out, *, goal="auto", action_limit: float | None = None, seed
     ``out`` whose inputs match (the learner continues its checkpoint); ``budget_minutes``: all stages together
     (the learner gets what the others leave; no stage starts past it); ``learner``: "auto" / "ssac", or None for
     the classical stages only (model, lqr, gate, reward); ``settings``: every number the stages use.
+    ``backend`` / ``workers`` / ``address``: where the verification's Drake balance maps run
+    (:func:`hybridctl.parallel.make_backend`; default local processes); ``device``: the torch device of SSAC (and
+    its clone) and of the torch balance maps (default the CPU). They change where the work runs, not what it
+    computes, so they are not among a stage's cached inputs.
     Raises :class:`FitError` (one line) on input fit cannot use, with the finished stages kept.
     """
     start = time.monotonic()
     model_path = Path(model_file).expanduser()
     _check_options(model_path, budget_minutes, action_limit, learner)
+    resources = _check_resources(backend, workers, address, device)
     deadline = start + budget_minutes * 60
     s = settings or FitSettings()
     options = {"goal": _parse_goal(goal), "action_limit": None if action_limit is None else float(action_limit),
@@ -175,7 +194,7 @@ def fit(model_file, out, *, goal="auto", action_limit: float | None = None, seed
             try:
                 result = io.to_jsonable(_RUN[name](model_ref, {**options, "command": command}, records, s, progress,
                                                    system=system, folder=folder, spec_file=spec_file,
-                                                   deadline=deadline))
+                                                   deadline=deadline, resources=resources))
             except Exception as exc:
                 report["stages"].append({"name": name, "error": str(exc).splitlines()[0] if str(exc) else repr(exc),
                                          "seconds": time.monotonic() - t0})

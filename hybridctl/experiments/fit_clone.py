@@ -24,7 +24,7 @@ __all__ = ["stage_clone"]
 
 
 def stage_clone(model_file: str, options: dict, earlier: dict, s: FitSettings, progress: bool, *,
-                system, folder: Path, spec_file: Path, **_) -> dict:
+                system, folder: Path, spec_file: Path, resources: dict | None = None, **_) -> dict:
     """Clone the tracked swing-up into a new SSAC learner's actor and save the learner to ``DIR/clone``; nothing
     to clone (no collocation swing-up, or its tracking balanced no start) is said and skipped."""
     from ..learn.clone import CloneConfig, TrackingSwingup, clone_swingup
@@ -37,7 +37,8 @@ def stage_clone(model_file: str, options: dict, earlier: dict, s: FitSettings, p
         return {"cloned": False, "why": f"nothing to clone: {reason}; SSAC starts from scratch"}
     with np.load(folder / TRACKING_TABLE, allow_pickle=False) as table:   # fit's own file: numbers only
         gains = _Table(float(table["period"]), *(np.array(table[k]) for k in ("x0", "u0", "K", "k0")))
-    config = make_config("ssac", "hybridctl", **learner_settings(options, plan, s, cloned=True))
+    config = make_config("ssac", "hybridctl", **learner_settings(options, plan, s, cloned=True,
+                                                                 device=(resources or {}).get("device")))
     progress_bar = bar(1, "clone: SSAC's gate warm start", progress)
     agent = learner_class("ssac")(str(spec_file), config)
     progress_bar.update()

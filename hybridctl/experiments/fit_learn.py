@@ -186,7 +186,7 @@ def _verify_estimate(system, s: FitSettings) -> tuple[float, float]:
 
 
 def stage_learner(model_file: str, options: dict, earlier: dict, s: FitSettings, progress: bool, *,
-                  system, folder: Path, spec_file: Path, deadline: float, **_) -> dict:
+                  system, folder: Path, spec_file: Path, deadline: float, resources: dict | None = None, **_) -> dict:
     """SSAC on the fitted spec until the budget left (less verify's measured estimate) is spent or
     ``s.learner_max_steps`` are done; a stopped run writes ``final/`` and a resumed fit continues its newest
     checkpoint."""
@@ -213,7 +213,8 @@ def stage_learner(model_file: str, options: dict, earlier: dict, s: FitSettings,
     clone = earlier.get("clone") or {}
     init = folder / CLONE if clone.get("cloned") and before == 0 else None   # a new run starts from the clone
     record = train_and_evaluate("ssac", str(spec_file), out=run,
-                                settings=learner_settings(options, plan, s, cloned=bool(clone.get("cloned"))),
+                                settings=learner_settings(options, plan, s, cloned=bool(clone.get("cloned")),
+                                                          device=(resources or {}).get("device")),
                                 resume=run.exists(), init=init, eval_episodes=s.eval_episodes, progress=progress,
                                 report=None, command=options.get("command"), callback=StopAtBudget()).evaluation
     steps = int(record.get("env_steps", 0))
@@ -239,12 +240,13 @@ from 1.00 to 0.03 within 5,000 steps; with it, 1.00 for the 50,000 critic-only s
 itself when SSAC does not improve it."""
 
 
-def learner_settings(options: dict, plan: dict, s: FitSettings, cloned: bool = False) -> dict:
+def learner_settings(options: dict, plan: dict, s: FitSettings, cloned: bool = False, device: str | None = None) -> dict:
     """SSAC's settings in fit (the clone stage builds its learner with the same): the seed, the swing-up stage's
     discount, the step budget, :data:`LEARNER_SETTINGS`, :data:`CLONED_START` when it starts from the clone, and
-    ``s.learner_settings``."""
+    ``s.learner_settings`` (and the torch ``device``, where given)."""
     return {"seed": options["seed"], "gamma": plan["gamma"], "total_steps": int(s.learner_max_steps),
-            **LEARNER_SETTINGS, **(CLONED_START if cloned else {}), **s.learner_settings}
+            **LEARNER_SETTINGS, **(CLONED_START if cloned else {}), **s.learner_settings,
+            **({"device": device} if device is not None else {})}
 
 
 def _steps_done(run: Path) -> int:
@@ -259,12 +261,13 @@ def _steps_done(run: Path) -> int:
 
 
 def stage_verify(model_file: str, options: dict, earlier: dict, s: FitSettings, progress: bool, *,
-                 system, folder: Path, **_) -> dict:
+                 system, folder: Path, resources: dict | None = None, **_) -> dict:
     """Each candidate checkpoint's maps with both gates in torch (the learner's run and, where there is one, the
     clone it started from): a gate is kept per checkpoint by them, and the checkpoint whose kept gate balances most
     starts (ties: the learner's); then the kept controller's maps in Drake."""
     from .balance_map import balance_map, grid_axes, near_hanging_down
 
+    resources = resources or {}
     maps = {"rest": near_hanging_down(system, s.verify_near), "start_range": grid_axes(system)}
     candidates = [CHECKPOINT] + ([CLONE] if (earlier.get("clone") or {}).get("cloned") else [])
     torch_maps, kept_gates, whys = {}, {}, {}
@@ -272,7 +275,8 @@ def stage_verify(model_file: str, options: dict, earlier: dict, s: FitSettings, 
         for gate in GATES:
             for name, (axes, ranges) in maps.items():
                 result = balance_map(system, f"{GATES[gate]}:{folder / candidate}", grid=s.verify_grid, axes=axes,
-                                     ranges=ranges, engine="torch", progress=False, duration=s.verify_duration)
+                                     ranges=ranges, engine="torch", progress=False, duration=s.verify_duration,
+                                     device=resources.get("device"))
                 torch_maps[f"{gate}/{name}" if candidate == CHECKPOINT else f"{candidate}/{gate}/{name}"] = \
                     result.fraction
         key = (lambda gate: f"{gate}/") if candidate == CHECKPOINT else (lambda gate: f"{candidate}/{gate}/")
@@ -289,7 +293,9 @@ def stage_verify(model_file: str, options: dict, earlier: dict, s: FitSettings, 
     progress_bar = bar(len(maps), "verify: Drake balance maps", progress)
     for name, (axes, ranges) in maps.items():
         result = balance_map(system, f"{GATES[kept]}:{folder / checkpoint}", grid=s.verify_grid, axes=axes,
-                             ranges=ranges, engine="drake", progress=False, duration=s.verify_duration)
+                             ranges=ranges, engine="drake", progress=False, duration=s.verify_duration,
+                             backend=resources.get("backend"), workers=resources.get("workers"),
+                             address=resources.get("address"))
         result.save(folder / "maps" / name)
         drake_maps[name] = {"balanced_fraction": result.fraction, "balanced": int(result.balanced.sum()),
                             "starts": int(result.balanced.size), "axes": list(result.axes),

@@ -223,10 +223,11 @@ def clone_swingup(system: System, tracker: TrackingSwingup, controller: Switched
 
 
 def _acting(actor: torch.nn.Module):
-    """The actor's deterministic action (states -> ``action_scale * tanh(mu)``) in float64, without autograd."""
-    dtype = next(actor.parameters()).dtype
+    """The actor's deterministic action (states -> ``action_scale * tanh(mu)``) in float64 on the states' device,
+    without autograd (the actor may live on another device)."""
+    parameter = next(actor.parameters())
 
-    def act(x: torch.Tensor) -> torch.Tensor:
+    def act(x: torch.Tensor) -> torch.Tensor:     # the rollout's states stay where they are (the CPU)
         with torch.no_grad():
-            return actor.deterministic(x.to(dtype)).to(torch.float64)
+            return actor.deterministic(x.to(parameter.device, parameter.dtype)).to(x.device, torch.float64)
     return act
