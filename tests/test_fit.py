@@ -142,7 +142,8 @@ TINY_SSAC = {"gate_warm_samples": 500, "gate_warm_fit_steps": 50, "num_envs": 8,
 TINY = FitSettings(screen_samples=300, gate_samples=500, learned_gate_samples=2000,
                    learner_max_steps=800, eval_episodes=2, learner_settings=TINY_SSAC, verify_grid=2,
                    verify_duration=1.0, swingup_knots=21, track_samples=16,
-                   clone_settings={"rollouts": 16, "steps": 50, "dagger_rounds": 1})
+                   clone_settings={"rollouts": 16, "steps": 50, "dagger_rounds": 1},
+                   clone_start_min=0.0)   # SSAC starts from the tiny clone, whatever it balances: the --init path runs
 
 
 @pytest.fixture(scope="module")
@@ -175,7 +176,8 @@ def test_every_stage_runs_and_the_fitted_controller_is_a_named_controller(fitted
         assert clone["cloned"] and (result.out / "clone" / "model.pt").is_file()
         assert len(clone["rounds"]) == TINY.clone_settings["dagger_rounds"] + 1
         assert clone["fraction"] == max(r["fraction"] for r in clone["rounds"])
-        assert learner["started_from"] == "clone"
+        assert clone["starts_ssac"] == (clone["fraction"] >= TINY.clone_start_min)
+        assert learner["started_from"] == ("clone" if clone["starts_ssac"] else None)
     else:
         assert not clone["cloned"] and learner["started_from"] is None
     verify = result.stages["verify"]

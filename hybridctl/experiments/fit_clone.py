@@ -56,12 +56,14 @@ def stage_clone(model_file: str, options: dict, earlier: dict, s: FitSettings, p
                            test_starts, learned.episode_duration, clone_config, progress=progress_bar)
     progress_bar.close()
     agent.save(folder / CLONE, include_replay=True)
+    starts_ssac = result["fraction"] >= s.clone_start_min
     return {"cloned": True, "checkpoint": CLONE, **result, "samples": result["rounds"][-1]["samples"],
-            "config": asdict(clone_config),
+            "config": asdict(clone_config), "starts_ssac": starts_ssac,
             "why": (f"the tracked swing-up (balancing {result['tracker_fraction']:.2f} of {result['test_starts']} "
                     f"held-out starts) cloned into SSAC's actor, with SSAC's learned gate: round "
                     f"{result['kept_round']} of {len(result['rounds'])} balances {result['fraction']:.2f} of them; "
-                    f"SSAC starts from it")}
+                    + ("SSAC starts from it" if starts_ssac else
+                       f"below {s.clone_start_min:g}, so SSAC starts from scratch (the clone stays a candidate)"))}
 
 
 class _Table:

@@ -211,9 +211,10 @@ def stage_learner(model_file: str, options: dict, earlier: dict, s: FitSettings,
 
     t0 = time.monotonic()
     clone = earlier.get("clone") or {}
-    init = folder / CLONE if clone.get("cloned") and before == 0 else None   # a new run starts from the clone
+    from_clone = bool(clone.get("cloned") and clone.get("starts_ssac", True))
+    init = folder / CLONE if from_clone and before == 0 else None   # a new run starts from a clone that balances
     record = train_and_evaluate("ssac", str(spec_file), out=run,
-                                settings=learner_settings(options, plan, s, cloned=bool(clone.get("cloned")),
+                                settings=learner_settings(options, plan, s, cloned=from_clone,
                                                           device=(resources or {}).get("device")),
                                 resume=run.exists(), init=init, eval_episodes=s.eval_episodes, progress=progress,
                                 report=None, command=options.get("command"), callback=StopAtBudget()).evaluation

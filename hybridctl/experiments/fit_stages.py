@@ -56,6 +56,9 @@ class FitSettings:
     #                                       each decision period (and the clone on as many others)
     track_keep: float = 0.9               # the longest period whose tracked share is >= this x the best's is kept
     clone_settings: dict = field(default_factory=dict)   # hybridctl.learn.clone.CloneConfig fields to change
+    clone_start_min: float = 0.5          # SSAC starts from the clone only if it balances at least this share of the
+    #                                       held-out starts (reaction wheel: a clone balancing 0.05 is no better a
+    #                                       start than a new policy; SSAC from scratch balanced 121/121 there)
     learned_gate_samples: int | None = 10_000   # learned_gate_from_basin's samples (None: its 40,000; those took
     #                                             359 s of the made-up pendubot's 20-minute fit on the shared machine)
     learner_max_steps: int = 3_000_000    # env steps at most (the Furuta's measured run, docs/your_robot.md)
