@@ -121,7 +121,8 @@ def test_goal_that_is_no_equilibrium_is_one_line(tmp_path, capsys):
 
 @pytest.mark.parametrize("flags, says", [(["--address", "127.0.0.1:6379"], "--address"),
                                          (["--backend", "processes", "--task-cpus", "2"], "--task-cpus"),
-                                         (["--device", "nosuch"], "device")])
+                                         (["--device", "nosuch"], "device"),
+                                         (["--workers", "999"], "--workers")])
 def test_resource_flags_are_checked_before_any_work(tmp_path, capsys, flags, says):
     model = write_model(tmp_path / "m")
     assert says in refused(capsys, model, "--out", tmp_path / "out", *flags)

@@ -38,7 +38,8 @@ def add_parser(sub) -> None:
                    help="minutes for all stages; the learner gets what the others leave (default 20)")
     p.add_argument("--learner", default="auto", choices=[*LEARNERS, "none"],
                    help="auto = ssac (the learner whose gate is learned); none: the classical stages only")
-    add_backend_flags(p, "processes", "the verification's Drake balance maps")
+    add_backend_flags(p, "processes", "each Drake balance map of the verification")
+    p.add_argument("--force", action="store_true", help="allow --workers above the cores this process may use")
     p.add_argument("--device", help="torch device of SSAC, its clone and the torch balance maps (cpu, cuda, cuda:0; "
                                     "default cpu)")
     add_debug_flag(p)
@@ -53,7 +54,7 @@ def run_fit(args: argparse.Namespace) -> int:
         result = fit(args.model_file, args.out, goal=args.goal, action_limit=args.action_limit, seed=args.seed,
                      resume=args.resume, budget_minutes=args.budget, command=args.command_line,
                      learner=None if args.learner == "none" else args.learner, backend=args.backend,
-                     workers=args.workers, address=args.address, device=args.device)
+                     workers=args.workers, address=args.address, device=args.device, force=args.force)
     for stage in result.report["stages"]:
         took = "cached" if stage["cached"] else f"{stage['seconds']:.1f} s"
         print(f"{stage['name']}: {took}")

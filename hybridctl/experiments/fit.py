@@ -114,14 +114,14 @@ def _check_options(model_path: Path, budget_minutes, action_limit, learner) -> N
         raise FitError(f"--learner must be one of {', '.join(LEARNERS)}, got {learner!r}")
 
 
-def _check_resources(backend, workers, address, device) -> dict:
+def _check_resources(backend, workers, address, device, force: bool = False) -> dict:
     """The resource options, checked (one-line ValueError naming the flag) before any work."""
     from ..parallel import BACKENDS, check_backend_arguments
     from .balance_map import check_device
 
     if backend is not None and backend not in BACKENDS:
         raise FitError(f"--backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
-    check_backend_arguments(backend, workers, address, False)
+    check_backend_arguments(backend, workers, address, force)
     if device is not None:
         check_device("torch", device)
     return {"backend": backend, "workers": workers, "address": address, "device": device}
@@ -136,7 +136,7 @@ _RUN = {"model": stage_model, "lqr": stage_lqr, "integrator": stage_integrator, 
 def fit(model_file, out, *, goal="auto", action_limit: float | None = None, seed: int = 0, resume: bool = False,
         budget_minutes: float = 20, learner: str | None = "auto", settings: FitSettings | None = None,
         progress: bool = True, command: str | None = None, backend: str | None = None, workers: int | None = None,
-        address: str | None = None, device: str | None = None) -> FitResult:
+        address: str | None = None, device: str | None = None, force: bool = False) -> FitResult:
     """Fit a spec and a switched controller to ``model_file`` in the folder ``out`` (see the module text).
 
     ``goal``: "auto" or a state (list or "x1,x2,..."); ``action_limit``: the largest command (default the
@@ -147,13 +147,13 @@ def fit(model_file, out, *, goal="auto", action_limit: float | None = None, seed
     ``backend`` / ``workers`` / ``address``: where the verification's Drake balance maps run
     (:func:`hybridctl.parallel.make_backend`; default local processes); ``device``: the torch device of SSAC (and
     its clone) and of the torch balance maps (default the CPU). They change where the work runs, not what it
-    computes, so they are not among a stage's cached inputs.
+    computes, so they are not among a stage's cached inputs. ``force``: local ``workers`` above the cores.
     Raises :class:`FitError` (one line) on input fit cannot use, with the finished stages kept.
     """
     start = time.monotonic()
     model_path = Path(model_file).expanduser()
     _check_options(model_path, budget_minutes, action_limit, learner)
-    resources = _check_resources(backend, workers, address, device)
+    resources = _check_resources(backend, workers, address, device, force)
     deadline = start + budget_minutes * 60
     s = settings or FitSettings()
     options = {"goal": _parse_goal(goal), "action_limit": None if action_limit is None else float(action_limit),
