@@ -218,7 +218,7 @@ def test_a_saved_map_names_its_axes_with_units_and_titles_no_absolute_path(tmp_p
         return fig
 
     import importlib
-    monkeypatch.setattr(importlib.import_module("hybridctl.experiments.balance_map"), "plot_balance_map", spy)
+    monkeypatch.setattr(importlib.import_module("hybridctl.viz"), "plot_balance_map", spy)
     result = balance_map("cartpole", "lqr", grid=2, engine="torch", progress=False, duration=0.5)
     assert result.axes[0] == "x"
     result.save(tmp_path / "map")

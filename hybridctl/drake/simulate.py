@@ -16,7 +16,7 @@ from ..limits import MAX_SIMULATION_STEPS, check_at_most, check_fits_memory
 from ..systems import System
 from ..systems.control import DIVERGENCE_BOUND
 from ..systems.success import decision_indices, episode_return, is_balanced
-from ..viz.plots import wrap_about_goal
+from ..viz.angles import wrap_about_goal
 
 _DRAKE_INTEGRATOR = {"euler": "explicit_euler", "runge_kutta2": "runge_kutta2"}
 # A state this large means the simulation has left any physical regime.

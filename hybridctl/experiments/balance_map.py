@@ -39,7 +39,7 @@ from ..parallel import BACKENDS, make_backend
 from ..systems import System, load
 from ..systems.switched import SwitchedController, TrajoptSwingup, closed_loop_rollout
 from ..systems.success import decision_indices, episode_return, is_balanced
-from ..viz import plot_balance_map
+from .. import viz   # its names load on first use: pyplot when a map is drawn, not with this module
 from .controllers import build_named_diagram, controller_parts, display_name
 
 ENGINES = ("drake", "torch")
@@ -87,7 +87,7 @@ class BalanceMap:
         with output_folder(out_dir) as out:
             summary = self.summary()
             io.atomic_write_text(out / "balance_map.json", json.dumps(summary, indent=1))
-            fig = plot_balance_map(self.values1, self.values2, self.balanced, diverged=self.diverged,
+            fig = viz.plot_balance_map(self.values1, self.values2, self.balanced, diverged=self.diverged,
                                    path=out / "balance_map.png",
                                    title=f"{self.system}, {display_name(self.controller)}, {self.duration:g} s",
                                    axis_labels=tuple(f"initial {name} [{unit}]"

@@ -17,7 +17,7 @@ from ..drake import build_hybrid_diagram, simulate
 from ..drake.simulate import check_duration
 from ..learn.registry import gate_of_kind, load_controller
 from ..systems import System, SwitchedController, load
-from ..viz import plot_trajectory, replay_html
+from .. import viz   # its names load on first use: pyplot when a plot is drawn, not with this module
 from .controllers import controller_parts, display_name
 
 OUTPUTS = ("trajectory.npz", "summary.json", "plot.png", "replay.html")
@@ -65,12 +65,12 @@ def simulate_and_write(system: System | str, controller: str = "energy", out: st
         summary = traj.save(out)
         written = ["trajectory.npz", "summary.json"]
         if len(traj.t) >= 2:  # else it diverged within the first step: nothing to draw, the summary says why
-            fig = plot_trajectory(traj.t, traj.x, traj.u, traj.gate, system, path=out / "plot.png",
+            fig = viz.plot_trajectory(traj.t, traj.x, traj.u, traj.gate, system, path=out / "plot.png",
                                   title=f"{system.name}, {display_name(controller)}: balanced={summary['balanced']}")
             plt.close(fig)
             written.append("plot.png")
             if html:
-                replay_html(system, traj.t, traj.x, path=out / "replay.html")
+                viz.replay_html(system, traj.t, traj.x, path=out / "replay.html")
                 written.append("replay.html")
         return {**summary, "written": written}
 

@@ -15,7 +15,8 @@ from .. import lazy_exports
 _HOMES = {
     "meshcat": ("add_meshcat", "replay_html", "start_meshcat", "shared_meshcat", "ReplayPage"),
     "markov": ("plot_cumulative_mass", "plot_mesh_sizes", "plot_mesh_states", "plot_transition_sparsity"),
-    "plots": ("plot_balance_map", "plot_trajectory", "wrap_about_goal"),
+    "plots": ("plot_balance_map", "plot_trajectory"),
+    "angles": ("wrap_about_goal",),
     "training": ("plot_training_curves", "read_progress_rows"),
     "apg": ("plot_gradient_norms", "plot_method_comparison", "plot_return_landscape", "plot_return_curves"),
 }

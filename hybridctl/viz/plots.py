@@ -26,7 +26,7 @@ import numpy as np  # noqa: E402
 from matplotlib.colors import ListedColormap  # noqa: E402
 from matplotlib.patches import Patch  # noqa: E402
 
-from ..systems.control import wrap_angles  # noqa: E402
+from .angles import wrap_about_goal  # noqa: E402,F401  (re-exported: its home before the split)
 
 if TYPE_CHECKING:
     from hybridctl.systems import System
@@ -52,18 +52,6 @@ def _save(fig, path) -> None:
     if path is not None:
         Path(path).parent.mkdir(parents=True, exist_ok=True)
         fig.savefig(path, dpi=100)
-
-
-def wrap_about_goal(states, system: "System") -> np.ndarray:
-    """States with each angle coordinate wrapped into [goal - pi, goal + pi) (a new array).
-
-    The angle coordinates are ``system.angle_indices`` (the spec's ``state.angles``); rates
-    and linear coordinates are returned unchanged. An elbow that made full turns on the way up
-    (``th2`` ending at ``4 pi``) is drawn at the goal, where it is.
-    """
-    states = np.array(states, dtype=float)
-    goal = np.asarray(system.goal, dtype=float)
-    return goal + wrap_angles(states - goal, system.angle_indices)
 
 
 def _break_at_wraps(times: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
