@@ -35,8 +35,11 @@ def stage_clone(model_file: str, options: dict, earlier: dict, s: FitSettings, p
         reason = ("no collocation swing-up" if not plan["found"] else
                   "the TVLQR-tracked swing-up balanced no start at any decision period tried")
         return {"cloned": False, "why": f"nothing to clone: {reason}; SSAC starts from scratch"}
+    from ..drake.trajopt import TrackingGains
+
     with np.load(folder / TRACKING_TABLE, allow_pickle=False) as table:   # fit's own file: numbers only
-        gains = _Table(float(table["period"]), *(np.array(table[k]) for k in ("x0", "u0", "K", "k0")))
+        gains = TrackingGains(float(table["period"]), *(np.array(table[k]) for k in ("x0", "u0", "K", "k0")),
+                              solve_time=0.0, key=TRACKING_TABLE)
     config = make_config("ssac", "hybridctl", **learner_settings(options, plan, s, cloned=True,
                                                                  device=(resources or {}).get("device")))
     progress_bar = bar(1, "clone: SSAC's gate warm start", progress)
@@ -64,10 +67,3 @@ def stage_clone(model_file: str, options: dict, earlier: dict, s: FitSettings, p
                     f"{result['kept_round']} of {len(result['rounds'])} balances {result['fraction']:.2f} of them; "
                     + ("SSAC starts from it" if starts_ssac else
                        f"below {s.clone_start_min:g}, so SSAC starts from scratch (the clone stays a candidate)"))}
-
-
-class _Table:
-    """The tracking table's arrays, as :class:`hybridctl.learn.clone.TrackingSwingup` reads them."""
-
-    def __init__(self, period, x0, u0, K, k0):
-        self.period, self.x0, self.u0, self.K, self.k0 = period, x0, u0, K, k0

@@ -53,8 +53,8 @@ def stage_swingup(model_file: str, options: dict, earlier: dict, s: FitSettings,
         spacing = duration / (s.swingup_knots - 1)
         upper = min(max(spacing, s.decision_min), s.decision_max)
         episode = float(math.ceil(duration + s.horizon))
-        tracked = _screen_tracking(system, trajectory, _decision_periods(hold, s.decision_min, upper), episode, s,
-                                   options["seed"], folder, progress)
+        tracked, tables = _screen_tracking(system, trajectory, _decision_periods(hold, s.decision_min, upper),
+                                           episode, s, options["seed"], folder, progress)
         best = max(tracked.values())
         if best > 0:
             period = max(p for p, fraction in tracked.items() if fraction >= s.track_keep * best)
@@ -76,7 +76,7 @@ def stage_swingup(model_file: str, options: dict, earlier: dict, s: FitSettings,
                "episode": (f"the {duration:g} s swing-up plus the {s.horizon:g} s LQR horizon of the gate labels, "
                            f"rounded up")}
         if best > 0:
-            _save_tracking(system, trajectory, period, folder)
+            _save_tracking(tables[period], folder)
     else:
         period = _decision_period(0.05, hold)
         gamma, episode = 0.99, 10.0
@@ -105,15 +105,16 @@ def _decision_periods(hold: float, shortest: float, longest: float) -> list[floa
 
 
 def _screen_tracking(system, trajectory, periods: list[float], duration: float, s: FitSettings, seed: int,
-                     folder: Path, progress: bool) -> dict[float, float]:
+                     folder: Path, progress: bool) -> tuple[dict[float, float], dict]:
     """The share of ``s.track_samples`` starts from the spec's start range that the TVLQR-tracked swing-up (held for
-    each period, the cost-to-go gate and the LQR taking over) balances within ``duration``."""
+    each period, the cost-to-go gate and the LQR taking over) balances within ``duration``, and each period's
+    TVLQR table (the periods whose solve failed have none)."""
     from ..drake.trajopt import TrajoptError, tracking_gains
     from ..learn.clone import TrackingSwingup, balanced_fraction
     from ..systems.switched import CostToGoGate, SwitchedController
 
     starts = system.sample_initial_states(s.track_samples, np.random.default_rng(seed))
-    fractions = {}
+    fractions, tables = {}, {}
     progress_bar = bar(len(periods), "swingup: tracked at each decision period", progress)
     for period in periods:
         try:
@@ -121,20 +122,20 @@ def _screen_tracking(system, trajectory, periods: list[float], duration: float, 
         except TrajoptError:
             fractions[period] = 0.0
         else:
+            tables[period] = gains
             controller = SwitchedController.for_system(system, swingup=TrackingSwingup(gains, system),
                                                        gate=CostToGoGate(system), decision_period=period)
             fractions[period] = balanced_fraction(system, controller, starts, duration)["fraction"]
         progress_bar.update()
     progress_bar.close()
-    return fractions
+    return fractions, tables
 
 
-def _save_tracking(system, trajectory, period: float, folder: Path) -> None:
+def _save_tracking(gains, folder: Path) -> None:
     """Write the kept period's TVLQR table to :data:`TRACKING_TABLE` (numbers only; read without pickle)."""
     from .. import io
-    from ..drake.trajopt import tracking_gains
 
-    gains = tracking_gains(system, trajectory, period, cache_dir=folder / "trajopt")
+    period = gains.period
     arrays = {name: np.asarray(getattr(gains, name), dtype=float) for name in ("x0", "u0", "K", "k0")}
     path = folder / TRACKING_TABLE
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -271,6 +272,9 @@ def stage_verify(model_file: str, options: dict, earlier: dict, s: FitSettings, 
     resources = resources or {}
     maps = {"rest": near_hanging_down(system, s.verify_near), "start_range": grid_axes(system)}
     candidates = [CHECKPOINT] + ([CLONE] if (earlier.get("clone") or {}).get("cloned") else [])
+    def key(candidate: str, gate: str, name: str) -> str:   # the learner's maps keep their names of old
+        return f"{gate}/{name}" if candidate == CHECKPOINT else f"{candidate}/{gate}/{name}"
+
     torch_maps, kept_gates, whys = {}, {}, {}
     for candidate in candidates:
         for gate in GATES:
@@ -278,13 +282,10 @@ def stage_verify(model_file: str, options: dict, earlier: dict, s: FitSettings, 
                 result = balance_map(system, f"{GATES[gate]}:{folder / candidate}", grid=s.verify_grid, axes=axes,
                                      ranges=ranges, engine="torch", progress=False, duration=s.verify_duration,
                                      device=resources.get("device"))
-                torch_maps[f"{gate}/{name}" if candidate == CHECKPOINT else f"{candidate}/{gate}/{name}"] = \
-                    result.fraction
-        key = (lambda gate: f"{gate}/") if candidate == CHECKPOINT else (lambda gate: f"{candidate}/{gate}/")
-        score = {gate: tuple(torch_maps[key(gate) + name] for name in maps) for gate in GATES}
+                torch_maps[key(candidate, gate, name)] = result.fraction
+        score = {gate: tuple(torch_maps[key(candidate, gate, name)] for name in maps) for gate in GATES}
         kept_gates[candidate], whys[candidate] = _keep_gate(score, list(maps), s.gate_tolerance)
-    totals = {c: sum(torch_maps[(f"{kept_gates[c]}/" if c == CHECKPOINT else f"{c}/{kept_gates[c]}/") + name]
-                     for name in maps) for c in candidates}
+    totals = {c: sum(torch_maps[key(c, kept_gates[c], name)] for name in maps) for c in candidates}
     checkpoint = max(candidates, key=lambda c: (totals[c], c == CHECKPOINT))
     kept, why = kept_gates[checkpoint], whys[checkpoint]
     checkpoint_why = (f"{checkpoint} with its {kept} gate balances {totals[checkpoint]:.3f} of the two torch maps "

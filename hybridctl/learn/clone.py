@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 import torch
@@ -205,10 +205,9 @@ def clone_swingup(system: System, tracker: TrackingSwingup, controller: Switched
         t0 = time.perf_counter()
         if round_index > 0:
             visited = tracker_demonstrations(system, tracker, controller, starts, steps,
-                                             CloneConfig(**{**asdict(config), "seed": config.seed + round_index}),
-                                             policy=_acting(actor))
+                                             replace(config, seed=config.seed + round_index), policy=_acting(actor))
             states, actions = torch.cat([states, visited["states"]]), torch.cat([actions, visited["actions"]])
-        fitted = clone_into_actor(actor, states, actions, CloneConfig(**{**asdict(config), "seed": config.seed + round_index}))
+        fitted = clone_into_actor(actor, states, actions, replace(config, seed=config.seed + round_index))
         measured = balanced_fraction(system, controller.replace(swingup=_acting(actor)), test_starts, duration)
         rounds.append({"round": round_index, "samples": fitted["samples"], "held_out_rmse": fitted["held_out_rmse"],
                        "fraction": measured["fraction"], "seconds": time.perf_counter() - t0})

@@ -367,8 +367,12 @@ class SAC(VectorEnvAgent):
         self._q_step()
         # policy: minimise alpha log pi - min(Q1, Q2) at reparameterised actions (the critics just updated)
         eps_new = torch.randn(act.shape, generator=gen, device=act.device)
-        pi_loss, logp = self._grads.actor(obs, eps_new, alpha)
-        if self.num_timesteps >= self.config.actor_delay:
+        acting = self.num_timesteps >= self.config.actor_delay
+        if acting or self.auto_alpha:   # within actor_delay only the temperature needs the policy's log densities
+            pi_loss, logp = self._grads.actor(obs, eps_new, alpha)
+        else:
+            pi_loss = torch.full((), float("nan"), device=act.device)   # no policy step: none is logged
+        if acting:
             self._actor_step()
 
         out = {"q_loss": q_loss.detach(), "pi_loss": pi_loss.detach()}
