@@ -171,16 +171,21 @@ def stage_learned_gate(model_file: str, options: dict, earlier: dict, s: FitSett
                     ": not met; the verification's maps decide between it and the cost-to-go gate"))}
 
 
-def _verify_estimate(system, s: FitSettings) -> tuple[float, float]:
+def _verify_estimate(system, s: FitSettings, resources: dict | None = None) -> tuple[dict, float]:
     """(seconds of one torch and one Drake balance map of the LQR here, verify's estimate from them): verify runs
-    four torch maps and two Drake maps of the learned controller, whose network costs about as much again."""
+    four torch maps and two Drake maps of the learned controller, whose network costs about as much again. Each
+    map runs where verify's does (``resources``: the torch device; the Drake maps' backend, workers, address)."""
     from .balance_map import balance_map
 
+    resources = resources or {}
     duration = s.verify_duration or system.episode_duration
+    where = {"torch": {"device": resources.get("device")},
+             "drake": {k: resources.get(k) for k in ("backend", "workers", "address")}}
     seconds = []
     for engine in ("torch", "drake"):
         t0 = time.perf_counter()
-        balance_map(system, "lqr", grid=s.verify_grid, duration=duration, engine=engine, progress=False)
+        balance_map(system, "lqr", grid=s.verify_grid, duration=duration, engine=engine, progress=False,
+                    **where[engine])
         seconds.append(time.perf_counter() - t0)
     one = {"torch_map_s": seconds[0], "drake_map_s": seconds[1]}
     return one, s.verify_reserve * 2 * (4 * seconds[0] + 2 * seconds[1])
@@ -195,7 +200,7 @@ def stage_learner(model_file: str, options: dict, earlier: dict, s: FitSettings,
     from .training import train_and_evaluate
 
     plan = earlier["swingup"]
-    maps_s, reserve = _verify_estimate(system, s)
+    maps_s, reserve = _verify_estimate(system, s, resources)
     run = folder / "learner"
     before = _steps_done(run)
     stop_at = deadline - reserve
