@@ -18,7 +18,7 @@ from hybridctl.systems.spec import DATA_DIR
 
 from .common import RESULTS, command_line, emit, machine_info, recorded_path
 
-__all__ = ["ROBOTS", "MADE_UP", "model_file", "main"]
+__all__ = ["ROBOTS", "MADE_UP", "SHIPPED", "RENDERED", "model_file", "rendered_model", "main"]
 
 MADE_UP = {
     # the shoulder actuated (6 N m), the elbow free: tests/test_fit.py's pendubot
@@ -59,17 +59,46 @@ MADE_UP = {
 
 SHIPPED = {"acrobot_urdf": "acrobot.urdf", "furuta": "furuta.urdf", "reaction_wheel": "reaction_wheel.urdf"}
 """Shipped Drake models fitted from their model file alone (the package's copies)."""
-ROBOTS = (*MADE_UP, *SHIPPED)
+
+RENDERED = {"cartpole": "cart_slider", "double_cartpole": "cart_slider"}
+"""The chain robots whose Drake model is an SDF template (robot -> its actuated slider joint): fitted from the
+template rendered with the spec's parameters, the slider's effort limit set to the spec's ``action.limit`` (a
+template leaves the limit to the spec; a model file a user brings carries its own)."""
+ROBOTS = (*MADE_UP, *SHIPPED, *RENDERED)
 
 
 def model_file(robot: str, folder: Path) -> Path:
-    """The model file of ``robot``: a made-up one written into ``folder``, else the package's own copy."""
-    if robot in MADE_UP:
+    """The model file of ``robot``: a made-up or rendered one written into ``folder``, else the package's own copy."""
+    if robot in MADE_UP or robot in RENDERED:
         folder.mkdir(parents=True, exist_ok=True)
-        path = folder / f"{robot}.urdf"
-        path.write_text(MADE_UP[robot])
+        path = folder / (f"{robot}.urdf" if robot in MADE_UP else f"{robot}.sdf")
+        path.write_text(MADE_UP[robot] if robot in MADE_UP else rendered_model(robot))
         return path
     return DATA_DIR / "models" / SHIPPED[robot]
+
+
+def rendered_model(robot: str) -> str:
+    """The SDF text of a shipped chain robot (:data:`RENDERED`): its template with the spec's parameters and the
+    spec's action limit as the slider's ``<effort>`` (the only actuator; every hinge keeps its effort 0)."""
+    from xml.etree import ElementTree
+
+    from hybridctl.systems import load
+    from hybridctl.systems.plants import render_model
+
+    system = load(robot)
+    root = ElementTree.fromstring(render_model(system))
+    slider = root.find(f".//joint[@name='{RENDERED[robot]}']")
+    if slider is None or slider.get("type") != "prismatic":
+        raise ValueError(f"models/{robot}.sdf has no prismatic joint {RENDERED[robot]!r}")
+    axis = slider.find("axis")
+    limit = axis.find("limit")
+    if limit is None:
+        limit = ElementTree.SubElement(axis, "limit")
+    effort = limit.find("effort")
+    if effort is None:
+        effort = ElementTree.SubElement(limit, "effort")
+    effort.text = repr(float(system.action_limit))
+    return '<?xml version="1.0"?>\n' + ElementTree.tostring(root, encoding="unicode") + "\n"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -92,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
         "robot": args.robot, "command": command_line("fit_robots", argv), "seed": args.seed,
         "budget_minutes": args.budget, "minutes": (time.perf_counter() - start) / 60,
         "stage_minutes": sum(s["seconds"] for s in report["stages"]) / 60,   # every stage's own run, resumed or not
-        "model_file": recorded_path(model) if args.robot in MADE_UP else f"models/{SHIPPED[args.robot]}",
+        "model_file": f"models/{SHIPPED[args.robot]}" if args.robot in SHIPPED else recorded_path(model),
         "model_sha256": report["model_sha256"], "run_folder": recorded_path(out),
         "stages": [{"name": s["name"], "seconds": s["seconds"], "cached": s["cached"]} for s in report["stages"]],
         "goal": result.stages["model"]["goal"], "hold_s": result.stages["lqr"]["hold_s"],
