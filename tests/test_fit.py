@@ -268,6 +268,29 @@ def test_the_learner_stops_at_the_budget_and_keeps_its_checkpoint(fitted_learned
     assert second["steps_before"] >= first["steps"] and second["steps"] > first["steps"]
 
 
+def test_the_learner_stops_at_a_checkpoint_whose_maps_balance_every_start(fitted_learned, tmp_path, monkeypatch):
+    """With learner_stop_full, each periodic checkpoint's torch maps (verify's two) are measured; the first that
+    balances every start ends the run at the next vector step, well inside its budget, and the stage says why."""
+    import dataclasses
+    import time
+
+    from hybridctl.experiments import fit_learn
+    _, result = fitted_learned
+    system = load(str(result.system_file))
+    measured = []
+
+    def maps(system, path, s, resources=None):
+        measured.append(path.name)
+        return {"rest": 1.0, "start_range": 1.0, "full": len(measured) >= 2, "seconds": 0.0}
+    monkeypatch.setattr(fit_learn, "checkpoint_maps", maps)
+    settings = dataclasses.replace(TINY, learner_max_steps=10 ** 7)
+    stage = functools_partial_stage(fit_learn.stage_learner, result, settings, system, tmp_path)
+    done = stage(deadline=time.monotonic() + 600)
+    assert measured == ["checkpoint", "checkpoint"]           # every 400 steps (TINY_SSAC), never the final
+    assert done["stopped_full"] and not done["stopped_by_budget"] and done["steps"] == 800 + TINY_SSAC["num_envs"]
+    assert [c["steps"] for c in done["map_checks"]] == [400, 800] and "balance every start" in done["why"]
+
+
 def functools_partial_stage(function, result, settings, system, folder):
     """``function`` (a learned stage) on a fitted folder's records, writing into ``folder``."""
     stages = {**result.stages, "clone": {"cloned": False}}   # a new run in ``folder``, which holds no clone

@@ -210,10 +210,18 @@ def stage_learner(model_file: str, options: dict, earlier: dict, s: FitSettings,
                        f"{maps_s['drake_map_s']:.1f} s in Drake); rerun with --resume and a larger --budget "
                        f"(learner stage: {before} steps reached)")
 
+    checks: list[dict] = []
+
     class StopAtBudget(Callback):
-        """Stop the run once the budget left for the learner is spent."""
+        """Stop the run once the budget left for the learner is spent, or (``s.learner_stop_full``) after a
+        checkpoint whose torch maps balance every start."""
         def on_step(self, learner):
-            return False if time.monotonic() >= stop_at else None
+            full = bool(checks) and checks[-1]["full"]
+            return False if full or time.monotonic() >= stop_at else None
+
+        def on_checkpoint(self, learner, path):
+            if s.learner_stop_full and path.name != "final":
+                checks.append({"steps": int(learner.num_timesteps), **checkpoint_maps(system, path, s, resources)})
 
     t0 = time.monotonic()
     clone = earlier.get("clone") or {}
@@ -225,17 +233,44 @@ def stage_learner(model_file: str, options: dict, earlier: dict, s: FitSettings,
                                 resume=run.exists(), init=init, eval_episodes=s.eval_episodes, progress=progress,
                                 report=None, command=options.get("command"), callback=StopAtBudget()).evaluation
     steps = int(record.get("env_steps", 0))
-    stopped = steps < s.learner_max_steps
+    full = bool(checks) and checks[-1]["full"]
+    stopped = steps < s.learner_max_steps and not full
+    if full:
+        ending = (f"stopped after the checkpoint of {checks[-1]['steps']} steps, whose torch maps balance every "
+                  f"start (FitSettings.learner_stop_full)")
+    elif stopped:
+        ending = f"stopped when the budget left only the {reserve:.0f} s kept for the verification"
+    else:
+        ending = f"all {s.learner_max_steps} (FitSettings.learner_max_steps)"
     return {"algorithm": "ssac", "run": "learner", "checkpoint": CHECKPOINT, "steps": steps,
             "steps_before": before, "seconds": time.monotonic() - t0, "stopped_by_budget": stopped,
+            "stopped_full": full, "map_checks": checks,
             "eval_success_rate": record.get("success_rate"), "eval_mean_return": record.get("mean_return"),
             "verify_reserve_s": reserve, "lqr_maps_s": maps_s,
             "started_from": None if init is None else CLONE,
             "why": (f"SSAC (thesis Ch. 3, its gate's LQR-active states labelled by LQR rollouts) on system.toml"
                     + (" from the cloned swing-up, " if init is not None else ", ") +
-                    f"{steps} env steps: " + (f"stopped when the budget left only the {reserve:.0f} s kept for the "
-                                              f"verification" if stopped else
-                                              f"all {s.learner_max_steps} (FitSettings.learner_max_steps)"))}
+                    f"{steps} env steps: " + ending)}
+
+
+def checkpoint_maps(system, path: Path, s: FitSettings, resources: dict | None = None) -> dict:
+    """The torch maps of verify's two grids (:func:`verify_maps`) for the checkpoint at ``path`` with its learned
+    gate: each map's balanced fraction, whether both balance every start (``full``) and the seconds they took."""
+    from .balance_map import balance_map
+
+    t0 = time.perf_counter()
+    fractions = {name: balance_map(system, f"{GATES['learned']}:{path}", grid=s.verify_grid, axes=axes,
+                                   ranges=ranges, engine="torch", progress=False, duration=s.verify_duration,
+                                   device=(resources or {}).get("device")).fraction
+                 for name, (axes, ranges) in verify_maps(system, s).items()}
+    return {**fractions, "full": all(f == 1.0 for f in fractions.values()), "seconds": time.perf_counter() - t0}
+
+
+def verify_maps(system, s: FitSettings) -> dict:
+    """Name -> (axes, ranges) of the verification's two maps: starts about rest and over the spec's start range."""
+    from .balance_map import grid_axes, near_hanging_down
+
+    return {"rest": near_hanging_down(system, s.verify_near), "start_range": grid_axes(system)}
 
 
 CLONED_START = {"exploration_steps": 0, "actor_delay": 50_000}
@@ -272,10 +307,10 @@ def stage_verify(model_file: str, options: dict, earlier: dict, s: FitSettings, 
     """Each candidate checkpoint's maps with both gates in torch (the learner's run and, where there is one, the
     clone it started from): a gate is kept per checkpoint by them, and the checkpoint whose kept gate balances most
     starts (ties: the learner's); then the kept controller's maps in Drake."""
-    from .balance_map import balance_map, grid_axes, near_hanging_down
+    from .balance_map import balance_map
 
     resources = resources or {}
-    maps = {"rest": near_hanging_down(system, s.verify_near), "start_range": grid_axes(system)}
+    maps = verify_maps(system, s)
     candidates = [CHECKPOINT] + ([CLONE] if (earlier.get("clone") or {}).get("cloned") else [])
     def key(candidate: str, gate: str, name: str) -> str:   # the learner's maps keep their names of old
         return f"{gate}/{name}" if candidate == CHECKPOINT else f"{candidate}/{gate}/{name}"

@@ -62,6 +62,8 @@ class FitSettings:
     learned_gate_samples: int | None = 10_000   # learned_gate_from_basin's samples (None: its 40,000; those took
     #                                             359 s of the made-up pendubot's 20-minute fit on the shared machine)
     learner_max_steps: int = 3_000_000    # env steps at most (the Furuta's measured run, docs/your_robot.md)
+    learner_stop_full: bool = True        # the learner stops at a checkpoint whose torch maps (verify's two, its
+    #                                       learned gate) balance every start: the verification's best score
     eval_episodes: int = 20               # deterministic episodes in the learner's eval.json
     learner_settings: dict = field(default_factory=dict)   # SSACConfig fields to change (tests: a tiny run)
     verify_grid: int = 11                 # the Drake balance maps' grid (issue: 11 x 11)
