@@ -271,3 +271,26 @@ def test_a_tracking_table_above_its_row_limit_is_refused_before_allocating(acrob
 def test_knots_above_their_limit_are_refused():
     with pytest.raises(ValueError, match="knots"):
         TrajoptSettings(knots=10**9)
+
+
+def test_a_multibody_carts_rail_is_its_prismatic_limits_else_cart_bound(tmp_path):
+    """A multibody cart (fit_robots' made-up long-pole cart) with a rail of +-1 m: the collocation keeps the cart
+    on it (on a 100 m rail this swing-up runs the cart out to 1.89 m, at 3 s and 41 knots); without limits in the
+    file the rail is +-cart_bound, as for a chain's cart."""
+    from hybridctl.reproduce.fit_robots import MADE_UP
+
+    rail = MADE_UP["cart_long_pole"].replace('<limit effort="10.0"', '<limit lower="-1.0" upper="1.0" effort="10.0"')
+    assert rail != MADE_UP["cart_long_pole"]
+    paths = {}
+    for name, text in (("rail", rail), ("free", MADE_UP["cart_long_pole"])):
+        paths[name] = tmp_path / f"{name}.urdf"
+        paths[name].write_text(text)
+    goal, weights = [0.0, np.pi, 0.0, 0.0], dict(Q=np.diag([1.0, 10.0, 1.0, 1.0]), R=[[0.1]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")        # the joint-limit warning: the collocation is what reads them here
+        cart = systems.from_drake(str(paths["rail"]), goal=goal, **weights)
+    free = systems.from_drake(str(paths["free"]), goal=goal, **weights)
+    assert trajopt.rail_bounds(cart, trajopt._plant_diagram(cart)[0], 2.0) == [(0, -1.0, 1.0)]
+    assert trajopt.rail_bounds(free, trajopt._plant_diagram(free)[0], 0.7) == [(0, -0.7, 0.7)]
+    found = swingup_trajectory(cart, cache=False)
+    assert np.abs(found.states[:, 0]).max() <= 1.0 + 1e-6

@@ -29,33 +29,22 @@ naming the system, the stage and what to try.
 
 from __future__ import annotations
 
-import hashlib
-import json
 import math
 import os
 import time
 import warnings
-import zipfile
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
 from pydrake.systems.framework import Context, DiagramBuilder, DiscreteValues, LeafSystem
 
-from .. import io
 from ..limits import MAX_TRAJOPT_KNOTS, MAX_TRAJOPT_ROWS, check_at_most
 from ..systems import System, control
 from ..systems import plants as _plants
-
-CACHE_ENV = "HYBRIDCTL_CACHE"
-"""Environment variable of the cache root (shared with the multibody model cache); ``trajopt/`` below it."""
-
-DEFAULT_CACHE = Path("runs") / "trajopt"
-"""The cache folder when ``$HYBRIDCTL_CACHE`` is not set, relative to the working folder."""
-
-CACHE_FORMAT = 1
-"""Version of the cached arrays; part of every cache key, so a new layout never reads an old file."""
-
+from .trajopt_cache import CACHE_ENV, DEFAULT_CACHE, cache_folder, cache_key  # noqa: F401 - the module's names of old
+from .trajopt_cache import load_npz as _load_npz
+from .trajopt_cache import save_npz as _save_npz
 
 class TrajoptError(ValueError):
     """A swing-up Drake could not compute: one line naming the system, the stage, what to try (CLI: exit 2)."""
@@ -84,8 +73,9 @@ class TrajoptSettings:
     ``input_margin`` = 0.8: the nominal input stays within 80 % of the action limit, leaving 20 % for
     the tracking feedback; hybridctl, measured on the 11 x 11 Drake balance maps: the acrobot balances
     from 42 starts (24 with the nominal input up to the full limit), the pendulum from 103 (68).
-    ``cart_bound`` = 2.0 m: bound on a cart's position at the knots (systems with a cart only; no spec
-    has a track limit); hybridctl, measured: without it SNOPT hit its iteration limit on the double
+    ``cart_bound`` = 2.0 m: bound on a cart's position at the knots (the chain family's cart, and each
+    prismatic joint of a multibody model whose file states no position limits: its limits where it does;
+    :func:`rail_bounds`); hybridctl, measured: without it SNOPT hit its iteration limit on the double
     cart-pole after 230 s (a free-duration problem); the double cart-pole's swing-up uses 0.5 m.
     ``major_iterations``, ``minor_iterations`` = None: SNOPT's "Major iterations limit" and "Iterations
     limit"; None keeps SNOPT's defaults (max(1000, 3 m) and max(10000, 20 m) for m constraints), with
@@ -164,93 +154,25 @@ def _has_cart(system: System) -> bool:
     return system.chain is not None and system.chain.has_cart
 
 
-def _has_prismatic(diagram) -> bool:   # a multibody cart: the collocation does not bound its travel
+def rail_bounds(system: System, diagram, cart_bound: float) -> list[tuple[int, float, float]]:
+    """(index into the Drake state, lower, upper) of each cart's travel in the collocation: the chain family's
+    cart (the first coordinate) within +-``cart_bound``; each prismatic joint of a multibody model within its
+    position limits where the model states them, else within +-``cart_bound`` too (an unbounded rail let SNOPT
+    wander: docs/trajopt.md)."""
+    if _has_cart(system):
+        return [(0, -cart_bound, cart_bound)]
     plants = [s for s in diagram.GetSystems() if hasattr(s, "GetJointIndices")]
-    return any(p.get_joint(i).type_name() == "prismatic" for p in plants for i in p.GetJointIndices())
-
-
-# ----------------------------------------------------------------------------------- the cache
-def cache_folder() -> Path:
-    """The cache folder: ``$HYBRIDCTL_CACHE/trajopt`` when the variable is set, else ``runs/trajopt``."""
-    root = os.environ.get(CACHE_ENV)
-    return Path(root) / "trajopt" if root else DEFAULT_CACHE
-
-
-def _model_identity(system: System) -> str:
-    """What fixes the Drake model beyond the spec's values: the rendered SDF of a chain on a
-    MultibodyPlant, the model file's hash of the multibody family, else Drake's example plant's name."""
-    if system.family == "multibody":
-        from ..systems.symbolic import model_hash
-        return model_hash(system.model_request)
-    kind = system.drake_model or ""
-    if kind.startswith("multibody:"):
-        return hashlib.sha256(_plants.render_model(system).encode()).hexdigest()
-    return kind
-
-
-def _drake_version() -> str:
-    try:
-        from importlib.metadata import version
-        return version("drake")
-    except Exception:  # noqa: BLE001 - a source build of Drake has no distribution metadata
-        return "unknown"
-
-
-def cache_key(system: System, settings: dict, **extra) -> str:
-    """sha256 (hex, 20 characters) of everything that determines a cached result: the spec's values,
-    the Drake model, ``settings`` (a dict of the settings that matter), Drake's version and ``extra``."""
-    record = {"format": CACHE_FORMAT, "system": system.name, "spec": io.to_jsonable(system.spec.values),
-              "model": _model_identity(system), "settings": settings, "drake": _drake_version(), **extra}
-    text = json.dumps(io.to_jsonable(record), sort_keys=True, default=str)
-    return hashlib.sha256(text.encode()).hexdigest()[:20]
-
-
-def _load_npz(path: Path, key: str, shapes: dict[str, tuple]) -> dict | None:
-    """The arrays of a cache file, or None if it is missing; a file that is unreadable, holds another
-    key, or arrays of other shapes or non-finite values is reported (warning) and treated as missing.
-    ``shapes`` gives each array's shape, -1 for any length."""
-    if not path.exists():
-        return None
-    try:
-        _check_npz_headers(path, shapes)      # sizes from the headers, before np.load allocates them
-        with np.load(path, allow_pickle=False) as data:
-            arrays = {name: np.asarray(data[name]) for name in (*shapes, "key")}
-        if str(arrays["key"]) != key:
-            raise ValueError(f"holds key {arrays['key']}, not {key}")
-        for name, shape in shapes.items():
-            array = arrays[name]
-            if array.ndim != len(shape) or any(s not in (-1, a) for s, a in zip(shape, array.shape)):
-                raise ValueError(f"array {name!r} has shape {array.shape}, expected {shape}")
-            if array.dtype.kind == "f" and not np.isfinite(array).all():
-                raise ValueError(f"array {name!r} is not finite")
-        return arrays
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
-        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        warnings.warn(f"trajopt cache {path} cannot be used ({reason}); recomputing it", stacklevel=3)
-        return None
-
-
-def _check_npz_headers(path: Path, shapes: dict[str, tuple]) -> None:
-    """ValueError unless each array's .npy header in the zip ``path`` claims ``shapes`` (-1: any length up to
-    ``limits.MAX_TRAJOPT_ROWS``) and a plain dtype: read without reading (or allocating) any array data."""
-    with zipfile.ZipFile(path) as archive:
-        for name, shape in shapes.items():
-            with archive.open(f"{name}.npy") as f:      # KeyError when missing
-                version = np.lib.format.read_magic(f)
-                read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
-                claimed, _, dtype = read(f)
-            if dtype.hasobject:
-                raise ValueError(f"array {name!r} holds Python objects")
-            if len(claimed) != len(shape) or any(s not in (-1, a) or a > MAX_TRAJOPT_ROWS
-                                                 for s, a in zip(shape, claimed)):
-                raise ValueError(f"array {name!r} has shape {claimed}, expected {shape} (-1: at most "
-                                 f"{MAX_TRAJOPT_ROWS:,}, limits.MAX_TRAJOPT_ROWS)")
-
-
-def _save_npz(path: Path, key: str, arrays: dict) -> None:
-    """Write ``arrays`` and ``key`` to ``path`` atomically (plain arrays only: loadable without pickle)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    io.atomic_write(path, lambda f: np.savez(f, key=np.asarray(key), **{k: np.asarray(v) for k, v in arrays.items()}))
+    if len(plants) != 1 or plants[0].num_continuous_states() != diagram.num_continuous_states():
+        return []          # the plant's state is not the diagram's: no index to bound (not a multibody model)
+    plant, bounds = plants[0], []
+    for i in plant.GetJointIndices():
+        joint = plant.get_joint(i)
+        if joint.type_name() != "prismatic" or joint.num_positions() != 1:
+            continue
+        lower, upper = float(joint.position_lower_limits()[0]), float(joint.position_upper_limits()[0])
+        bounds.append((joint.position_start(), lower if math.isfinite(lower) else -cart_bound,
+                       upper if math.isfinite(upper) else cart_bound))
+    return bounds
 
 
 # ----------------------------------------------------------------------------------- trajectory
@@ -337,9 +259,9 @@ def _solve_fixed_duration(system: System, settings: TrajoptSettings, duration: f
     for u_i in dircol.input():
         dircol.AddConstraintToAllKnotPoints(u_i <= bound)
         dircol.AddConstraintToAllKnotPoints(u_i >= -bound)
-    if _has_cart(system):     # the chain family's cart is the first coordinate
-        dircol.AddConstraintToAllKnotPoints(dircol.state()[0] <= settings.cart_bound)
-        dircol.AddConstraintToAllKnotPoints(dircol.state()[0] >= -settings.cart_bound)
+    for index, lower, upper in rail_bounds(system, diagram, settings.cart_bound):
+        dircol.AddConstraintToAllKnotPoints(dircol.state()[index] <= upper)
+        dircol.AddConstraintToAllKnotPoints(dircol.state()[index] >= lower)
     dircol.AddEqualTimeIntervalsConstraints()
     # element by element: numpy's vectorised ops on symbolic arrays warn about "invalid values"
     dircol.AddRunningCost(sum((u_i / system.action_limit) ** 2 for u_i in dircol.input()))
@@ -406,9 +328,8 @@ def solve_swingup(system: System, settings: TrajoptSettings) -> dict:
             break
     if found is None:
         tried = ", ".join(f"T = {d:g} s, |u| <= {b:g}: {status} ({sec:.1f} s)" for d, b, _, sec, status, _ in attempts)
-        cart = (f", another cart_bound (now {settings.cart_bound:g} m)" if _has_cart(system) else
-                ", a chain spec for the cart (a multibody model's prismatic travel is not bounded here)"
-                if _has_prismatic(diagram) else "")
+        cart = (f", another cart_bound (now {settings.cart_bound:g} m: a cart's travel where the model states "
+                f"no limits)" if rail_bounds(system, diagram, settings.cart_bound) else "")
         raise TrajoptError(f"{system.name}: the collocation swing-up did not solve with {attempts[-1][5]} ({tried}); "
                            f"try longer durations (TrajoptSettings.durations, e.g. {2 * max(settings.durations):g} s), "
                            f"more knots, more SNOPT iterations (major_iterations, minor_iterations){cart}")
