@@ -129,6 +129,7 @@ def main(argv: list[str] | None = None) -> int:
         "learned_gate_works": result.stages["learned_gate"]["works"],
         "learner_steps": result.stages["learner"]["steps"],
         "learner_eval_success_rate": result.stages["learner"]["eval_success_rate"],
+        "learner_stopped_full": result.stages["learner"].get("stopped_full"),
         "swingup_period_s": result.stages["swingup"]["swingup_period"],
         "tracked_by_period": result.stages["swingup"].get("tracked"),
         "clone": clone_summary(result.stages.get("clone")),
