@@ -170,6 +170,10 @@ def test_every_stage_runs_and_the_fitted_controller_is_a_named_controller(fitted
     assert abs(round(1.0 / system.swingup_period) * system.swingup_period - 1.0) < 1e-9   # divides the episode
     learner = result.stages["learner"]
     assert learner["steps"] == 800 and (result.out / "learner" / "final" / "model.pt").is_file()
+    # the clone's maps were measured before SSAC's first step, then each periodic checkpoint's (TINY_SSAC: every 400)
+    assert [(c["checkpoint"], c["steps"]) for c in learner["map_checks"]] == [("clone", 0), ("checkpoint", 400),
+                                                                              ("checkpoint", 800)]
+    assert not learner["stopped_full"]
     # the tracked swing-up was measured at each decision period and cloned; SSAC started from the clone
     assert swingup["tracked"] and all(0.0 <= f <= 1.0 for f in swingup["tracked"].values())
     clone = result.stages["clone"]
@@ -289,6 +293,29 @@ def test_the_learner_stops_at_a_checkpoint_whose_maps_balance_every_start(fitted
     assert measured == ["checkpoint", "checkpoint"]           # every 400 steps (TINY_SSAC), never the final
     assert done["stopped_full"] and not done["stopped_by_budget"] and done["steps"] == 800 + TINY_SSAC["num_envs"]
     assert [c["steps"] for c in done["map_checks"]] == [400, 800] and "balance every start" in done["why"]
+
+
+def test_a_clone_whose_maps_balance_every_start_is_kept_without_a_policy_step(fitted_learned, tmp_path, monkeypatch):
+    """Started from a clone whose torch maps are full, the learner stops at its first vector step: no policy step
+    (actor_delay), so its final actor is the clone's."""
+    import shutil
+    import time
+
+    import torch
+
+    from hybridctl.experiments import fit_learn
+    _, result = fitted_learned
+    system = load(str(result.system_file))
+    shutil.copytree(result.out / "clone", tmp_path / "clone")
+    monkeypatch.setattr(fit_learn, "checkpoint_maps", lambda system, path, s, resources=None: {
+        "rest": 1.0, "start_range": 1.0, "full": path.name == "clone", "seconds": 0.0})
+    stages = {**result.stages, "clone": {"cloned": True, "starts_ssac": True}}
+    done = fit_learn.stage_learner(str(result.out), {"seed": 0}, stages, TINY, False, system=system, folder=tmp_path,
+                                   spec_file=result.system_file, deadline=time.monotonic() + 600)
+    assert done["stopped_full"] and done["steps"] == TINY_SSAC["num_envs"] and done["started_from"] == "clone"
+    assert "no policy step" in done["why"]
+    clone, final = (torch.load(tmp_path / d / "model.pt", weights_only=True) for d in ("clone", "learner/final"))
+    assert clone["actor"] and all(torch.equal(value, final["actor"][name]) for name, value in clone["actor"].items())
 
 
 def functools_partial_stage(function, result, settings, system, folder):

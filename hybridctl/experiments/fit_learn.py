@@ -219,9 +219,17 @@ def stage_learner(model_file: str, options: dict, earlier: dict, s: FitSettings,
             full = bool(checks) and checks[-1]["full"]
             return False if full or time.monotonic() >= stop_at else None
 
+        def on_training_start(self, learner):
+            # a run from the clone: its maps first, before any policy step (the actor waits out actor_delay) could
+            # move it off them (the cart-pole's SSAC fell from 1.00 to 0.00 training success by its first checkpoint)
+            if s.learner_stop_full and init is not None:
+                checks.append({"steps": int(learner.num_timesteps), "checkpoint": CLONE,
+                               **checkpoint_maps(system, folder / CLONE, s, resources)})
+
         def on_checkpoint(self, learner, path):
             if s.learner_stop_full and path.name != "final":
-                checks.append({"steps": int(learner.num_timesteps), **checkpoint_maps(system, path, s, resources)})
+                checks.append({"steps": int(learner.num_timesteps), "checkpoint": path.name,
+                               **checkpoint_maps(system, path, s, resources)})
 
     t0 = time.monotonic()
     clone = earlier.get("clone") or {}
@@ -235,7 +243,10 @@ def stage_learner(model_file: str, options: dict, earlier: dict, s: FitSettings,
     steps = int(record.get("env_steps", 0))
     full = bool(checks) and checks[-1]["full"]
     stopped = steps < s.learner_max_steps and not full
-    if full:
+    if full and checks[-1]["checkpoint"] == CLONE:
+        ending = (f"stopped at its first step: the clone it started from balances every start of the torch maps "
+                  f"(FitSettings.learner_stop_full), and no policy step came before the stop (actor_delay)")
+    elif full:
         ending = (f"stopped after the checkpoint of {checks[-1]['steps']} steps, whose torch maps balance every "
                   f"start (FitSettings.learner_stop_full)")
     elif stopped:
