@@ -325,3 +325,35 @@ def test_mfpt_vs_roughness_sweep_writes_record_and_skips_unaffordable_monte_carl
     assert one["never_fails"] and one["mesh_mfpt"] is None and "never fails" in one["monte_carlo"]["reason"]
     assert record["regimes"] == {"monte_carlo": [0.06, 0.08], "mesh_only": [math.radians(2)],
                                  "never_fails": [math.radians(1)]}
+
+
+def test_a_sweep_writes_each_row_as_it_comes_and_resume_keeps_them(tmp_path, monkeypatch):
+    """A sweep writes its record after every sigma (finished: false until the end); --resume on the same settings
+    keeps the rows it holds and measures only the new sigmas; on other settings it is refused, naming the setting."""
+    from hybridctl.experiments import mfpt_sweep
+    from hybridctl.io import read_json
+
+    out = tmp_path / "sweep"
+    first = mfpt_sweep.mfpt_vs_roughness("rimless-wheel", out, [0.08], box_size=1e-2)
+    assert first["finished"] and read_json(out / "mfpt_vs_roughness.json")["rows"] == first["rows"]
+    measured, real = [], mfpt_sweep.refined_mesh
+
+    def counting(section_map, seeds, slopes, *args, **kwargs):
+        measured.append(slopes.std)
+        return real(section_map, seeds, slopes, *args, **kwargs)
+    monkeypatch.setattr(mfpt_sweep, "refined_mesh", counting)
+    again = mfpt_sweep.mfpt_vs_roughness("rimless-wheel", out, [0.06, 0.08], box_size=1e-2, resume=True)
+    assert measured == [0.06]
+    assert again["rows"][1] == first["rows"][0] and [r["slope_std"] for r in again["rows"]] == [0.06, 0.08]
+    with pytest.raises(ValueError, match="box_size"):
+        mfpt_sweep.mfpt_vs_roughness("rimless-wheel", out, [0.06, 0.08], box_size=2e-2, resume=True)
+    # a sweep killed after its first sigma leaves that row on disk, unfinished
+    def killed(section_map, seeds, slopes, *args, **kwargs):
+        if slopes.std > 0.07:
+            raise KeyboardInterrupt
+        return real(section_map, seeds, slopes, *args, **kwargs)
+    monkeypatch.setattr(mfpt_sweep, "refined_mesh", killed)
+    with pytest.raises(KeyboardInterrupt):
+        mfpt_sweep.mfpt_vs_roughness("rimless-wheel", tmp_path / "killed", [0.06, 0.08], box_size=1e-2)
+    left = read_json(tmp_path / "killed" / "mfpt_vs_roughness.json")
+    assert not left["finished"] and [r["slope_std"] for r in left["rows"]] == [0.06]

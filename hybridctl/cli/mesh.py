@@ -57,7 +57,7 @@ def add_parser(sub) -> None:
                         "estimate depends on N, not on the backend; N >= --workers fills the workers; default 1)")
     p.add_argument("--sizes", type=positive(float), nargs="*", help="also mesh at these box sizes (Table 5.1)")
     add_backend_flags(p, "serial", "section-map steps of the mesh")
-    p.add_argument("--resume", action="store_true", help="continue from out/mesh_checkpoint.npz")
+    p.add_argument("--resume", action="store_true", help="continue from out/mesh_checkpoint.npz; a sweep of several --slope-std values keeps the rows its record holds when made on the same settings")
     p.add_argument("--overwrite", action="store_true",
                    help="replace the run the --out folder holds (without it, or --resume, such a folder is refused)")
     p.add_argument("--checkpoint-every", type=positive(int), default=20, metavar="BATCHES",
@@ -153,9 +153,8 @@ def check_mesh_arguments(args: argparse.Namespace) -> None:
         raise ValueError(f"--monte-carlo-chunks must be in [1, --monte-carlo={args.monte_carlo}], "
                          f"got {args.monte_carlo_chunks}")
     if len(args.slope_std) > 1:
-        for flag, given in (("--sizes", args.sizes), ("--resume", args.resume)):
-            if given:
-                raise ValueError(f"{flag} does not apply to a sweep of several --slope-std values")
+        if args.sizes:
+            raise ValueError("--sizes does not apply to a sweep of several --slope-std values")
         check_at_most("--monte-carlo-budget", args.monte_carlo_budget, MAX_SWEEP_MONTE_CARLO_STEPS, args.force,
                       why="expected simulated steps of one sigma's Monte Carlo")
     check_backend_flags(args)
@@ -168,8 +167,9 @@ def run_mesh(args: argparse.Namespace) -> int:
     if len(args.slope_std) > 1:
         with ray_options_for(args):
             sweep = _sweep(args)
-        for row in sweep["rows"]:
-            print(sweep_line(row))
+        if args.quiet:      # else each row was printed as it came
+            for row in sweep["rows"]:
+                print(sweep_line(row))
         print(f"wrote {args.out}/mfpt_vs_roughness.json and mfpt_vs_roughness.png")
         return 0
     with ray_options_for(args):   # --task-cpus/--task-gpus/--task-memory/--runtime-env for the Ray tasks
@@ -202,6 +202,6 @@ def _sweep(args: argparse.Namespace) -> dict:
                              monte_carlo_budget=args.monte_carlo_budget, monte_carlo_chunks=args.monte_carlo_chunks,
                              disturbance_rule=args.disturbance_rule, refine_rtol=args.refine_rtol,
                              max_disturbances=args.max_disturbances, tails=args.tails, backend=args.backend,
-                             workers=args.workers, address=args.address, progress=False,
+                             workers=args.workers, address=args.address, progress=not args.quiet,
                              command=args.command_line, overwrite=args.overwrite, force=args.force,
-                             map_options=args.map_options)
+                             map_options=args.map_options, resume=args.resume)

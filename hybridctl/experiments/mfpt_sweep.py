@@ -44,7 +44,7 @@ def mfpt_vs_roughness(map_name: str = "rimless-wheel", out: str | Path = "runs/r
                       max_disturbances: int = MAX_REFINED_DISTURBANCES, tails: float = 6.0,
                       backend: str = "serial", workers: int | None = None, address: str | None = None,
                       progress: bool = False, command: str | None = None, overwrite: bool = False,
-                      force: bool = False, map_options: dict | None = None) -> dict:
+                      force: bool = False, map_options: dict | None = None, resume: bool = False) -> dict:
     """Refined mesh MFPT, and Monte Carlo where affordable, for each slope std in ``slope_stds`` (rad).
 
     ``box_size``, ``slope_mean`` and ``disturbances`` default to the map's ``MESH_DEFAULTS``; ``map_options`` go to
@@ -75,15 +75,25 @@ def mfpt_vs_roughness(map_name: str = "rimless-wheel", out: str | Path = "runs/r
     seed = mesh_seed(section_map, slope_mean)
     where = {"backend": backend, "workers": workers, "address": address}
     record = {} if command is None else {"command": command}
-    record.update({"map": map_name, "seed_state": seed, "slope_mean": slope_mean, "box_size": box_size,
-                   "disturbance_rule": disturbance_rule, "first_count": disturbances, "refine_rtol": refine_rtol,
-                   "monte_carlo_runs": monte_carlo, "monte_carlo_budget_steps": monte_carlo_budget,
-                   "monte_carlo_disturbance": "continuous Gaussian slopes, seed 0", "rows": []})
-    with open_run_folder(out, False, overwrite, markers=(*MESH_MARKERS, SWEEP_FILES[0])) as folder:
-        folder.clear()
-        for name in SWEEP_FILES:
-            (folder.path / name).unlink(missing_ok=True)
+    settings = {"map": map_name, "map_options": io.to_jsonable(map_options or {}), "seed_state": seed,
+                "slope_mean": slope_mean, "box_size": box_size, "disturbance_rule": disturbance_rule,
+                "first_count": disturbances, "refine_rtol": refine_rtol, "max_disturbances": max_disturbances,
+                "tails": tails, "max_states": max_states, "monte_carlo_runs": monte_carlo,
+                "monte_carlo_chunks": monte_carlo_chunks, "monte_carlo_budget_steps": monte_carlo_budget,
+                "monte_carlo_disturbance": "continuous Gaussian slopes, seed 0"}
+    record.update({**settings, "rows": [], "finished": False})
+    with open_run_folder(out, resume, overwrite, markers=(*MESH_MARKERS, SWEEP_FILES[0])) as folder:
+        done = _rows_to_resume(folder.path / SWEEP_FILES[0], settings) if resume else {}
+        if not resume:
+            folder.clear()
+            for name in SWEEP_FILES:
+                (folder.path / name).unlink(missing_ok=True)
         for std in sorted(stds):
+            if std in done:      # measured by the run this one continues, on the same settings
+                record["rows"].append(done[std])
+                if progress:
+                    print(_row_line(done[std]) + " (from the resumed run)", flush=True)
+                continue
             slopes = GaussianDisturbance(slope_mean, std, disturbances, rule=disturbance_rule, tails=tails)
             started = time.perf_counter()
             mesh, _, refinement = refined_mesh(section_map, [seed], slopes, box_size, rtol=refine_rtol,
@@ -97,14 +107,32 @@ def mfpt_vs_roughness(map_name: str = "rimless-wheel", out: str | Path = "runs/r
             row["monte_carlo"] = _monte_carlo_row(section_map, seed, slopes, row["mesh_mfpt"], monte_carlo,
                                                   monte_carlo_budget, monte_carlo_chunks, where)
             record["rows"].append(row)
+            io.write_json(folder.path / SWEEP_FILES[0], record)    # each sigma as it comes: a kill loses one row
             if progress:
                 print(_row_line(row), flush=True)
         record["regimes"] = regimes(record["rows"])
         if guard_record(section_map) is not None:
             record["section_guard"] = guard_record(section_map)
+        record["finished"] = True
         io.write_json(folder.path / SWEEP_FILES[0], record)
         plot_mfpt_vs_roughness(record, path=folder.path / SWEEP_FILES[1])
     return record
+
+
+def _rows_to_resume(path: Path, settings: dict) -> dict[float, dict]:
+    """The rows (by slope std) of the sweep record at ``path`` that a resumed sweep keeps: all of them, when the
+    record was made on ``settings``; a ValueError naming the first setting that differs otherwise (a new sweep
+    needs another --out or --overwrite)."""
+    if not path.is_file():
+        return {}
+    old = io.read_json(path)
+    if not isinstance(old, dict) or not isinstance(old.get("rows"), list):
+        raise ValueError(f"{path} is not a sweep record (no rows); --overwrite starts a new sweep there")
+    for key, value in io.to_jsonable(settings).items():
+        if old.get(key) != value:
+            raise ValueError(f"--resume: {path} was made with {key} = {old.get(key)!r}, this sweep asks for "
+                             f"{value!r}; --overwrite starts a new sweep there")
+    return {float(row["slope_std"]): row for row in old["rows"]}
 
 
 def _monte_carlo_row(section_map, seed: list[float], slopes, mesh_mfpt: float | None, runs: int, budget: float,
