@@ -210,27 +210,31 @@ def stage_learner(model_file: str, options: dict, earlier: dict, s: FitSettings,
                        f"{maps_s['drake_map_s']:.1f} s in Drake); rerun with --resume and a larger --budget "
                        f"(learner stage: {before} steps reached)")
 
-    checks: list[dict] = []
-
     class StopAtBudget(Callback):
         """Stop the run once the budget left for the learner is spent, or (``s.learner_stop_full``) after a
         checkpoint whose torch maps balance every start."""
+        checks: list[dict] = []
+        full = False
+
         def on_step(self, learner):
-            full = bool(checks) and checks[-1]["full"]
-            return False if full or time.monotonic() >= stop_at else None
+            return False if self.full or time.monotonic() >= stop_at else None
 
         def on_training_start(self, learner):
             # a run from the clone: its maps first, before any policy step (the actor waits out actor_delay) could
             # move it off them (the cart-pole's SSAC fell from 1.00 to 0.00 training success by its first checkpoint)
             if s.learner_stop_full and init is not None:
-                checks.append({"steps": int(learner.num_timesteps), "checkpoint": CLONE,
-                               **checkpoint_maps(system, folder / CLONE, s, resources)})
+                self._check(learner, folder / CLONE, CLONE)
 
         def on_checkpoint(self, learner, path):
             if s.learner_stop_full and path.name != "final":
-                checks.append({"steps": int(learner.num_timesteps), "checkpoint": path.name,
-                               **checkpoint_maps(system, path, s, resources)})
+                self._check(learner, path, path.name)
 
+        def _check(self, learner, path, name):
+            self.checks = [*self.checks, {"steps": int(learner.num_timesteps), "checkpoint": name,
+                                          **checkpoint_maps(system, path, s, resources)}]
+            self.full = self.checks[-1]["full"]
+
+    stopper = StopAtBudget()
     t0 = time.monotonic()
     clone = earlier.get("clone") or {}
     from_clone = bool(clone.get("cloned") and clone.get("starts_ssac", True))
@@ -239,9 +243,9 @@ def stage_learner(model_file: str, options: dict, earlier: dict, s: FitSettings,
                                 settings=learner_settings(options, plan, s, cloned=from_clone,
                                                           device=(resources or {}).get("device")),
                                 resume=run.exists(), init=init, eval_episodes=s.eval_episodes, progress=progress,
-                                report=None, command=options.get("command"), callback=StopAtBudget()).evaluation
+                                report=None, command=options.get("command"), callback=stopper).evaluation
     steps = int(record.get("env_steps", 0))
-    full = bool(checks) and checks[-1]["full"]
+    full, checks = stopper.full, stopper.checks
     stopped = steps < s.learner_max_steps and not full
     if full and checks[-1]["checkpoint"] == CLONE:
         ending = (f"stopped at its first step: the clone it started from balances every start of the torch maps "
@@ -264,13 +268,15 @@ def stage_learner(model_file: str, options: dict, earlier: dict, s: FitSettings,
                     f"{steps} env steps: " + ending)}
 
 
-def checkpoint_maps(system, path: Path, s: FitSettings, resources: dict | None = None) -> dict:
-    """The torch maps of verify's two grids (:func:`verify_maps`) for the checkpoint at ``path`` with its learned
-    gate: each map's balanced fraction, whether both balance every start (``full``) and the seconds they took."""
+def checkpoint_maps(system, path: Path, s: FitSettings, resources: dict | None = None,
+                    gate: str = "learned") -> dict:
+    """The torch maps of verify's two grids (:func:`verify_maps`) for the checkpoint at ``path`` with ``gate`` (a
+    key of :data:`GATES`): each map's balanced fraction, whether both balance every start (``full``) and the
+    seconds they took. The learner's stop rule and the verification both measure through it."""
     from .balance_map import balance_map
 
     t0 = time.perf_counter()
-    fractions = {name: balance_map(system, f"{GATES['learned']}:{path}", grid=s.verify_grid, axes=axes,
+    fractions = {name: balance_map(system, f"{GATES[gate]}:{path}", grid=s.verify_grid, axes=axes,
                                    ranges=ranges, engine="torch", progress=False, duration=s.verify_duration,
                                    device=(resources or {}).get("device")).fraction
                  for name, (axes, ranges) in verify_maps(system, s).items()}
@@ -329,11 +335,9 @@ def stage_verify(model_file: str, options: dict, earlier: dict, s: FitSettings, 
     torch_maps, kept_gates, whys = {}, {}, {}
     for candidate in candidates:
         for gate in GATES:
-            for name, (axes, ranges) in maps.items():
-                result = balance_map(system, f"{GATES[gate]}:{folder / candidate}", grid=s.verify_grid, axes=axes,
-                                     ranges=ranges, engine="torch", progress=False, duration=s.verify_duration,
-                                     device=resources.get("device"))
-                torch_maps[key(candidate, gate, name)] = result.fraction
+            measured = checkpoint_maps(system, folder / candidate, s, resources, gate=gate)
+            for name in maps:
+                torch_maps[key(candidate, gate, name)] = measured[name]
         score = {gate: tuple(torch_maps[key(candidate, gate, name)] for name in maps) for gate in GATES}
         kept_gates[candidate], whys[candidate] = _keep_gate(score, list(maps), s.gate_tolerance)
     totals = {c: sum(torch_maps[key(c, kept_gates[c], name)] for name in maps) for c in candidates}
