@@ -7,7 +7,8 @@ in task order, so the same seed gives the same result on every backend::
         results = backend.map(run_episode, tasks)
 
 * ``serial``: in this process (debugging, tests, tiny jobs).
-* ``processes``: a ``concurrent.futures`` pool of spawned local processes. A worker
+* ``processes``: a ``concurrent.futures`` pool of local processes (forked from a server that
+  imported torch and Drake once: :mod:`hybridctl.workers`). A worker
   that dies (killed, out of memory, a segfault in a simulator) breaks only the
   current map: the pool is rebuilt and the unfinished tasks are run again, up to
   ``retries`` times, so a long job loses nothing that had finished. Workers die with
@@ -29,16 +30,12 @@ parameters, and workers build their simulators themselves (see :func:`cached_env
 from __future__ import annotations
 
 import argparse
-import ast
 import concurrent.futures as cf
 import contextlib
 import contextvars
-import ctypes
 import json
-import multiprocessing as mp
 import os
 import reprlib
-import signal
 import socket
 import sys
 import threading
@@ -47,6 +44,9 @@ from typing import Any, Callable, Iterator, Sequence
 
 from .limits import (MAX_TASK_CPUS, MAX_TASK_GPUS, MAX_TASK_MEMORY_BYTES, RAY_CONNECT_TIMEOUT_S, check_at_most,
                      cpu_count)
+# how local workers start and die with their parent (re-exported: scripts and tests import them from here)
+from .workers import (die_with_parent, process_context, require_main_guard, unguarded_script_line,  # noqa: F401
+                      unreadable_main_script, worker_initializer)
 
 BACKENDS = ("serial", "processes", "ray")
 
@@ -69,109 +69,6 @@ def cached_env(key: Any, make: Callable[[], Any]) -> Any:
     if key not in _ENV_CACHE:
         _ENV_CACHE[key] = make()
     return _ENV_CACHE[key]
-
-
-PR_SET_PDEATHSIG = 1
-"""Linux prctl(2) option: the signal a process gets when the thread that created it ends."""
-PARENT_POLL_S = 0.5
-"""How often a worker's watcher thread checks that its parent still lives (the portable fallback)."""
-
-
-def die_with_parent(parent: int, pdeathsig: bool = True) -> None:
-    """Worker initializer: end this process when its parent ``parent`` (a pid) dies, even by kill -9.
-
-    A worker outliving its parent blocks forever on its task queue, holding memory and the
-    caller's stdout. On Linux the kernel kills it (``prctl(PR_SET_PDEATHSIG, SIGKILL)``; with
-    ``pdeathsig`` only, as the kernel ties it to the creating *thread*: pass False where the
-    pool may be grown from a thread that ends early). Everywhere, a daemon thread also polls
-    ``os.getppid()`` and exits the process once the worker has been handed to another parent.
-    """
-    if pdeathsig and sys.platform.startswith("linux"):
-        try:
-            libc = ctypes.CDLL(None, use_errno=True)
-            libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
-        except (OSError, AttributeError):  # pragma: no cover - a libc without prctl
-            pass
-    if os.getppid() != parent:  # the parent died before the signal was armed
-        os._exit(1)
-    threading.Thread(target=_exit_when_orphaned, args=(parent,), name="hybridctl-parent-watch",
-                     daemon=True).start()
-
-
-def _exit_when_orphaned(parent: int) -> None:
-    """Poll the parent pid; exit this process at once (no cleanup: the parent is gone) when it changes."""
-    while os.getppid() == parent:
-        time.sleep(PARENT_POLL_S)
-    os._exit(1)
-
-
-def worker_initializer() -> tuple[Callable[..., None], tuple]:
-    """(initializer, initargs) for a pool of worker processes created by this thread: :func:`die_with_parent`."""
-    return die_with_parent, (os.getpid(), threading.current_thread() is threading.main_thread())
-
-
-def _is_main_guard(node: ast.stmt) -> bool:
-    """``if __name__ == "__main__":`` (either operand order)."""
-    if not isinstance(node, ast.If) or not isinstance(node.test, ast.Compare) or len(node.test.ops) != 1:
-        return False
-    sides = [node.test.left, *node.test.comparators]
-    names = [s for s in sides if isinstance(s, ast.Name) and s.id == "__name__"]
-    consts = [s for s in sides if isinstance(s, ast.Constant) and s.value == "__main__"]
-    return isinstance(node.test.ops[0], ast.Eq) and len(names) == 1 and len(consts) == 1
-
-
-def unguarded_script_line() -> tuple[str, int] | None:
-    """Where a script starts worker processes from module-level code outside ``if __name__ == "__main__":``.
-
-    Spawned workers import the main script again; without the guard each of them would run
-    the script's work too, and the pool dies with an error that only the workers' stderr
-    shows. Returns (file, line) of the unguarded module-level statement, or None (guarded,
-    interactive, a notebook, or no readable source).
-    """
-    main = sys.modules.get("__main__")
-    path = getattr(main, "__file__", None)
-    if main is None or not path:
-        return None
-    spec = getattr(main, "__spec__", None)
-    if spec is not None and (spec.name == "__main__" or spec.name.endswith(".__main__")):
-        return None  # `python -m pkg`: multiprocessing does not re-run a package's __main__ in workers
-    frame = sys._getframe(1)
-    while frame is not None and not (frame.f_globals is vars(main) and frame.f_code.co_name == "<module>"):
-        frame = frame.f_back
-    if frame is None:
-        return None
-    try:
-        tree = ast.parse(open(path, encoding="utf-8").read())
-    except (OSError, SyntaxError, UnicodeDecodeError):
-        return None
-    line = frame.f_lineno
-    for node in tree.body:
-        if _is_main_guard(node) and node.lineno <= line <= (node.end_lineno or node.lineno):
-            return None
-    return path, line
-
-
-def unreadable_main_script() -> str | None:
-    """The main script's name when spawned workers could not re-import it (code read from
-    standard input, ``python -``: ``__file__`` is ``'<stdin>'``), else None. Such workers die at
-    start-up, and a ``multiprocessing.Pool`` would start new ones forever."""
-    path = getattr(sys.modules.get("__main__"), "__file__", None)
-    return path if path and not os.path.isfile(path) else None
-
-
-def require_main_guard() -> None:
-    """Raise RuntimeError in one line when :func:`unguarded_script_line` finds unguarded script code,
-    or when the main script cannot be re-imported by spawned workers (:func:`unreadable_main_script`)."""
-    unreadable = unreadable_main_script()
-    if unreadable is not None:
-        raise RuntimeError(f"the main script is {unreadable!r}, which spawned worker processes cannot re-import: "
-                           "save the code to a file and run that (or use one worker / backend='serial')")
-    found = unguarded_script_line()
-    if found is not None:
-        path, line = found
-        raise RuntimeError(f"{path}:{line} starts worker processes outside 'if __name__ == \"__main__\":'; "
-                           "spawned workers re-import the script, so put its code under that guard "
-                           "(or use backend='serial')")
 
 
 class SerialBackend:
@@ -204,7 +101,8 @@ class SerialBackend:
 
 
 class ProcessBackend(SerialBackend):
-    """A pool of spawned local processes; rebuilt and retried when a worker dies."""
+    """A pool of local worker processes (:func:`~hybridctl.workers.process_context`); rebuilt and retried when a
+    worker dies."""
 
     name = "processes"
 
@@ -219,8 +117,9 @@ class ProcessBackend(SerialBackend):
     def _executor(self) -> cf.ProcessPoolExecutor:
         if self._pool is None:
             require_main_guard()
-            initializer, initargs = worker_initializer()   # no orphan survives a kill -9 of this process
-            self._pool = cf.ProcessPoolExecutor(self.workers, mp_context=mp.get_context("spawn"),
+            context = process_context()                    # forked from a preloaded server: no 2-3 s imports
+            initializer, initargs = worker_initializer(context)   # no orphan survives a kill -9 of this process
+            self._pool = cf.ProcessPoolExecutor(self.workers, mp_context=context,
                                                 initializer=initializer, initargs=initargs)
         return self._pool
 

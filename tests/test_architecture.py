@@ -30,7 +30,7 @@ import pytest
 import hybridctl
 
 PACKAGE_DIR = Path(hybridctl.__file__).resolve().parent
-LEVELS = {"limits": -1, "io": 0, "parallel": 0, "systems": 1, "analysis": 2, "viz": 3, "drake": 4, "envs": 4, "learn": 5,
+LEVELS = {"limits": -1, "io": 0, "parallel": 0, "workers": -1, "systems": 1, "analysis": 2, "viz": 3, "drake": 4, "envs": 4, "learn": 5,
           "experiments": 6, "cli": 7, "reproduce": 7}
 
 

@@ -33,7 +33,7 @@ CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-back
                   "--disable-component-update", "--no-first-run", "--disable-sync", "--window-size=1280,900",
                   "--virtual-time-budget=5000"]
 # The rooms of ARCHITECTURE.md that must each have an API page (docs/api/<room>.md).
-ROOMS = ["limits", "io", "parallel", "systems", "systems.control", "analysis", "viz", "drake", "envs", "learn", "learn.run",
+ROOMS = ["limits", "workers", "io", "parallel", "systems", "systems.control", "analysis", "viz", "drake", "envs", "learn", "learn.run",
          "experiments", "cli", "reproduce"]
 # A line each executed notebook prints (the same lines tests/test_notebooks.py checks).
 PRINTED = {

@@ -140,7 +140,7 @@ TINY_SSAC = {"gate_warm_samples": 500, "gate_warm_fit_steps": 50, "num_envs": 8,
              "buffer_size": 20000, "needle_buffer_size": 5000, "checkpoint_every": 400, "log_every": 400,
              "tensorboard": False, "gate_refit_every": 400, "gate_refit_steps": 20, "gate_relabel_per_refit": 64}
 """A learner run of a test's size: every stage runs as in a real fit, with no time to learn."""
-TINY = FitSettings(screen_samples=300, gate_samples=500, learned_gate_samples=2000,
+TINY = FitSettings(screen_samples=300, gate_samples=500, learned_gate_samples=2000, learned_gate_fit_steps=200,
                    learner_max_steps=800, eval_episodes=2, learner_settings=TINY_SSAC, verify_grid=2,
                    verify_duration=1.0, swingup_knots=11, track_samples=16,
                    clone_settings={"rollouts": 16, "steps": 50, "dagger_rounds": 1},

@@ -223,3 +223,30 @@ def test_the_local_ray_instance_listens_on_loopback_only_and_the_backend_joins_i
     assert ray_listening, "found no listening socket of a Ray process"
     public = {(address, port) for address, port in ray_listening if address not in LOOPBACK}
     assert not public, public
+
+
+def _worker_facts(name: str) -> dict:
+    """What a pool worker sees: its parent, one environment variable, whether Drake came preloaded."""
+    import os
+    return {"ppid": os.getppid(), "env": os.environ.get(name), "drake_preloaded": "pydrake.all" in sys.modules,
+            "pid": os.getpid()}
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the fork server is Linux's start method here")
+@pytest.mark.timeout(120)
+def test_pool_workers_fork_from_a_preloaded_server_and_see_the_environment_as_the_pool_starts(monkeypatch):
+    """Each spawned worker spent 2-3 s importing torch and Drake; workers now fork from one server that imported
+    them once. A server started earlier must not hand a later pool its old environment."""
+    import os
+
+    from hybridctl.parallel import ProcessBackend
+    monkeypatch.delenv("HYBRIDCTL_TEST_POOL_VALUE", raising=False)
+    with ProcessBackend(workers=1) as backend:
+        first = backend.map(_worker_facts, ["HYBRIDCTL_TEST_POOL_VALUE"])[0]
+    monkeypatch.setenv("HYBRIDCTL_TEST_POOL_VALUE", "set after the server started")
+    with ProcessBackend(workers=1) as backend:
+        second = backend.map(_worker_facts, ["HYBRIDCTL_TEST_POOL_VALUE"])[0]
+    assert first["env"] is None and second["env"] == "set after the server started"
+    assert first["ppid"] == second["ppid"] != os.getpid() and first["pid"] != second["pid"]
+    assert "forkserver" in open(f"/proc/{first['ppid']}/cmdline", "rb").read().decode(errors="replace")
+    assert first["drake_preloaded"] and second["drake_preloaded"]

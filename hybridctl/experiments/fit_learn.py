@@ -14,6 +14,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from pathlib import Path
@@ -156,10 +157,12 @@ def _decision_period(at_most: float, hold: float) -> float:
 def stage_learned_gate(model_file: str, options: dict, earlier: dict, s: FitSettings, progress: bool, *,
                        system, **_) -> dict:
     """The learned gate from the measured basin: does it hand over on held-out in-basin states, safely?"""
-    from ..learn.gate import learned_gate_from_basin
+    from ..learn.gate import BASIN_GATE_CONFIG, learned_gate_from_basin
 
     progress_bar = bar(1, "learned gate: warm start from the basin", progress)
     kwargs = {} if s.learned_gate_samples is None else {"samples": s.learned_gate_samples}
+    if s.learned_gate_fit_steps is not None:
+        kwargs["config"] = dataclasses.replace(BASIN_GATE_CONFIG, warm_fit_steps=s.learned_gate_fit_steps)
     _, info = learned_gate_from_basin(system, seed=options["seed"], basin=earlier["gate"]["basin"], **kwargs)
     progress_bar.update()
     progress_bar.close()

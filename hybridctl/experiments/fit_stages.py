@@ -61,6 +61,7 @@ class FitSettings:
     #                                       start than a new policy; SSAC from scratch balanced 121/121 there)
     learned_gate_samples: int | None = 10_000   # learned_gate_from_basin's samples (None: its 40,000; those took
     #                                             359 s of the made-up pendubot's 20-minute fit on the shared machine)
+    learned_gate_fit_steps: int | None = None   # its warm fit's Adam steps (None: BASIN_GATE_CONFIG's 4000; tests: fewer)
     learner_max_steps: int = 3_000_000    # env steps at most (the Furuta's measured run, docs/your_robot.md)
     learner_stop_full: bool = True        # the learner stops at a checkpoint whose torch maps (verify's two, its
     #                                       learned gate) balance every start: the verification's best score
