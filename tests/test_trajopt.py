@@ -187,6 +187,29 @@ def test_a_bad_period_or_a_foreign_trajectory_is_refused(acrobot, pendulum, acro
 STEP_TOO_SMALL = ("Error control wants to select step smaller than minimum allowed (1e-14)")
 
 
+def test_one_riccati_solve_serves_every_period_with_a_fresh_solves_numbers(acrobot, acrobot_swingup, monkeypatch):
+    """The fit screens several decision periods of one swing-up; the TVLQR was solved again for each (about 1 s
+    apiece on the acrobot). Now one solve is sampled at each period, and each table equals a fresh solve's."""
+    from pydrake.systems import controllers
+
+    solves = []
+    drakes = controllers.FiniteHorizonLinearQuadraticRegulator
+
+    def counted(*args, **kwargs):
+        solves.append(1)
+        return drakes(*args, **kwargs)
+    monkeypatch.setattr(controllers, "FiniteHorizonLinearQuadraticRegulator", counted)
+    monkeypatch.setattr(trajopt, "_TVLQR_SOLUTIONS", {})
+    traj, _ = acrobot_swingup
+    tables = {period: tracking_gains(acrobot, traj, period, cache=False) for period in (0.02, 0.05, 0.1)}
+    assert len(solves) == 1
+    monkeypatch.setattr(trajopt, "_TVLQR_SOLUTIONS", {})
+    fresh = tracking_gains(acrobot, traj, 0.05, cache=False)
+    assert len(solves) == 2 and len(tables[0.05].K) == len(fresh.K) < len(tables[0.02].K)
+    for name in ("x0", "u0", "K", "k0"):
+        np.testing.assert_array_equal(getattr(tables[0.05], name), getattr(fresh, name))
+
+
 def test_a_tvlqr_step_below_drakes_minimum_is_one_line_with_what_to_try(acrobot, acrobot_swingup, monkeypatch):
     """The public pendubot's TVLQR ended in Drake's integrator RuntimeError (a traceback); the same message,
     raised by the Riccati integration, is now a ValueError naming the system, the stage and what to try."""
@@ -195,6 +218,7 @@ def test_a_tvlqr_step_below_drakes_minimum_is_one_line_with_what_to_try(acrobot,
     def fails(*args, **kwargs):
         raise RuntimeError(STEP_TOO_SMALL + "\nmore lines of Drake's text")
     monkeypatch.setattr(controllers, "FiniteHorizonLinearQuadraticRegulator", fails)
+    monkeypatch.setattr(trajopt, "_TVLQR_SOLUTIONS", {})     # no solution kept from an earlier test
     traj, _ = acrobot_swingup
     with pytest.raises(ValueError) as failed:
         tracking_gains(acrobot, traj, cache=False)

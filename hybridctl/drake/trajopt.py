@@ -405,9 +405,16 @@ def _check_period(period) -> float:
     return float(period)
 
 
+MAX_TVLQR_SOLUTIONS = 4
+"""Drake's TVLQR solutions kept in this process (the fit screens several periods of one trajectory)."""
+_TVLQR_SOLUTIONS: dict[str, tuple] = {}
+
+
 def solve_tracking(system: System, trajectory: SwingupTrajectory, period: float) -> dict:
-    """Drake's finite-horizon LQR along ``trajectory`` (no cache), sampled every ``period``: arrays
-    ``x0`` (spec convention), ``u0``, ``K``, ``k0`` and ``solve_time``."""
+    """Drake's finite-horizon LQR along ``trajectory`` (no file cache), sampled every ``period``: arrays
+    ``x0`` (spec convention), ``u0``, ``K``, ``k0`` and ``solve_time`` (seconds of the Riccati solve). The solution
+    is solved once per trajectory, Q and R in this process (the last :data:`MAX_TVLQR_SOLUTIONS`) and sampled at
+    each period asked for: the same numbers as a solve per period, without its cost."""
     from pydrake.systems.controllers import (FiniteHorizonLinearQuadraticRegulator,
                                              FiniteHorizonLinearQuadraticRegulatorOptions)
 
@@ -417,20 +424,30 @@ def solve_tracking(system: System, trajectory: SwingupTrajectory, period: float)
     if Q.shape != (system.n_states,) * 2 or R.shape != (system.n_actions,) * 2:
         raise ValueError(f"TrajoptSettings Q {Q.shape} and R {R.shape} must be {system.n_states}x{system.n_states} "
                          f"and {system.n_actions}x{system.n_actions} for {system.name}")
-    diagram, context = _plant_diagram(system)
-    options = FiniteHorizonLinearQuadraticRegulatorOptions()
-    options.x0 = trajectory.state_trajectory()
-    options.u0 = trajectory.input_trajectory()
-    options.Qf = system.lqr(Q, R)[1]
-    options.input_port_index = diagram.get_input_port(0).get_index()
-    start = time.perf_counter()
-    try:
-        result = FiniteHorizonLinearQuadraticRegulator(diagram, context, float(trajectory.times[0]),
-                                                       float(trajectory.times[-1]), Q, R, options)
-    except RuntimeError as exc:   # e.g. the Riccati integrator's "step smaller than minimum allowed"
-        first = (str(exc) or type(exc).__name__).splitlines()[0]
-        raise TrajoptError(f"{system.name}: the TVLQR along the {trajectory.duration:g} s swing-up failed ({first}); "
-                           "try longer TrajoptSettings.durations or more knots, or a larger R") from None
+    # the Riccati solution does not depend on the sampling period: one solve serves every period screened
+    memo_key = cache_key(system, {"Q": Q.tolist(), "R": R.tolist()}, what="tracking-solution",
+                         trajectory=trajectory.key)
+    if memo_key in _TVLQR_SOLUTIONS:
+        result, solve_seconds = _TVLQR_SOLUTIONS[memo_key]
+    else:
+        diagram, context = _plant_diagram(system)
+        options = FiniteHorizonLinearQuadraticRegulatorOptions()
+        options.x0 = trajectory.state_trajectory()
+        options.u0 = trajectory.input_trajectory()
+        options.Qf = system.lqr(Q, R)[1]
+        options.input_port_index = diagram.get_input_port(0).get_index()
+        start = time.perf_counter()
+        try:
+            result = FiniteHorizonLinearQuadraticRegulator(diagram, context, float(trajectory.times[0]),
+                                                           float(trajectory.times[-1]), Q, R, options)
+        except RuntimeError as exc:   # e.g. the Riccati integrator's "step smaller than minimum allowed"
+            first = (str(exc) or type(exc).__name__).splitlines()[0]
+            raise TrajoptError(f"{system.name}: the TVLQR along the {trajectory.duration:g} s swing-up failed "
+                               f"({first}); try longer TrajoptSettings.durations or more knots, or a larger R") from None
+        solve_seconds = time.perf_counter() - start
+        while len(_TVLQR_SOLUTIONS) >= MAX_TVLQR_SOLUTIONS:     # the oldest first
+            _TVLQR_SOLUTIONS.pop(next(iter(_TVLQR_SOLUTIONS)))
+        _TVLQR_SOLUTIONS[memo_key] = (result, solve_seconds)
     # the block's update times over the trajectory; k * period, as Drake's periodic events fall
     steps = int(math.floor(trajectory.duration / period + 1e-9))
     times = np.minimum(trajectory.times[0] + period * np.arange(steps + 1), trajectory.times[-1])
@@ -438,7 +455,7 @@ def solve_tracking(system: System, trajectory: SwingupTrajectory, period: float)
     u0 = np.array([result.u0.value(t).ravel() for t in times])
     K = np.array([result.K.value(t) for t in times])
     k0 = np.array([result.k0.value(t).ravel() for t in times])
-    return dict(x0=x0, u0=u0, K=K, k0=k0, solve_time=time.perf_counter() - start)
+    return dict(x0=x0, u0=u0, K=K, k0=k0, solve_time=solve_seconds)
 
 
 def tracking_gains(system: System, trajectory: SwingupTrajectory, period: float | None = None, *,
