@@ -3,6 +3,7 @@ tiny budget in two chunks, the resume that trains only the difference, the VecNo
 report's JSON and figure, and bad input."""
 
 import contextlib
+import copy
 import io
 import json
 
@@ -19,23 +20,32 @@ pytestmark = [pytest.mark.usefixtures("one_torch_thread"), pytest.mark.xdist_gro
 # algo -> (first budget, chunk, second budget): two chunks, then a resume for the difference. On-policy
 # budgets are whole rollouts (n_envs * n_steps: PPO 16 * 256, TRPO 2 * 1024, A2C 16 * 5) so that every
 # chunk ends where asked; SAC/TD3 chunks are whole 50-step episodes.
-BUDGETS = {"ppo": (8192, 4096, 12288), "trpo": (4096, 2048, 6144), "a2c": (160, 80, 240),
+BUDGETS = {"ppo": (1024, 512, 1536), "trpo": (512, 256, 768), "a2c": (160, 80, 240),
            "sac": (200, 100, 300), "td3": (200, 100, 300)}
+
+
+SHIPPED_ZOO: dict = {}
+"""The zoo entries as shipped, before ``runs`` shortens them for the tests' budgets."""
 
 
 @pytest.fixture(scope="module")
 def runs():
-    """The workflow module (ZOO, run folders, curves), with TD3's warm-up shortened for tiny budgets (restored
-    afterwards: the module is shared with the rest of the session)."""
+    """The workflow module (ZOO, run folders, curves), with TD3's warm-up and PPO's and TRPO's rollouts shortened
+    for tiny budgets (restored afterwards: the module is shared with the rest of the session)."""
     from hybridctl.experiments import sb3_runs
 
     # TD3's zoo warm-up (learning_starts 10000) would leave a few hundred steps untrained; start at 100
     # so that the resumed run updates its networks from the reloaded replay buffer
-    kwargs = sb3_runs.ZOO["td3"]["kwargs"]
-    before = kwargs["learning_starts"]
-    kwargs["learning_starts"] = 100
+    # PPO's and TRPO's zoo rollouts (16 x 256 and 2 x 1024 steps) are cut to 16 x 32 and 2 x 128 steps, so that a
+    # chunk of a few rollouts takes a second, not ten: the test is of the run folders, not of the zoo's numbers
+    patched = {"td3": {"learning_starts": 100}, "ppo": {"n_steps": 32}, "trpo": {"n_steps": 128}}
+    SHIPPED_ZOO.update(copy.deepcopy(sb3_runs.ZOO))
+    before = {algo: {k: sb3_runs.ZOO[algo]["kwargs"][k] for k in values} for algo, values in patched.items()}
+    for algo, values in patched.items():
+        sb3_runs.ZOO[algo]["kwargs"].update(values)
     yield sb3_runs
-    kwargs["learning_starts"] = before
+    for algo, values in before.items():
+        sb3_runs.ZOO[algo]["kwargs"].update(values)
 
 
 @pytest.fixture(scope="module")
@@ -160,8 +170,10 @@ def test_curve_rows_past_the_checkpoint_are_dropped(runs, tmp_path):
     assert curve["env_steps"] == [80, 100] and curve["mean_return"] == [-3.0, -2.5] and curve["episodes"] == [1, 1]
 
 
-def test_zoo_entries_become_sb3_arguments(runs):
+def test_zoo_entries_become_sb3_arguments(runs, monkeypatch):
     from stable_baselines3.common.noise import NormalActionNoise
+
+    monkeypatch.setattr(runs, "ZOO", SHIPPED_ZOO)     # the entries as shipped, not as shortened for the budgets
 
     kwargs = runs.model_kwargs("td3", n_actions=1)
     assert isinstance(kwargs["action_noise"], NormalActionNoise)
