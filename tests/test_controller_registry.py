@@ -1,7 +1,7 @@
 """Every checkpoint becomes a controller through the learner contract (issue 48 item 2).
 
 A toy learner defined and registered in this file alone (no edit anywhere else) is used through
-``simulate_and_write``, the torch balance map and fine-tuning; every shipped checkpoint loads through
+``simulate_and_write``, the torch balance map, fine-tuning and ``hybridctl train toy``; every shipped checkpoint loads through
 ``hybridctl.learn.load_controller`` into the SwitchedController the loaders built before the registry.
 """
 
@@ -24,6 +24,7 @@ from hybridctl.learn.checkpoint import PROGRESS_FILE, Saved
 from hybridctl.learn.gate import GateNet
 from hybridctl.learn.networks import Actor, DeterministicPolicy, ObsTransform
 from hybridctl.learn.registry import checkpoint_kinds, register_learner
+from hybridctl.learn.run import EvalResult
 from hybridctl.systems.switched import (CostToGoGate, LearnedGate, NeverGate, SwitchedController,
                                         closed_loop_rollout)
 
@@ -37,6 +38,13 @@ class ToyConfig:
     gain: float = 2.0
     epochs: int = 1
     seed: int = 0
+
+    def validate(self) -> None:     # what `hybridctl train` asks of a config: its checks, and its budget in words
+        if not self.epochs >= 1:
+            raise ValueError(f"ToyConfig.epochs must be >= 1, got {self.epochs!r}")
+
+    def describe_budget(self) -> str:
+        return f"{self.epochs} epochs"
 
 
 class LinearSwingup(torch.nn.Module):
@@ -83,6 +91,15 @@ class Toy(Learner):
     def from_checkpoint(cls, found, meta, config, system, force):
         record = meta["system"]
         return cls(system or ckpt.recorded_system(found, record["name"], record.get("overrides", {})), config)
+
+    def run_evaluation(self, episodes, seed, **options):
+        """Returns: minus the final distance to the goal after 2 s from the spec's starts (no success test)."""
+        starts = torch.as_tensor(self.system.sample_initial_states(episodes, np.random.default_rng(seed)))
+        controller = self.controller()
+        steps = round(2.0 / controller.decision_period)
+        final = closed_loop_rollout(self.system, controller, starts, steps).final
+        return EvalResult.from_returns((-self.system.state_error(final).norm(dim=1)).tolist(), None,
+                                       first={"episodes": episodes})
 
     def controller(self, system=None) -> SwitchedController:
         system = self.system if system is None else system
@@ -155,6 +172,28 @@ def test_an_unregistered_algorithm_and_a_learner_without_a_swingup_say_so(toy, t
         load_controller(other, systems.load("pendulum"))
     with pytest.raises(CheckpointError, match="ARS checkpoints hold no swing-up"):
         load_controller(POLICIES / "ars-hopper", systems.load("pendulum"))
+
+
+def test_the_toy_learner_trains_from_the_command_line(tmp_path, capsys):
+    """Registering it made it a `hybridctl train` sub-command: its config's fields are flags, the run writes
+    final/ and eval.json, and the checkpoint is a controller."""
+    from hybridctl.cli import main
+    from hybridctl.experiments import training_algorithms
+
+    assert training_algorithms()["toy"] is Toy and "finetune" not in training_algorithms()
+    with pytest.raises(SystemExit):
+        main(["train", "--help"])
+    assert "toy" in capsys.readouterr().out
+    out = tmp_path / "run"
+    assert main(["train", "toy", "pendulum", "--epochs", "2", "--gain", "0.5", "--eval-episodes", "3",
+                 "--out", str(out), "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    assert "deterministic return over 3 episodes" in printed and "no success test" in printed
+    record = json.loads((out / "eval.json").read_text())
+    assert record["episodes"] == 3 and record["epoch"] == 2
+    trained = Toy.load(out / "final")
+    assert torch.equal(trained.swingup.linear.weight, LinearSwingup(2, 1, 0.5 * 4).linear.weight)   # doubled twice
+    assert isinstance(load_controller(out, systems.load("pendulum")).swingup, LinearSwingup)
 
 
 def test_a_taken_algorithm_name_is_refused():

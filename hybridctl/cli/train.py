@@ -20,7 +20,7 @@ from typing import Any, Callable
 
 from ..analysis.postprocess import FORMS as POSTPROCESS_FORMS
 from ..analysis.postprocess import KINDS as POSTPROCESS_KINDS
-from ..experiments import ALGORITHMS, SSAC_VARIANTS, train_and_evaluate
+from ..experiments import SSAC_VARIANTS, train_and_evaluate, training_algorithms
 from ..experiments.resume import RESUME_APPLIED
 from ..learn.apg import METHODS as APG_METHODS
 from ..learn.config_check import FIELD_LIMITS
@@ -58,8 +58,9 @@ INSTEAD = {("ars", "--steps"): "ars counts --epochs", ("ars", "--total-steps"): 
            ("sac", "--epochs"): "sac counts --steps", ("ssac", "--epochs"): "ssac counts --steps"}
 """What to use instead of another learner's flag."""
 
-SYSTEM_HELP = {"sac": None, "ssac": None,  # None: the known systems (systems_help)
-               "ars": "gymnasium env id (e.g. Hopper-v5) or system name"}
+GYM_SYSTEM_HELP = "gymnasium env id (e.g. Hopper-v5) or system name"
+SYSTEM_HELP = {"sac": None, "ssac": None, "ars": GYM_SYSTEM_HELP}   # None: the known systems (systems_help)
+"""SYSTEM's help per learner; another learner's: the known systems, or also env ids if it ``takes_gym_envs``."""
 TITLES = {"sac": "plain SAC (thesis Ch. 3 baseline) on a system's torch vector env",
           "ssac": "Switched SAC (thesis Ch. 3): learned swing-up + learned gate + LQR",
           "ars": "ARS V2-t with dimension post-processing (thesis Ch. 4) on a gymnasium env or system",
@@ -68,7 +69,16 @@ TITLES = {"sac": "plain SAC (thesis Ch. 3 baseline) on a system's torch vector e
           "papg": "parallel APG: K APG runs, the best member returned (thesis Sec. 7.5)",
           "cem": "cross-entropy method on the policy parameters (thesis Sec. 7.3.2, 7.5)",
           "ce-apg": "cross-entropy analytic policy gradients, Alg. 9 (thesis Ch. 7)"}
+"""The one-line help of each learner's sub-command; another learner's: its class docstring's first sentence."""
 SYSTEM_HELP.update({method: None for method in APG_METHODS})
+
+
+def learner_title(algorithm: str, learner: type) -> str:
+    """The sub-command's one-line help: :data:`TITLES`, else the first sentence of the learner class's docstring."""
+    if algorithm in TITLES:
+        return TITLES[algorithm]
+    first = (inspect.getdoc(learner) or learner.__name__).split("\n\n")[0].replace("\n", " ")
+    return first.split(". ")[0].rstrip(".")
 CONFIG_DEST = "config:"
 """Namespace prefix of the generated config-field options (set only when given)."""
 
@@ -197,7 +207,7 @@ def variant_defaults(algorithm: str) -> dict[str, dict[str, Any]]:
     """For SSAC: variant name -> the fields where that preset differs from hybridctl's defaults."""
     if algorithm != "ssac":
         return {}
-    config_class = ALGORITHMS["ssac"].config_class
+    config_class = training_algorithms()["ssac"].config_class
     base = dataclasses.asdict(config_class())
     out = {}
     for name in SSAC_VARIANTS:
@@ -210,7 +220,7 @@ def variant_defaults(algorithm: str) -> dict[str, dict[str, Any]]:
 
 def add_config_flags(parser: argparse.ArgumentParser, algorithm: str) -> set[str]:
     """Add ``--field-name`` for every field of ``algorithm``'s config; return the option strings."""
-    config_class = ALGORITHMS[algorithm].config_class
+    config_class = training_algorithms()[algorithm].config_class
     hints = typing.get_type_hints(config_class)
     comments = field_comments(config_class)
     presets = variant_defaults(algorithm)
@@ -288,7 +298,7 @@ def _json_or_text(text: str):
 
 def config_settings(args: argparse.Namespace) -> dict:
     """The config fields the command line set: ``--set`` pairs, then the field flags (which win)."""
-    settings = parse_set_pairs(args.set, ALGORITHMS[args.algorithm].config_class)
+    settings = parse_set_pairs(args.set, training_algorithms()[args.algorithm].config_class)
     settings.update({k[len(CONFIG_DEST):]: v for k, v in vars(args).items() if k.startswith(CONFIG_DEST)})
     return settings
 
@@ -344,35 +354,38 @@ def add_common_flags(parser: argparse.ArgumentParser, algorithm: str) -> set[str
             "--preset", choices=APG_PRESETS, default=None,
             help="settings: the thesis' (Sec. 7.3.7) or 'reduced' (trains in minutes; see APGConfig.preset); "
                  "field flags change the chosen preset (default: thesis; with --resume: the run's)"))
-    if ALGORITHMS[algorithm].warm_starts:
+    if training_algorithms()[algorithm].warm_starts:
         actions.append(run.add_argument(
             "--init", metavar="CHECKPOINT", help="start from this checkpoint's policy and normalisation; its "
             "counters go on, so the run's budget is the total" + INIT_NOTES.get(algorithm, "")))
     add_quiet_flag(run)
     add_debug_flag(run)
     options = {s for action in actions for s in action.option_strings}
-    if ALGORITHMS[algorithm].uses_backend:   # its rollouts or population members run on a backend
+    if training_algorithms()[algorithm].uses_backend:   # its rollouts or population members run on a backend
         add_ray_task_flags(parser)
         options |= {"--task-cpus", "--task-gpus", "--task-memory", "--runtime-env"}
     return options
 
 
 def add_parser(sub) -> None:
-    """Register ``train`` and its learners (every name of ``ALGORITHMS``) on the top-level sub-parsers."""
-    p = sub.add_parser("train", help=f"train a learner ({', '.join(ALGORITHMS)}): SAC / Switched SAC (thesis Ch. 3) "
+    """Register ``train`` and its learners (every name of ``training_algorithms()``, read from the learner
+    registry) on the top-level sub-parsers."""
+    algorithms = training_algorithms()
+    p = sub.add_parser("train", help=f"train a learner ({', '.join(algorithms)}): SAC / Switched SAC (thesis Ch. 3) "
                                      f"and the analytic policy gradients (Ch. 7) on a system, ARS (Ch. 4) on an env",
                        description="Train a learner; `hybridctl train ALGO --help` lists its flags.")
     add_debug_flag(p)
-    learners = p.add_subparsers(dest="algorithm", required=True, metavar="{" + ",".join(ALGORITHMS) + "}",
+    learners = p.add_subparsers(dest="algorithm", required=True, metavar="{" + ",".join(algorithms) + "}",
                                 parser_class=CommandParser)
     parsers, options = {}, {}
-    for algorithm in ALGORITHMS:
-        config_name = ALGORITHMS[algorithm].config_class.__name__
+    for algorithm, learner in algorithms.items():
+        config_name = learner.config_class.__name__
+        title = learner_title(algorithm, learner)
         q = learners.add_parser(
-            algorithm, help=TITLES[algorithm], description=TITLES[algorithm] + ".",
+            algorithm, help=title, description=title + ".",
             usage=f"%(prog)s SYSTEM [--FIELD VALUE ...] [--set KEY=VALUE ...] [--out DIR] [--resume] ...",
             epilog=f"Every {config_name} field is a flag.\n\n" + textwrap.fill(resume_help(algorithm), 100))
-        add_system_argument(q, SYSTEM_HELP[algorithm])
+        add_system_argument(q, SYSTEM_HELP.get(algorithm, GYM_SYSTEM_HELP if learner.takes_gym_envs else None))
         options[algorithm] = add_common_flags(q, algorithm) | add_config_flags(q, algorithm)
         q.set_defaults(func=run_train)
         parsers[algorithm] = q
@@ -382,7 +395,7 @@ def add_parser(sub) -> None:
 
 def resume_help(algorithm: str) -> str:
     """The resume policy of ``algorithm``, as ``hybridctl train ALGO --help`` prints it."""
-    fields = {f.name for f in dataclasses.fields(ALGORITHMS[algorithm].config_class)}
+    fields = {f.name for f in dataclasses.fields(training_algorithms()[algorithm].config_class)}
     applied = ", ".join(name for name in RESUME_APPLIED if name in fields)
     math_fields = "step_size, noise, n_directions, policy, postprocess, seed" if algorithm == "ars" else \
         "lr, gamma, network sizes, batch sizes, seed, num_envs" + (", the preset" if algorithm == "ssac" else "")
@@ -404,8 +417,8 @@ def resume_help(algorithm: str) -> str:
 def run_train(args: argparse.Namespace) -> int:
     """Train, checkpoint, evaluate and print the evaluation (exit 3 when training diverged)."""
     settings = config_settings(args)
-    if ALGORITHMS[args.algorithm].uses_backend:
-        backend = settings.get("backend", ALGORITHMS[args.algorithm].config_class.backend)
+    if training_algorithms()[args.algorithm].uses_backend:
+        backend = settings.get("backend", training_algorithms()[args.algorithm].config_class.backend)
         check_ray_task_flags(args, backend)
     with ray_options_for(args):   # --task-cpus/--task-gpus/--task-memory/--runtime-env (none: Ray's defaults)
         run = train_and_evaluate(args.algorithm, args.system, out=args.out, settings=settings,
@@ -426,8 +439,10 @@ def run_train(args: argparse.Namespace) -> int:
         print(f"return over {result['episodes']} episodes: {result['mean_return']:.1f} +- {result['std_return']:.1f}; "
               f"mesh dimension lower {dims['mesh_lower']}, upper {dims['mesh_upper']}; "
               f"wrote {out}/final, progress.csv, eval.json")
-    else:
+    else:   # SAC, SSAC and any other learner (EvalResult's keys; success None where the env has no success test)
+        success = "no success test" if result.get("success_rate") is None else f"success {result['success_rate']:.0%}"
         print(f"deterministic return over {result['episodes']} episodes: {result['mean_return']:.2f} "
-              f"+- {result['std_return']:.2f} (min {result['min_return']:.2f}), success {result['success_rate']:.0%}")
-        print(f"wrote {out}/final (checkpoint), progress.csv, training_curves.png, eval.json")
+              f"+- {result['std_return']:.2f} (min {result['min_return']:.2f}), {success}")
+        curves = ", training_curves.png" if (out / "training_curves.png").is_file() else ""
+        print(f"wrote {out}/final (checkpoint), progress.csv{curves}, eval.json")
     return 0

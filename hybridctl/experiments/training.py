@@ -22,7 +22,7 @@ import torch
 
 from .. import io
 from ..io import RunFolderError
-from ..learn import APG, ARS, SAC, SSAC, ARSConfig, SACConfig, SSACConfig
+from ..learn import ARSConfig, SACConfig, SSACConfig, trainable_learners   # importing learn registers every learner
 from ..learn.apg import METHODS as APG_METHODS
 from ..learn.apg import APGConfig
 from ..learn.checkpoint import CheckpointError, newest_checkpoint, read_meta, system_record
@@ -37,9 +37,12 @@ def machine() -> dict:
             "torch": torch.__version__, "torch_threads": torch.get_num_threads()}
 
 
-ALGORITHMS = {"sac": SAC, "ssac": SSAC, "ars": ARS}
-ALGORITHMS.update({method: APG for method in APG_METHODS})   # thesis Ch. 7: apg, shapg, papg, cem, ce-apg
-"""Learner class by ``hybridctl train`` name; each has ``config_class``."""
+def training_algorithms() -> dict[str, type]:
+    """Learner class by ``hybridctl train`` name, read from the learner registry
+    (:func:`~hybridctl.learn.registry.trainable_learners`): ``sac``, ``ssac``, ``ars``, the APG family's ``apg``,
+    ``shapg``, ``papg``, ``cem``, ``ce-apg`` (thesis Ch. 3, 4, 7), and any learner registered since (a
+    :class:`~hybridctl.learn.base.Learner` subclass that names its ``algorithm_name``). Each has ``config_class``."""
+    return trainable_learners()
 
 SSAC_VARIANTS = ("hybridctl", "paper", "author")
 """Presets of :meth:`SSACConfig.variant`."""
@@ -62,12 +65,13 @@ def _silent(line: str) -> None:
 
 
 def learner_class(algorithm: str):
-    """The learner class of ``algorithm``, a name of :data:`ALGORITHMS` (``"sac"``, ``"ssac"``, ``"ars"`` and the
-    APG family's ``"apg"``, ``"shapg"``, ``"papg"``, ``"cem"``, ``"ce-apg"``)."""
+    """The learner class of ``algorithm``, a name of :func:`training_algorithms` (``"sac"``, ``"ssac"``, ``"ars"``
+    and the APG family's ``"apg"``, ``"shapg"``, ``"papg"``, ``"cem"``, ``"ce-apg"``)."""
+    known = training_algorithms()
     try:
-        return ALGORITHMS[algorithm]
+        return known[algorithm]
     except KeyError:
-        raise ValueError(f"unknown algorithm {algorithm!r}; known: {', '.join(ALGORITHMS)}") from None
+        raise ValueError(f"unknown algorithm {algorithm!r}; known: {', '.join(known)}") from None
 
 
 def make_config(algorithm: str, variant: str = "hybridctl", **settings) -> SACConfig | SSACConfig | ARSConfig:
@@ -334,7 +338,8 @@ def train_and_evaluate(algorithm: str, system: str, out: str | Path | None = Non
     settings = dict(settings or {})
     algo = learner_class(algorithm)
     if init is not None and not algo.warm_starts:
-        raise ValueError(f"--init applies to {', '.join(n for n, c in ALGORITHMS.items() if c.warm_starts)} only")
+        raise ValueError(f"--init applies to {', '.join(n for n, c in training_algorithms().items() if c.warm_starts)} "
+                         "only")
     preset = variant if variant is not None else "hybridctl"
     config = make_config(algorithm, preset, **settings)   # bad settings fail before any work
     target, system_name = _training_target(algo, system, config, dict(spec or {}))
@@ -360,7 +365,8 @@ def _training_target(algo, system: str, config, spec: dict):
     system (with the ``spec`` overrides; a name alone is loaded by the learner, with the config's
     reward) or, for a learner that takes gymnasium envs (ARS), the env id as given."""
     if spec and not algo.takes_spec:
-        raise ValueError(f"--spec applies to {', '.join(n for n, c in ALGORITHMS.items() if c.takes_spec)} only")
+        raise ValueError(f"--spec applies to {', '.join(n for n, c in training_algorithms().items() if c.takes_spec)} "
+                         "only")
     if algo.takes_gym_envs:
         return system, system
     name = load(system).name  # a clear error for an unknown system name, before any work

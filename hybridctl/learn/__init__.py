@@ -15,7 +15,7 @@ from .ars import ARS, ARSConfig
 from .finetune import FineTune, FineTuneConfig
 from .finetune_sources import TunablePolicy
 from .checkpoint import CheckpointError, resolve_checkpoint_dir, write_checkpoint_dir
-from .registry import load_controller, register_learner, registered_learners
+from .registry import load_controller, register_learner, registered_learners, trainable_learners
 from .gate import GateConfig, GateNet, fit_gate, gate_metrics, warm_start_gate
 from .policies import Policy, PolicyPopulation
 from .networks import Actor, DeterministicPolicy, ObsTransform, QNetwork
@@ -37,7 +37,7 @@ from .gate_data import GateDataset
 __all__ = ["APG", "APGConfig", "FineTune", "FineTuneConfig", "TunablePolicy", "Policy", "PolicyPopulation", "SAC", "SACConfig", "SSAC", "SSACConfig", "GateDataset", "Actor", "QNetwork", "ObsTransform",
            "DeterministicPolicy", "ReplayBuffer", "EpisodeStaging", "sample_mixed", "plot_training_curves",
            "CheckpointError", "silent_logger", "resolve_checkpoint_dir", "write_checkpoint_dir", "GateConfig", "GateNet",
-           "fit_gate", "gate_metrics", "warm_start_gate", "load_controller", "register_learner", "registered_learners", "ARS", "ARSConfig", "failure_rates",
+           "fit_gate", "gate_metrics", "warm_start_gate", "load_controller", "register_learner", "registered_learners", "trainable_learners", "ARS", "ARSConfig", "failure_rates",
            "make_backend", "SerialBackend", "ProcessBackend", "RayBackend",
            "Learner", "Saved", "Checkpointer", "RunLog", "Callback", "CallbackList", "EvalResult", "check_finite",
            "load_sb3", "SB3Agent", "SB3Policy", "Normalizer"]

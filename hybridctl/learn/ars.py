@@ -190,6 +190,7 @@ class ARS(RandomSearchLearner):
     """ARS V2-t with optional dimension post-processing: ``learn`` / ``predict`` / ``evaluate`` / ``save`` / ``load``."""
 
     algorithm_name = "ARS"
+    train_order = 2
     config_class = ARSConfig
     budget_field, unit = "epochs", "epoch"
     display_name, theta_name = "ARS", "ARS theta"   # the NaN guards' messages

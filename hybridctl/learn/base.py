@@ -81,6 +81,12 @@ class Learner:
 
     controller_aliases: tuple[str, ...] = ()
     """Lower-case kinds of named controllers ``KIND:PATH`` beside the algorithm's name (APG: its methods)."""
+    train_names: tuple[str, ...] | None = None
+    """The names ``hybridctl train NAME`` and :func:`~hybridctl.experiments.train_and_evaluate` run this learner
+    under (None: its ``algorithm_name`` in lower case; ``()``: none, as fine-tuning, which has its own command).
+    Read from the registry (:func:`~hybridctl.learn.registry.trainable_learners`): no other file lists them."""
+    train_order = 100
+    """Where its names come in ``hybridctl train``'s list (lower first; SAC, SSAC, ARS, the APG family: 0-3)."""
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)

@@ -168,6 +168,7 @@ class FineTune(RandomSearchLearner):
     """
 
     algorithm_name = "FineTune"
+    train_names = ()                       # `hybridctl finetune`, not a `train` sub-command
     config_class = FineTuneConfig
     budget_field, unit = "updates", "update"
     display_name, theta_name = "fine-tuning", "fine-tuned theta"   # the NaN guards' messages

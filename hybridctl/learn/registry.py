@@ -28,7 +28,7 @@ from . import checkpoint as ckpt
 from ..systems.spec import known_systems
 from ..systems.switched import AlwaysGate, CostToGoGate, LearnedGate, NeverGate, SwitchedController
 
-__all__ = ["register_learner", "registered_learners", "learner_class", "checkpoint_kinds", "gate_of_kind",
+__all__ = ["register_learner", "registered_learners", "trainable_learners", "learner_class", "checkpoint_kinds", "gate_of_kind",
            "load_deployed", "load_controller", "GATES", "KIND_GATES", "no_swingup"]
 
 _LEARNERS: dict[str, type] = {}
@@ -71,6 +71,22 @@ def _qualified(cls: type) -> str:
 def registered_learners() -> dict[str, type]:
     """The registered learners by algorithm name (a copy)."""
     return dict(_LEARNERS)
+
+
+def trainable_learners() -> dict[str, type]:
+    """The registered learners by the names they train under (``hybridctl train NAME``): each one's
+    ``train_names`` (default its algorithm name in lower case), ordered by its ``train_order``, then by
+    registration. A name two learners claim raises ValueError naming both."""
+    found: dict[str, type] = {}
+    ranked = sorted(_LEARNERS.items(), key=lambda item: getattr(item[1], "train_order", 100))   # stable
+    for algorithm, cls in ranked:
+        names = getattr(cls, "train_names", None)
+        for name in (algorithm.lower(),) if names is None else names:
+            if name in found and found[name] is not cls:
+                raise ValueError(f"the training name {name!r} is claimed by {_qualified(found[name])} and "
+                                 f"{_qualified(cls)}")
+            found[name] = cls
+    return found
 
 
 def learner_class(algorithm) -> type:

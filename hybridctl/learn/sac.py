@@ -250,6 +250,7 @@ class SAC(VectorEnvAgent):
     config_class = SACConfig
     warm_starts = init_keeps_data = True   # --init: networks, optimisers, replay (SSAC: gate data) go on
     algorithm_name = "SAC"
+    train_order = 0
     takes_spec = True
     compatible_algorithms = ("SAC",)  # an SSAC checkpoint holds a whole SAC agent: SAC.load(..., force=True)
     log_columns = ("env_steps", "episodes", "mean_return", "success_rate", "q_loss", "pi_loss", "alpha",

@@ -191,6 +191,7 @@ class SSAC(SAC):
 
     config_class = SSACConfig
     algorithm_name = "SSAC"
+    train_order = 1
     compatible_algorithms = ("SSAC",)
     log_int_columns = (*SAC.log_int_columns, "gate_data", "gate_refits")
     # beyond SAC's checkpoint: the gate, its optimizer, RNG and counters (model.pt "extra"), and the

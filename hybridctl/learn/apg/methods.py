@@ -32,6 +32,7 @@ class APG(APGFamily):
 
     algorithm_name = "APG"                 # the family's checkpoints load through this entry point
     controller_aliases = METHODS           # named controllers apg:PATH, papg:PATH, ...
+    train_names, train_order = METHODS, 3  # hybridctl train apg / shapg / papg / cem / ce-apg
     method = "apg"
     preset_settings = {"thesis": {"population": 1, "elites": 1}, "reduced": {}}
 
