@@ -279,3 +279,21 @@ def test_one_torch_balance_map_per_algorithm_runs_the_named_controller(kind, nam
     sac = controller_parts(system, f"sac:{folder}")
     costgate = controller_parts(system, f"ssac-costgate:{folder}")
     assert isinstance(sac.gate, NeverGate) and isinstance(costgate.gate, CostToGoGate)
+
+
+def test_a_registered_learner_without_a_config_dataclass_is_no_train_sub_command():
+    """A learner registered without a config dataclass (tests/test_run.py's COUNTER) trains from Python only;
+    `hybridctl train` lists the others and still builds its parser (it crashed on one such learner)."""
+    from hybridctl.cli import main
+    from hybridctl.learn.registry import _LEARNERS, trainable_learners
+
+    class Bare(Learner):
+        pass
+    _LEARNERS["BARE"] = Bare
+    try:
+        assert "bare" not in trainable_learners() and "toy" in trainable_learners()
+        with pytest.raises(SystemExit) as done:
+            main(["train", "--help"])
+        assert done.value.code == 0
+    finally:
+        del _LEARNERS["BARE"]

@@ -22,6 +22,7 @@ deploy_overrides`) and asks it for ``learner.controller(system)``: a
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 from . import checkpoint as ckpt
@@ -76,10 +77,14 @@ def registered_learners() -> dict[str, type]:
 def trainable_learners() -> dict[str, type]:
     """The registered learners by the names they train under (``hybridctl train NAME``): each one's
     ``train_names`` (default its algorithm name in lower case), ordered by its ``train_order``, then by
-    registration. A name two learners claim raises ValueError naming both."""
+    registration. Only a learner with a ``config_class`` dataclass trains so (its fields are the flags); one
+    without trains from Python alone. A name two learners claim raises ValueError naming both."""
     found: dict[str, type] = {}
     ranked = sorted(_LEARNERS.items(), key=lambda item: getattr(item[1], "train_order", 100))   # stable
     for algorithm, cls in ranked:
+        config_class = getattr(cls, "config_class", None)
+        if not (isinstance(config_class, type) and dataclasses.is_dataclass(config_class)):
+            continue
         names = getattr(cls, "train_names", None)
         for name in (algorithm.lower(),) if names is None else names:
             if name in found and found[name] is not cls:
