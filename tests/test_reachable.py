@@ -102,9 +102,14 @@ def test_refined_gaussian_slopes_match_monte_carlo_where_25_quantiles_do_not():
 def test_refinement_stops_at_its_cap_and_calls_a_never_failing_chain_infinite():
     from hybridctl.analysis import refined_mesh
     w = WHEEL.fixed_point(0.15)
+    lines = []
     _, _, capped = refined_mesh(WHEEL, [[w]], GaussianDisturbance(0.15, 0.06, 5), 1e-2, rtol=1e-9, max_count=20,
-                                progress=False)
+                                progress=False, report=lines.append)
     assert capped["counts"] == [5, 9, 17] and capped["converged"] is False and "max_count 20" in capped["stopped"]
+    # one line per grid, as it is meshed: a long refinement (the compass gait's: 20 min a grid) says where it stands
+    assert [line.split(" points")[0] for line in lines] == [f"disturbance grid of {n}" for n in (5, 9, 17)]
+    assert f"{capped['states'][2]} states" in lines[2] and f"{capped['mfpt_from_seed'][2]:.6g} steps" in lines[2]
+    assert "from the grid before" not in lines[0] and "from the grid before" in lines[1]
     mesh, result, calm = refined_mesh(WHEEL, [[w]], GaussianDisturbance(0.15, math.radians(1), 9), 1e-2,
                                       progress=False)
     assert result is None and calm["mfpt_from_seed"] == [math.inf, math.inf] and calm["converged"]

@@ -18,6 +18,7 @@ import dataclasses
 import math
 import os
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -49,6 +50,7 @@ def _saved_count(path: Path | None) -> int | None:
 def refined_mesh(section_map, seeds, disturbance, box_size: float, rtol: float = DEFAULT_REFINE_RTOL,
                  max_count: int = MAX_REFINED_DISTURBANCES, method: str = "auto",
                  checkpoint: str | os.PathLike | None = None, resume: bool = False,
+                 report: Callable[[str], None] | None = None,
                  **build_kwargs) -> tuple[ReachableMesh, MFPTResult | None, dict]:
     """Mesh ``section_map`` from ``seeds`` under ``disturbance``, refining its grid until the MFPT settles.
 
@@ -62,7 +64,9 @@ def refined_mesh(section_map, seeds, disturbance, box_size: float, rtol: float =
 
     ``checkpoint`` / ``resume``: the current grid's mesh checkpoint (:func:`build_mesh`); on resume
     the grids before it are meshed again (deterministic, and together about as costly as the last).
-    Other keyword arguments go to :func:`build_mesh`.
+    ``report``: called with one line per grid meshed (its points, states, the MFPT from the seeds and its change
+    from the grid before), so a long refinement says where it stands. Other keyword arguments go to
+    :func:`build_mesh`.
 
     Returns the finest mesh, its :class:`MFPTResult` (None where the chain almost never fails or the
     mesh is incomplete) and the record: rule, counts, states, MFPT from the seeds per grid, the
@@ -102,10 +106,13 @@ def refined_mesh(section_map, seeds, disturbance, box_size: float, rtol: float =
             result, value = None, math.inf
             record["never_fails_note"] = str(exc)
         record["mfpt_from_seed"].append(value)
+        change = _relative_change(value, record["mfpt_from_seed"][-2]) if len(record["mfpt_from_seed"]) >= 2 else None
+        if report is not None:
+            report(f"disturbance grid of {count} points: {mesh.size} states, MFPT from the seed {value:.6g} steps"
+                   + ("" if change is None else f", {change:.2%} from the grid before (stops at {rtol:.2%})"))
         if rule == "quantiles":
             return mesh, result, record
-        if len(record["mfpt_from_seed"]) >= 2:
-            change = _relative_change(value, record["mfpt_from_seed"][-2])
+        if change is not None:
             record["relative_change"] = change
             if change <= rtol:
                 record["converged"] = True

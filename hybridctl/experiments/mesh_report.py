@@ -155,7 +155,8 @@ def _mesh_report_in(out: Path, map_name: str, section_map, slopes, seed: list[fl
     mesh, result, refinement = refined_mesh(
         section_map, [seed], slopes, box_size, **(refine or {}), max_states=max_states, backend=backend,
         workers=workers, address=address, checkpoint=out / "mesh_checkpoint.npz", resume=resume, progress=progress,
-        checkpoint_every=checkpoint_every, checkpoint_minutes=checkpoint_minutes)
+        checkpoint_every=checkpoint_every, checkpoint_minutes=checkpoint_minutes,
+        report=(lambda line: print(line, flush=True)) if progress else None)
     slopes = dataclasses.replace(slopes, count=refinement["count"])     # the finest grid
     report = {} if command is None else {"command": command}
     report.update({"map": map_name, "seed_state": seed, "mesh": mesh.summary(),

@@ -98,7 +98,8 @@ def mfpt_vs_roughness(map_name: str = "rimless-wheel", out: str | Path = "runs/r
             started = time.perf_counter()
             mesh, _, refinement = refined_mesh(section_map, [seed], slopes, box_size, rtol=refine_rtol,
                                                max_count=max_disturbances, max_states=max_states,
-                                               progress=progress, force=force, **where)
+                                               progress=progress, force=force,
+                                               report=_printed(f"sigma {std:g}: ") if progress else None, **where)
             row = {"slope_std": std, "slope_std_deg": math.degrees(std), "states": mesh.size,
                    "complete": mesh.complete, "refinement": refinement,
                    "mesh_seconds": round(time.perf_counter() - started, 3)}
@@ -117,6 +118,11 @@ def mfpt_vs_roughness(map_name: str = "rimless-wheel", out: str | Path = "runs/r
         io.write_json(folder.path / SWEEP_FILES[0], record)
         plot_mfpt_vs_roughness(record, path=folder.path / SWEEP_FILES[1])
     return record
+
+
+def _printed(prefix: str):
+    """A ``report`` that prints each line after ``prefix``, at once."""
+    return lambda line: print(prefix + line, flush=True)
 
 
 def _rows_to_resume(path: Path, settings: dict) -> dict[float, dict]:
