@@ -146,6 +146,11 @@ def mesh_report(map_name: str = "rimless-wheel", out: str | Path = "runs/mesh", 
                                    monte_carlo_chunks, refine)
 
 
+def printed(prefix: str = ""):
+    """A ``report`` (of :func:`~hybridctl.analysis.refined_mesh`) that prints each line after ``prefix``, at once."""
+    return lambda line: print(prefix + line, flush=True)
+
+
 def _mesh_report_in(out: Path, map_name: str, section_map, slopes, seed: list[float], box_size: float, slope_mean: float,
                     slope_std: float, disturbances: int, max_states: int, monte_carlo: int,
                     sizes: Sequence[float] | None, backend: str, workers: int | None, resume: bool, progress: bool,
@@ -156,7 +161,7 @@ def _mesh_report_in(out: Path, map_name: str, section_map, slopes, seed: list[fl
         section_map, [seed], slopes, box_size, **(refine or {}), max_states=max_states, backend=backend,
         workers=workers, address=address, checkpoint=out / "mesh_checkpoint.npz", resume=resume, progress=progress,
         checkpoint_every=checkpoint_every, checkpoint_minutes=checkpoint_minutes,
-        report=(lambda line: print(line, flush=True)) if progress else None)
+        report=printed() if progress else None)
     slopes = dataclasses.replace(slopes, count=refinement["count"])     # the finest grid
     report = {} if command is None else {"command": command}
     report.update({"map": map_name, "seed_state": seed, "mesh": mesh.summary(),

@@ -24,7 +24,7 @@ from .. import io
 from ..analysis import DEFAULT_REFINE_RTOL, GaussianDisturbance, monte_carlo_mfpt, refined_mesh
 from ..limits import MAX_REFINED_DISTURBANCES, MAX_SIMULATION_STEPS, MAX_SWEEP_MONTE_CARLO_STEPS, check_at_most
 from ..viz.markov import plot_mfpt_vs_roughness
-from .mesh_report import MESH_DEFAULTS, guard_record, mesh_seed, section_map_by_name
+from .mesh_report import MESH_DEFAULTS, guard_record, mesh_seed, printed, section_map_by_name
 from .training import MESH_MARKERS, open_run_folder
 
 SWEEP_FILES = ("mfpt_vs_roughness.json", "mfpt_vs_roughness.png")
@@ -99,7 +99,7 @@ def mfpt_vs_roughness(map_name: str = "rimless-wheel", out: str | Path = "runs/r
             mesh, _, refinement = refined_mesh(section_map, [seed], slopes, box_size, rtol=refine_rtol,
                                                max_count=max_disturbances, max_states=max_states,
                                                progress=progress, force=force,
-                                               report=_printed(f"sigma {std:g}: ") if progress else None, **where)
+                                               report=printed(f"sigma {std:g}: ") if progress else None, **where)
             row = {"slope_std": std, "slope_std_deg": math.degrees(std), "states": mesh.size,
                    "complete": mesh.complete, "refinement": refinement,
                    "mesh_seconds": round(time.perf_counter() - started, 3)}
@@ -118,11 +118,6 @@ def mfpt_vs_roughness(map_name: str = "rimless-wheel", out: str | Path = "runs/r
         io.write_json(folder.path / SWEEP_FILES[0], record)
         plot_mfpt_vs_roughness(record, path=folder.path / SWEEP_FILES[1])
     return record
-
-
-def _printed(prefix: str):
-    """A ``report`` that prints each line after ``prefix``, at once."""
-    return lambda line: print(prefix + line, flush=True)
 
 
 def _rows_to_resume(path: Path, settings: dict) -> dict[float, dict]:
