@@ -168,6 +168,49 @@ class ProcessBackend(SerialBackend):
             self._pool = None
 
 
+PARALLEL_MIN_ROUND_SECONDS = 0.05
+"""A round of work estimated below this many seconds runs in this process (:class:`SizedRounds`): a local
+worker round trip costs about a millisecond and a Ray task several: the analytic rimless wheel's mesh took
+0.08 s on one Ray worker and 0.40 s on two (``benchmarks/ray_scaling.py``, 2026-12-05)."""
+
+
+class SizedRounds:
+    """Rounds of independent work units, each round run in this process or on a backend by its measured size.
+
+    ``make_backend()`` is called on the first round worth sending out (never, for work that stays small).
+    A round's cost is estimated from the seconds per unit of the rounds run here; while no round has run here
+    (the first), or the estimate is below ``min_seconds``, the round runs here (0: every round goes out).
+    The results must not depend on where a task runs (pure functions), so the choice only moves time.
+    ``rounds`` counts both kinds."""
+
+    def __init__(self, make_backend: Callable[[], Any], min_seconds: float = PARALLEL_MIN_ROUND_SECONDS):
+        self._make, self.backend, self.min_seconds = make_backend, None, float(min_seconds)
+        self.unit_seconds: float | None = None
+        self.rounds = {"in_process": 0, "backend": 0}
+
+    def here(self, units: float) -> bool:
+        """Whether a round of ``units`` work units runs in this process."""
+        return self.min_seconds > 0 and (self.unit_seconds is None or self.unit_seconds * units < self.min_seconds)
+
+    def run(self, units: float, in_process: Callable[[], Any], on_backend: Callable[[Any], Any]) -> Any:
+        """``in_process()`` (timed, to size later rounds) or ``on_backend(backend)``, by :meth:`here`."""
+        if self.here(units):
+            start = time.perf_counter()
+            result = in_process()
+            if units > 0:
+                self.unit_seconds = (time.perf_counter() - start) / units
+            self.rounds["in_process"] += 1
+            return result
+        self.rounds["backend"] += 1
+        return on_backend(self.made())
+
+    def made(self) -> Any:
+        """The backend, made now if it was not yet."""
+        if self.backend is None:
+            self.backend = self._make()
+        return self.backend
+
+
 _RAY_OPTIONS: contextvars.ContextVar[dict] = contextvars.ContextVar("hybridctl_ray_options", default={})
 
 

@@ -46,7 +46,8 @@ def test_mesh_on_worker_processes_matches_serial(section):
     seeds = section.apex_states(steps=400)
     pushes = x_pushes(15.0, 3)
     meshes = [build_mesh(section, seeds, pushes, box_size=2.0, max_states=12, backend=b, workers=2, batch_size=4,
-                         progress=False) for b in ("serial", "processes")]
+                         progress=False, in_process_below=0) for b in ("serial", "processes")]
+    assert meshes[1].rounds["backend"] >= 1                     # rounds went to the workers
     np.testing.assert_array_equal(meshes[0].states, meshes[1].states)
     np.testing.assert_array_equal(meshes[0].successors, meshes[1].successors)
 

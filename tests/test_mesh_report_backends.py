@@ -4,6 +4,7 @@ ran serially whatever the flags said)."""
 
 import json
 
+from hybridctl import parallel
 from hybridctl.analysis import reachable
 from hybridctl.cli import main
 from hybridctl.experiments.mesh_report import mesh_report
@@ -25,6 +26,8 @@ def test_monte_carlo_and_sizes_use_the_backend_and_give_the_same_numbers(tmp_pat
     serial = mesh_report("rimless-wheel", tmp_path / "serial", backend="serial", **settings)
     monkeypatch.setattr(reachable, "make_backend", counting)
     monkeypatch.setattr(reachable, "_backend", recording)
+    # every mesh round goes out (the wheel's rounds are cheap enough to stay in process)
+    monkeypatch.setattr(reachable, "SizedRounds", lambda make, below: parallel.SizedRounds(make, 0.0))
     pooled = mesh_report("rimless-wheel", tmp_path / "pooled", backend="processes", workers=2, **settings)
     # the meshes of the refined slope grid, two Monte Carlo estimates and two meshes of the sizes (0.05 and
     # 0.1): all on one pool, made once for the whole report (its workers start once, not once per stage)

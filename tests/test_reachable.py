@@ -125,9 +125,30 @@ def test_box_size_controls_the_mesh_size():
 def test_processes_backend_builds_the_same_mesh():
     args = (WHEEL, [[WHEEL.fixed_point(0.15)]], SLOPES, 1e-2)
     serial = build_mesh(*args, progress=False)
-    parallel = build_mesh(*args, backend="processes", workers=2, batch_size=16, progress=False)
+    parallel = build_mesh(*args, backend="processes", workers=2, batch_size=16, progress=False, in_process_below=0)
+    assert parallel.rounds["backend"] > 1 and parallel.rounds["in_process"] == 0
     np.testing.assert_array_equal(serial.successors, parallel.successors)
     np.testing.assert_array_equal(serial.states, parallel.states)
+
+
+def test_a_cheap_map_stays_in_process_and_starts_no_workers(monkeypatch):
+    """The analytic wheel's rounds cost well under PARALLEL_MIN_ROUND_SECONDS: on a processes backend the whole
+    mesh runs here, no pool is made, and the mesh equals the serial one; a round that costs more goes out."""
+    from hybridctl.analysis import reachable
+    made = []
+    monkeypatch.setattr(reachable, "_backend", lambda *args: made.append(args))
+    args = (WHEEL, [[WHEEL.fixed_point(0.15)]], SLOPES, 1e-2)
+    serial = build_mesh(*args, progress=False)
+    cheap = build_mesh(*args, backend="processes", workers=2, batch_size=16, progress=False)
+    assert made == [] and cheap.rounds == {"in_process": cheap.rounds["in_process"], "backend": 0}
+    np.testing.assert_array_equal(serial.successors, cheap.successors)
+    with pytest.raises(ValueError, match="^in_process_below must be"):
+        build_mesh(*args, in_process_below=-1.0, progress=False)
+    from hybridctl.parallel import SizedRounds
+    rounds = SizedRounds(lambda: "pool", min_seconds=0.05)
+    assert rounds.run(10, lambda: "here", lambda pool: pool) == "here"    # the first round is measured here
+    rounds.unit_seconds = 0.01                                            # 10 units: 0.1 s > 0.05 s
+    assert rounds.run(10, lambda: "here", lambda pool: pool) == "pool" and rounds.run(4, lambda: "here", str) == "here"
 
 
 def test_cap_marks_the_mesh_incomplete_and_resume_finishes_it(tmp_path):
@@ -237,8 +258,8 @@ def test_ray_backend_builds_the_same_mesh_and_monte_carlo(local_ray):
     assert local_ray.cluster_resources().get("CPU") == 2
     args = (WHEEL, [[WHEEL.fixed_point(0.15)]], SLOPES, 1e-2)
     serial = build_mesh(*args, batch_size=16, progress=False)
-    on_ray = build_mesh(*args, backend="ray", workers=2, batch_size=16, progress=False)
-    assert on_ray.size == serial.size > 16 and on_ray.complete          # more than one batch went out
+    on_ray = build_mesh(*args, backend="ray", workers=2, batch_size=16, progress=False, in_process_below=0)
+    assert on_ray.size == serial.size > 16 and on_ray.complete and on_ray.rounds["backend"] > 1   # batches went out
     np.testing.assert_array_equal(serial.successors, on_ray.successors)
     np.testing.assert_array_equal(serial.states, on_ray.states)
     assert local_ray.is_initialized()          # the backend did not shut down an instance it did not start

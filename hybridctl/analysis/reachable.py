@@ -40,7 +40,7 @@ import scipy.sparse as sp
 
 from ..io import atomic_write
 from ..limits import MAX_DISTURBANCES, MAX_MONTE_CARLO, check_at_most, check_fits_memory
-from ..parallel import make_backend
+from ..parallel import PARALLEL_MIN_ROUND_SECONDS, SizedRounds, make_backend
 from .markov import MFPTResult, _krylov_solve, absorbing_mfpt, states_that_can_fail_surely
 from .mesh import box_keys
 from .poincare import FiniteDisturbances, SectionMap
@@ -99,6 +99,7 @@ class ReachableMesh:
     wall_time: float = 0.0
     settings: dict = field(default_factory=dict)
     owners: np.ndarray | None = None   # (n_samples,) box id of each sample; None: one sample per box
+    rounds: dict = field(default_factory=dict)   # expansion rounds run in process / on the backend (build_mesh)
 
     @property
     def size(self) -> int:
@@ -284,7 +285,8 @@ def build_mesh(section_map: SectionMap, seeds, disturbances, box_size: float, me
                max_states: int = 1_000_000, backend: str = "serial", workers: int | None = None,
                address: str | None = None, batch_size: int = 256, checkpoint: str | os.PathLike | None = None, checkpoint_every: int = 20,
                resume: bool = False, progress: bool = True, checkpoint_minutes: float = 5.0,
-               samples_per_box: int = 1, force: bool = False) -> ReachableMesh:
+               samples_per_box: int = 1, force: bool = False,
+               in_process_below: float = PARALLEL_MIN_ROUND_SECONDS) -> ReachableMesh:
     """Reachable-state mesh of ``section_map`` from ``seeds`` under ``disturbances`` (thesis Alg. 7).
 
     ``disturbances``: a :class:`FiniteDisturbances`, anything with ``finite_set()`` (e.g.
@@ -292,7 +294,10 @@ def build_mesh(section_map: SectionMap, seeds, disturbances, box_size: float, me
     side of a box in normalised units, ``(state - mean) / std`` (default mean 0, std 1: the
     state's own units). ``max_states``: a cap; when reached, building stops and the mesh is
     marked incomplete. Seeds that fail or are non-finite raise ValueError. Batches run on
-    ``backend`` (``workers``; ``address``: the Ray cluster, default ``RAY_ADDRESS``).
+    ``backend`` (``workers``; ``address``: the Ray cluster, default ``RAY_ADDRESS``), ``batch_size``
+    states a task; a round whose cost, measured on the rounds run here, is below ``in_process_below``
+    seconds runs in this process instead (0: every round goes out), and the backend is
+    started only when a round goes out. The mesh is the same either way; ``mesh.rounds`` counts both.
 
     ``checkpoint``: a .npz file the mesh so far is written to (atomically) every
     ``checkpoint_every`` batches and at least every ``checkpoint_minutes`` of wall time (0:
@@ -317,6 +322,8 @@ def build_mesh(section_map: SectionMap, seeds, disturbances, box_size: float, me
     if not (isinstance(samples_per_box, (int, np.integer)) and samples_per_box >= 1):
         raise ValueError(f"samples_per_box must be an integer >= 1, got {samples_per_box!r}")
     samples_per_box = int(samples_per_box)
+    if not (isinstance(in_process_below, (int, float)) and math.isfinite(in_process_below) and in_process_below >= 0):
+        raise ValueError(f"in_process_below must be a finite number of seconds >= 0, got {in_process_below!r}")
     count = getattr(disturbances, "count", None) if hasattr(disturbances, "finite_set") else len(disturbances)
     if isinstance(count, (int, np.integer)):  # before a Gaussian's quantiles are computed
         check_disturbances(int(count), max_states, samples_per_box, force)
@@ -389,16 +396,21 @@ def build_mesh(section_map: SectionMap, seeds, disturbances, box_size: float, me
     start = time.perf_counter()
     complete = True
     bar = tqdm(total=len(mesh_states), initial=len(successors), desc="mesh", unit="state", disable=not progress)
-    pool = _backend(backend, workers, address)
+    # a round whose measured cost is small runs here (a cheap formula map never waits on workers); the
+    # backend is made on the first round worth sending out, with batch_size states per worker
+    rounds = SizedRounds(lambda: _backend(backend, workers, address), in_process_below)
     last_checkpoint = time.monotonic()
     try:
         batches = 0
         while len(successors) < len(mesh_states):
             lo = len(successors)
-            hi = min(len(mesh_states), lo + batch_size * getattr(pool, "workers", 1))
+            here = backend == "serial" or rounds.here(min(batch_size, len(mesh_states) - lo) * len(values))
+            hi = min(len(mesh_states), lo + batch_size * (1 if here else getattr(rounds.made(), "workers", 1)))
             chunk = np.array(mesh_states[lo:hi])
             parts = [(section_map, chunk[i:i + batch_size], values) for i in range(0, hi - lo, batch_size)]
-            nxt = np.concatenate(pool.map(_expand, parts))            # (hi - lo, K, dim), in order
+            nxt = rounds.run(0 if here and backend == "serial" else (hi - lo) * len(values),
+                             lambda: _expand((section_map, chunk, values)),
+                             lambda pool: np.concatenate(pool.map(_expand, parts)))    # (hi - lo, K, dim), in order
             failed = np.isnan(nxt).any(axis=2)
             for row, fail_row in zip(nxt, failed):
                 ids = np.zeros(len(values), dtype=np.int64)
@@ -427,14 +439,15 @@ def build_mesh(section_map: SectionMap, seeds, disturbances, box_size: float, me
                 break
     finally:
         bar.close()
-        _release(pool)
+        if rounds.backend is not None:
+            _release(rounds.backend)
     if path is not None:
         _save_checkpoint(path, mesh_states, successors, box_size, len(values), earlier + time.perf_counter() - start,
                          owners, samples_per_box)
     return ReachableMesh(np.array(mesh_states).reshape(-1, dim),
                          np.array(successors, dtype=np.int64).reshape(-1, len(values)), weights, box_size, mean, std,
                          np.array(seed_ids, dtype=np.int64), complete, earlier + time.perf_counter() - start, settings,
-                         None if samples_per_box == 1 else np.array(owners, dtype=np.int64))
+                         None if samples_per_box == 1 else np.array(owners, dtype=np.int64), dict(rounds.rounds))
 
 
 @dataclass
