@@ -43,6 +43,8 @@ EXPECTED_LINES = {
         "hopper error record: results/ch5/hopper_error.json",   # the mesh-error decomposition (issue 16)
         "Table 5.1 record: results/ch5/table51.json",         # four training regimes' mesh sizes (issue 16)
         "Ulam record: results/ch5/hopper_ulam.json",          # several samples per box (issue 16)
+        "compass gait record: results/ch5/compass_gait/hip_pd.json",   # the compass gait's records are read
+        "hip PD walks longer than the passive walker: True",          # by Monte Carlo, 95 % intervals apart
     ],
     "05_analytic_policy_gradients.ipynb": [
         "balanced: True",                 # the shipped PAPG cart-pole swing-up + gate + LQR in Drake
