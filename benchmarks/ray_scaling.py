@@ -1,18 +1,21 @@
-"""Ray scaling of three parallel workloads on 1 and 2 workers, in one run: a Drake balance map, a
+"""Ray scaling of three parallel workloads on 1, 2 (and more) workers, in one run: a Drake balance map, a
 reachable-mesh build and a fine-tuning update. Prints one JSON document.
 
-    .venv/bin/python benchmarks/ray_scaling.py [--quick] [--repeats 2] [--out FILE]
+    .venv/bin/python benchmarks/ray_scaling.py [--quick] [--repeats 2] [--workers 1 2 4] [--out FILE]
 
-Each workload runs on a new local Ray instance (127.0.0.1) of 1 CPU and of 2 CPUs (``workers``),
+Each workload runs on a new local Ray instance (127.0.0.1) of as many CPUs as ``workers`` (1 and 2 by default;
+more than the machine's cores oversubscribe it, which the record's machine section shows),
 started before the clock starts and warmed by one untimed run (workers import hybridctl and build
 their simulators once), so the times are the work and Ray's scheduling, not start-up. Every run
-of a workload must give the same result on 1 and 2 workers (the script fails otherwise);
-``speedup`` is the 1-worker time over the 2-worker time, measured in the same run (the peer).
+of a workload must give the same result on every worker count (the script fails otherwise);
+``speedup`` is the 1-worker time over the 2-worker time and ``speedup_N`` over the N-worker time, measured in
+the same run (the peer).
 
 * ``balance_map``: the energy swing-up of the acrobot from a grid of rest states, Drake engine,
   chunks of starts as Ray tasks (:func:`hybridctl.experiments.balance_map`, ``backend="ray"``);
 * ``mesh``: the rimless wheel's reachable mesh under 25 Gaussian slopes
-  (:func:`hybridctl.analysis.build_mesh`, ``backend="ray"``), batches of states as tasks;
+  (:func:`hybridctl.analysis.build_mesh`, ``backend="ray"``), batches of states as tasks, or in process
+  where a round's measured cost is under ``PARALLEL_MIN_ROUND_SECONDS`` (``rounds`` says where they ran);
 * ``finetune_update``: one update of fine-tuning (thesis Ch. 6) of a linear Pendulum-v1 policy,
   2 x 8 perturbed rollouts in chunks as tasks.
 
@@ -53,7 +56,11 @@ def _mesh(workers: int, box: float):
     mesh = build_mesh(wheel, [[wheel.fixed_point(0.15)]], GaussianDisturbance(0.15, 0.06, 25), box,
                       backend="ray", workers=workers, batch_size=16, progress=False)
     summary = {k: v for k, v in mesh.summary().items() if k != "wall_time_s"}
+    _ROUNDS[workers] = dict(mesh.rounds)
     return np.asarray(mesh.states).round(12).tolist(), summary
+
+
+_ROUNDS: dict[int, dict] = {}
 
 
 def _finetune(workers: int, directions: int):
@@ -73,14 +80,15 @@ def _finetune(workers: int, directions: int):
 WORKLOADS = {"balance_map": _balance_map, "mesh": _mesh, "finetune_update": _finetune}
 
 
-def measure(name: str, size, repeats: int) -> dict:
-    """Seconds of ``name`` on a local Ray instance of 1 and of 2 workers (median of ``repeats``)."""
+def measure(name: str, size, repeats: int, worker_counts=(1, 2)) -> dict:
+    """Seconds of ``name`` on a local Ray instance of each of ``worker_counts`` workers (median of ``repeats``)."""
     import ray
 
     from hybridctl.parallel import make_backend
 
     out, results = {}, {}
-    for workers in (1, 2):
+    _ROUNDS.clear()
+    for workers in worker_counts:
         with make_backend("ray", workers=workers):     # a new local instance of `workers` CPUs
             WORKLOADS[name](workers, size)              # warm: workers import and build once
             times = []
@@ -90,10 +98,16 @@ def measure(name: str, size, repeats: int) -> dict:
                 times.append(time.perf_counter() - start)
             out[f"{workers}_worker_s"] = statistics.median(times)
         assert not ray.is_initialized()
-    if results[1] != results[2]:
-        raise SystemExit(f"{name}: 1 and 2 workers gave different results")
-    out["speedup"] = out["1_worker_s"] / out["2_worker_s"]
+    if any(results[w] != results[worker_counts[0]] for w in worker_counts):
+        raise SystemExit(f"{name}: {', '.join(map(str, worker_counts))} workers gave different results")
+    if 1 in worker_counts and 2 in worker_counts:
+        out["speedup"] = out["1_worker_s"] / out["2_worker_s"]
+    for w in worker_counts:
+        if w > 2 and 1 in worker_counts:
+            out[f"speedup_{w}"] = out["1_worker_s"] / out[f"{w}_worker_s"]
     out["same_result"] = True
+    if _ROUNDS:
+        out["rounds"] = {str(w): r for w, r in _ROUNDS.items()}
     return out
 
 
@@ -102,12 +116,17 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="small sizes (structure check)")
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--out", type=Path, default=None)
+    parser.add_argument("--workers", type=int, nargs="+", default=[1, 2],
+                        help="worker counts, each a new local Ray instance of as many CPUs (default 1 2; 1 to 16)")
     args = parser.parse_args()
+    if not (1 in args.workers and 2 in args.workers and all(1 <= w <= 16 for w in args.workers)):
+        parser.error(f"--workers must include 1 and 2, each in [1, 16], got {args.workers}")
+    workers = tuple(sorted(set(args.workers)))
     torch.set_num_threads(1)
     sizes = {"balance_map": 4 if args.quick else 8, "mesh": 2e-2 if args.quick else 5e-3,
              "finetune_update": 4 if args.quick else 16}
     repeats = 1 if args.quick else args.repeats
-    report = {name: {"size": sizes[name], **measure(name, sizes[name], repeats)} for name in WORKLOADS}
+    report = {name: {"size": sizes[name], **measure(name, sizes[name], repeats, workers)} for name in WORKLOADS}
     report["balance_map"]["what"] = f"acrobot, energy swing-up, {sizes['balance_map']}^2 starts of 2 s, Drake"
     report["mesh"]["what"] = f"rimless wheel, 25 slopes, box {sizes['mesh']}"
     report["finetune_update"]["what"] = f"Pendulum-v1 linear policy, 2 x {sizes['finetune_update']} rollouts"
