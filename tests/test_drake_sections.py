@@ -87,6 +87,9 @@ def test_map_is_a_pure_function_of_state_and_slope():
 
 
 CHATTERING = ([-0.231, 0.0101, -0.1938], 0.0291)   # legs together, heel strikes in a Zeno sequence: ran for minutes
+# (at integrator accuracy 1e-4, where the maps ran before their accuracy reached the integrator: 24,650 strikes
+# by the 50,000-step guard; at the default 1e-7 the walker rolls back after 9 strikes, in 0.05 s)
+CHATTERS = 1e-4
 
 
 @pytest.mark.timeout(60)
@@ -104,10 +107,10 @@ def test_compass_gait_falling_start_returns_within_the_guard():
 @pytest.mark.timeout(60)
 def test_compass_gait_integrator_step_and_wall_time_guards():
     from hybridctl.drake import DrakeCompassGaitMap
-    walker = DrakeCompassGaitMap(max_integrator_steps=200)
+    walker = DrakeCompassGaitMap(max_integrator_steps=200, accuracy=CHATTERS)
     walker.max_strikes = None
     assert walker.step(*CHATTERING) is None and walker.last_failure == "integrator-step guard"
-    walker = DrakeCompassGaitMap(wall_limit=0.05)
+    walker = DrakeCompassGaitMap(wall_limit=0.05, accuracy=CHATTERS)      # chatters for about 5 s unguarded
     walker.max_strikes = None
     assert walker.step(*CHATTERING) is None and walker.last_failure == "wall-time guard"
     assert walker.guard_trips["wall-time guard"] == 1
