@@ -385,3 +385,16 @@ def test_a_sweep_writes_each_row_as_it_comes_and_resume_keeps_them(tmp_path, mon
         mfpt_sweep.mfpt_vs_roughness("rimless-wheel", tmp_path / "killed", [0.06, 0.08], box_size=1e-2)
     left = read_json(tmp_path / "killed" / "mfpt_vs_roughness.json")
     assert not left["finished"] and [r["slope_std"] for r in left["rows"]] == [0.06]
+
+
+def test_grid_spacing_is_measured_in_the_central_std():
+    """The settling rule's spacing unit: a Gaussian's std, and half the central 68.3 % of any scipy distribution
+    (finite where heavy tails have no std: Student t with 2 degrees of freedom)."""
+    import scipy.stats as stats
+    from hybridctl.analysis import ScipyDisturbance
+    from hybridctl.analysis.refine import _spacing_std
+    assert ScipyDisturbance(stats.norm(0.1, 0.05)).central_std == pytest.approx(0.05)
+    assert _spacing_std(ScipyDisturbance(stats.norm(0.1, 0.05), 25)) == pytest.approx(0.5)
+    assert _spacing_std(GaussianDisturbance(0.1, 0.05, 9)) == pytest.approx(1.5)
+    heavy = ScipyDisturbance(stats.t(2, scale=0.05))
+    assert math.isinf(heavy.distribution.std()) and 0.05 < heavy.central_std < 0.07

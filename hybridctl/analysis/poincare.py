@@ -201,6 +201,11 @@ class GaussianDisturbance:
         if not (math.isfinite(self.tails) and self.tails > 0):
             raise ValueError(f"GaussianDisturbance tails must be a finite number of std > 0, got {self.tails!r}")
 
+    @property
+    def central_std(self) -> float:
+        """Half the width of the central 68.3 %: the std."""
+        return float(self.std)
+
     def finite_set(self) -> FiniteDisturbances:
         """``"grid"``: points mean + std z, z equally spaced on [-tails, tails], weights Phi(cell);
         ``"quantiles"``: mean + std * Phi^-1((k + 1/2) / count), equal weights."""
@@ -237,6 +242,11 @@ class ScipyDisturbance:
         _check_rule("ScipyDisturbance", self.count, self.rule)
         if not 0 < self.tail < 0.5:
             raise ValueError(f"ScipyDisturbance tail must be a probability in (0, 0.5), got {self.tail!r}")
+
+    @property
+    def central_std(self) -> float:
+        """Half the width of the central 68.3 % (a Gaussian's std; finite for heavy tails, whose std is not)."""
+        return float(self.distribution.ppf(ndtr(1.0)) - self.distribution.ppf(ndtr(-1.0))) / 2.0
 
     def finite_set(self) -> FiniteDisturbances:
         """The ``rule``'s points of the distribution (module docstring)."""

@@ -398,18 +398,19 @@ def build_mesh(section_map: SectionMap, seeds, disturbances, box_size: float, me
     bar = tqdm(total=len(mesh_states), initial=len(successors), desc="mesh", unit="state", disable=not progress)
     # a round whose measured cost is small runs here (a cheap formula map never waits on workers); the
     # backend is made on the first round worth sending out, with batch_size states per worker
-    rounds = SizedRounds(lambda: _backend(backend, workers, address), in_process_below)
+    # (serial: every round here, which is what the serial backend would do)
+    rounds = SizedRounds(lambda: _backend(backend, workers, address),
+                         math.inf if backend == "serial" else in_process_below)
     last_checkpoint = time.monotonic()
     try:
         batches = 0
         while len(successors) < len(mesh_states):
             lo = len(successors)
-            here = backend == "serial" or rounds.here(min(batch_size, len(mesh_states) - lo) * len(values))
+            here = rounds.here(min(batch_size, len(mesh_states) - lo) * len(values))
             hi = min(len(mesh_states), lo + batch_size * (1 if here else getattr(rounds.made(), "workers", 1)))
             chunk = np.array(mesh_states[lo:hi])
             parts = [(section_map, chunk[i:i + batch_size], values) for i in range(0, hi - lo, batch_size)]
-            nxt = rounds.run(0 if here and backend == "serial" else (hi - lo) * len(values),
-                             lambda: _expand((section_map, chunk, values)),
+            nxt = rounds.run((hi - lo) * len(values), lambda: _expand((section_map, chunk, values)),
                              lambda pool: np.concatenate(pool.map(_expand, parts)))    # (hi - lo, K, dim), in order
             failed = np.isnan(nxt).any(axis=2)
             for row, fail_row in zip(nxt, failed):
