@@ -467,9 +467,41 @@ def test_compiled_policy_steps_give_the_eager_gradients():
 def test_records_before_compile_steps_resume_one_compiled_call_per_step():
     assert APGConfig.upgrade_recorded({"compile": True})["compile_steps"] == 1
     assert APGConfig.upgrade_recorded({"compile_steps": 10})["compile_steps"] == 10
-    assert APGConfig().compile_steps == 10
+    assert APGConfig().compile_steps is None                                  # about 40 integrator steps a call
+    from hybridctl.learn.apg.compiled import policy_steps_per_call
+    assert [policy_steps_per_call(s) for s in (1, 4, 5, 20, 80)] == [40, 10, 8, 2, 1]
     with pytest.raises(ValueError, match="compile_steps"):
         APGConfig(compile_steps=0).validate()
+
+
+def test_compile_auto_compiles_long_runs_only_and_reads_the_former_true_false():
+    """``APGConfig.compile``: "auto" (the default) compiles a run of at least APG_AUTO_COMPILE_MIN_STEPS policy
+    steps and falls back to eager if compiling fails; "on" raises instead; "off" and short runs stay eager.
+    Building a problem compiles nothing (that happens at the first call), so this is cheap."""
+    from hybridctl.learn.apg.compiled import APG_AUTO_COMPILE_MIN_STEPS
+    from hybridctl.learn.apg.core import APGProblem, policy_step
+    from hybridctl.systems.compiled import LazyCompiled
+
+    system = systems.load("pendulum")
+    short = APGConfig.preset("reduced", method="papg", epochs=1, population=2, elites=1, horizon=20)
+    assert short.compile == "auto" and short.total_policy_steps(2) < APG_AUTO_COMPILE_MIN_STEPS
+    problem = APGProblem.build(system, short, 2)
+    assert problem.step is policy_step and problem.steps is None
+    epochs = -(-APG_AUTO_COMPILE_MIN_STEPS // short.total_policy_steps(2))      # just long enough
+    for mode, strict in (("auto", False), ("on", True)):
+        config = APGConfig.preset("reduced", method="papg", epochs=epochs, population=2, elites=1, horizon=20,
+                                  compile=mode)
+        problem = APGProblem.build(system, config, 2)
+        assert isinstance(problem.steps, LazyCompiled) and problem.steps.strict is strict
+    on_short = APGProblem.build(system, APGConfig.preset("reduced", method="papg", epochs=1, population=2, elites=1,
+                                                         horizon=20, compile="on"), 2)
+    assert isinstance(on_short.steps, LazyCompiled)                              # "on" compiles any run
+    off = APGConfig.preset("reduced", method="papg", epochs=epochs, population=2, elites=1, horizon=20, compile="off")
+    assert APGProblem.build(system, off, 2).step is policy_step
+    assert APGConfig(compile=True).compile == "on" and APGConfig(compile=False).compile == "off"
+    assert APGConfig(**APGConfig.upgrade_recorded({"compile": False})).compile == "off"
+    with pytest.raises(ValueError, match="compile must be one of"):
+        APGConfig(compile="sometimes").validate()
 
 
 def test_fig_7_1_diagnostics_gradient_norm_grows_with_horizon_and_landscape_probe():

@@ -248,3 +248,52 @@ def test_compiled_gate_fit_follows_the_eager_fit(one_torch_thread):
             torch.manual_seed(seed)
             fit_gate(GateNet(system), states, labels, 2, batch_size=512, compiled=True)
     assert COMPILED_GATE_GRADS.enabled
+
+
+def test_compile_garbage_freezes_after_a_new_graph_and_releases_at_the_end(monkeypatch):
+    """A training run's full garbage collections skip what a compile left: after an update in which a graph was
+    built, the survivors are frozen (once per new graph, not per update), and the run's end unfreezes them."""
+    import gc
+
+    from hybridctl.systems import compiled
+
+    graphs = {"n": 0}
+    monkeypatch.setattr(compiled, "compiled_graph_count", lambda: graphs["n"])
+    gc.unfreeze()
+    keeper = compiled.CompileGarbage()
+    keeper.settle()
+    assert gc.get_freeze_count() == 0 and not keeper.froze            # nothing compiled: nothing frozen
+    graphs["n"] = 1                                                    # an update built a graph
+    keeper.settle()
+    frozen = gc.get_freeze_count()
+    assert frozen > 0 and keeper.froze
+    survivor = [object() for _ in range(10)]
+    keeper.settle()                                                    # no new graph: no second freeze
+    assert gc.get_freeze_count() == frozen
+    keeper.release()
+    assert gc.get_freeze_count() == 0 and not keeper.froze and survivor
+
+
+def test_a_training_run_freezes_after_a_compile_and_releases_at_its_end(monkeypatch):
+    """The training skeleton settles after each update (here every update "built a graph") and releases at its
+    end: objects are frozen during the run and none after it."""
+    import gc
+
+    from hybridctl.learn import SAC
+    from hybridctl.learn.callbacks import Callback
+
+    calls = {"n": 0}
+
+    def more_graphs():
+        calls["n"] += 1
+        return calls["n"]
+    monkeypatch.setattr(compiled, "compiled_graph_count", more_graphs)
+    seen = []
+
+    class Watch(Callback):
+        def on_update(self, learner):
+            seen.append(gc.get_freeze_count())
+    gc.unfreeze()
+    SAC("pendulum", total_steps=60, num_envs=2, exploration_steps=20, hidden_size=8, steps_per_update=10).learn(
+        progress=False, callback=Watch())
+    assert seen and max(seen) > 0 and gc.get_freeze_count() == 0

@@ -33,6 +33,7 @@ import numpy as np
 import torch
 
 from ..io import locked_folder
+from ..systems.compiled import CompileGarbage
 from . import checkpoint as ckpt
 from .callbacks import CallbackList, progress_bar
 from .checkpoint import PROGRESS_FILE, CheckpointError
@@ -267,6 +268,7 @@ class Run:
         self.checkpoint_seconds = float(checkpoint_seconds)
         self._last_checkpoint = time.monotonic()
         self._last_curves: float | None = None   # when training_curves.png was last drawn
+        self._compile_garbage = CompileGarbage()   # full GC passes skip what a compile left (settled per update)
 
     def checkpoint_due(self) -> bool:
         """Whether ``checkpoint_seconds`` of wall time passed since the run began or last checkpointed."""
@@ -289,6 +291,7 @@ class Run:
 
     def after_update(self, **postfix) -> None:
         """An update round done: call ``on_update`` (False stops the run)."""
+        self._compile_garbage.settle()
         if postfix:
             self.bar.set_postfix(postfix, refresh=False)
         if self.callbacks.on_update(self.learner) is False:
@@ -343,7 +346,8 @@ class Run:
                 self.checkpoint_if_due(by_count)
 
     def close(self) -> None:
-        """Close the bar and the log."""
+        """Close the bar and the log; the collector walks every object again."""
+        self._compile_garbage.release()
         self.bar.close()
         if self.logger is not None:
             self.logger.close()

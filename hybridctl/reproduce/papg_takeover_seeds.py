@@ -5,7 +5,7 @@ and its 11 x 11 Drake balance map, into results/ch7/papg-takeover-cartpole.json 
     hybridctl train papg cartpole --takeover lqr --policy mlp:32,32 --horizon 60 --batch 16 \\
         --start-noise none --reward-kind angle_cosine --position-weight 0.1 --velocity-penalty 0.01 \\
         --clip 10 --lr-start 3e-3 --lr-end 1e-4 --apg-iterations 100 --epochs 40 --population 8 \\
-        --elites 3 --compile --seed S --out runs/ch7/papg-takeover-cartpole-sS
+        --elites 3 --compile on --seed S --out runs/ch7/papg-takeover-cartpole-sS
     python -m hybridctl.reproduce.papg_takeover_seeds runs/explore/I2 runs/ch7/papg-takeover-cartpole-s1 ...
 
 The balance maps run on ``--backend``/``--workers``/``--address`` (default: serial, in this process).

@@ -65,8 +65,9 @@ Interactions are counted honestly: K x N x T policy steps per APG iteration (x t
 integrator sub-steps per policy step for the physics steps, logged separately).
 
 Speed: ``APGConfig.compile`` runs the per-step work (observe, act, sub-steps, reward) through
-``torch.compile``; measured here (benchmarks/apg.py, 24 x 4 x 500 acrobot, float32, 1 thread)
-1.22 s per eager iteration, 0.23 s compiled, 30 s for the loop over members.
+``torch.compile`` (``"auto"``, the default: runs of at least 5e6 policy steps; :mod:`.compiled`); measured
+here (benchmarks/apg.py, 24 x 4 x 500 acrobot, float32, 1 thread) 1.22 s per eager iteration, 0.14-0.23 s
+compiled, 30 s for the loop over members.
 
 Results: with ``takeover="lqr"`` PAPG trains a cart-pole swing-up that balances in Drake
 (models/policies/papg-cartpole: 93.4 % of the 11 x 11 balance map; seeds 0-3: 71-93 %, ~200 s

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 from ... import systems as systems_mod
 from ...parallel import BACKENDS
+from ...systems.compiled import COMPILE_MODES
 from ..config_check import check_fields, check_types
 from ..policies import KINDS as POLICY_KINDS
 from ..config_check import check_device_field
@@ -64,11 +65,14 @@ class APGConfig:
     normalize: bool = True             # running obs statistics, updated once per epoch, frozen during APG
     #                                    (implementation notes Ch. 7)
     dtype: str = "float32"             # "float32" (as JAX's default in the thesis' Brax) or "float64"
-    compile: bool = False              # hybridctl: torch.compile the per-step work (policy, sub-steps, reward);
-    #                                    measured 3.9x faster at 24 x 4 here, after ~30 s of compiling per shape
-    compile_steps: int = 10            # hybridctl: policy steps per compiled call (with compile); 1: one call per
-    #                                    step (the records before this field). Acrobot, T 500, 24 x 4: 0.35 s per
-    #                                    APG iteration at 1, 0.17 s at 10 (benchmarks/apg.py --compile-steps)
+    compile: str = "auto"              # hybridctl: torch.compile the per-step work (policy, sub-steps, reward):
+    #                                    "on", "off" or "auto" (runs of >= compiled.APG_AUTO_COMPILE_MIN_STEPS policy
+    #                                    steps; a failure to compile falls back to eager). Older records' true /
+    #                                    false read as "on" / "off". 5-15x faster an iteration once compiled
+    compile_steps: int | None = None   # hybridctl: policy steps per compiled call (with compile); 1: one call per
+    #                                    step (the records before this field); None: about compiled.COMPILED_INTEGRATOR_
+    #                                    STEPS integrator steps a call (10 at 4 sub-steps). Acrobot, T 500, 24 x 4:
+    #                                    0.35 s per APG iteration at 1, 0.17 s at 10 (benchmarks/apg.py)
     # --- APG
     batch: int = 4                     # N starts per APG iteration, thesis Sec. 7.3.7
     apg_iterations: int = 100          # APG iterations per CE epoch, thesis Sec. 7.3.7 ("APG Epochs")
@@ -105,6 +109,15 @@ class APGConfig:
     #                                    fine-tuning's; None: RAY_ADDRESS, else a new local Ray instance (backend
     #                                    "ray" only). Older checkpoints recorded it as ``ray_address``
 
+    def __post_init__(self):
+        if isinstance(self.compile, bool):   # the field's former type: true / false in older records and calls
+            self.compile = "on" if self.compile else "off"
+
+    def total_policy_steps(self, members: int) -> int:
+        """Policy steps of the whole run for ``members`` members (x batch x horizon x APG iterations x
+        epochs): what ``compile = "auto"`` weighs against its compile time."""
+        return int(members) * self.batch * self.horizon * self.apg_iterations * self.epochs
+
     RENAMED = {"ray_address": "address"}
     """Fields older checkpoints recorded under another name (old name -> today's), see :meth:`upgrade_recorded`."""
 
@@ -131,11 +144,13 @@ class APGConfig:
         check_types(self)
         check_fields(self, integers_from_1=("horizon", "batch", "apg_iterations", "short_horizon", "population",
                                             "elites", "rank_window", "epochs", "checkpoint_every", "eval_episodes",
-                                            "torch_threads", "compile_steps"),
+                                            "torch_threads"),
                      integers_from_0=("seed",), positive=("lr_start", "lr_end", "grad_bound"))
+        if self.compile_steps is not None:
+            check_fields(self, integers_from_1=("compile_steps",))
         parse_policy(self.policy)
         for name, options in (("method", METHODS), ("observation", OBSERVATIONS), ("takeover", TAKEOVERS),
-                              ("backend", BACKENDS),
+                              ("backend", BACKENDS), ("compile", COMPILE_MODES),
                               ("clip_mode", ("norm", "value")), ("dtype", ("float32", "float64"))):
             if getattr(self, name) not in options:
                 raise ValueError(f"APGConfig.{name} must be one of {options}, got {getattr(self, name)!r}")

@@ -28,9 +28,11 @@ import torch
 
 from ...limits import MAX_SIMULATION_STEPS, check_at_most
 from ...systems import System
+from ...systems.compiled import wants_compile
 from ...systems.switched import CostToGoGate, SwitchedController, gate_command, switched_decision
 from ..policies import Policy, PolicyPopulation
 from ..run import check_finite, seeded
+from .compiled import APG_AUTO_COMPILE_MIN_STEPS, LazyCompiled, compiled, policy_steps_per_call
 from .config import APGConfig, parse_policy
 
 __all__ = ["APGProblem", "Phase", "BatchedAdam", "LQRTakeover", "takeover_controller",
@@ -158,15 +160,9 @@ class LQRTakeover:
         return x, mode
 
 
-_COMPILED_STEP = None
-
-
-def compiled_policy_step():
+def compiled_policy_step(strict: bool = True) -> LazyCompiled:
     """:func:`policy_step` through ``torch.compile`` (compiled on first use per shape; one shared cache)."""
-    global _COMPILED_STEP
-    if _COMPILED_STEP is None:
-        _COMPILED_STEP = torch.compile(policy_step, dynamic=False)
-    return _COMPILED_STEP
+    return compiled(policy_step, strict)
 
 
 def policy_steps(system: System, pop: PolicyPopulation, x: torch.Tensor, h: torch.Tensor, substeps: int,
@@ -191,10 +187,7 @@ def _add_observations(obs: torch.Tensor, obs_dim: int, o_sum: torch.Tensor, o_sq
     return o_sum + od.sum(0), o_sq + (od * od).sum(0)
 
 
-_COMPILED_STEPS = None
-
-
-def compiled_policy_steps():
+def compiled_policy_steps(strict: bool = True) -> LazyCompiled:
     """:func:`policy_steps` through ``torch.compile``: ``count`` policy steps (each with its integrator
     sub-steps, reward and observation sums) as one compiled call, forward and backward. One graph per
     distinct ``count`` (a run needs one or two: the chunk and a remainder), compiled on first use.
@@ -203,10 +196,7 @@ def compiled_policy_steps():
     the cost is the calls around it (measured on the acrobot task, T = 500, 5 sub-steps: 0.35 s per
     APG iteration compiled per step, 0.17 s with 10 steps per call; 25 steps per call compiled for
     6 minutes and ran no faster)."""
-    global _COMPILED_STEPS
-    if _COMPILED_STEPS is None:
-        _COMPILED_STEPS = torch.compile(policy_steps, dynamic=False)
-    return _COMPILED_STEPS
+    return compiled(policy_steps, strict)
 
 
 def population_returns(system: System, pop: PolicyPopulation, x0: torch.Tensor, horizon: int, substeps: int,
@@ -376,7 +366,8 @@ class APGProblem:
     step: Callable
     takeover: "LQRTakeover | None"
     device: torch.device
-    steps: Callable | None = None    # config.compile_steps policy steps per compiled call (compile, steps > 1)
+    steps: Callable | None = None    # steps_per_call policy steps per compiled call (compile, steps_per_call > 1)
+    steps_per_call: int = 1          # config.compile_steps, or (None) :func:`policy_steps_per_call`
 
     @classmethod
     def build(cls, system: System, config: APGConfig, members: int) -> "APGProblem":
@@ -396,11 +387,14 @@ class APGProblem:
             pop = PolicyPopulation.build(kind, observation_size(system, config.observation), system.n_actions,
                                          system.action_limit, members=members, hidden=widths,
                                          init_std=config.init_std, dtype=dtype)
+        compiled = wants_compile(config.compile, config.total_policy_steps(members), APG_AUTO_COMPILE_MIN_STEPS)
+        strict = config.compile == "on"
+        per_call = policy_steps_per_call(int(round(ratio))) if config.compile_steps is None else config.compile_steps
         return cls(system, config, pop.to(device), dtype, float(period), int(round(ratio)),
-                   compiled_policy_step() if config.compile else policy_step,
+                   compiled_policy_step(strict) if compiled else policy_step,
                    LQRTakeover(system, dtype, device, decision_period=period) if config.takeover == "lqr" else None,
                    device,
-                   compiled_policy_steps() if config.compile and config.compile_steps > 1 else None)
+                   compiled_policy_steps(strict) if compiled and per_call > 1 else None, per_call)
 
     def starts(self, n: int, seed_words) -> torch.Tensor:
         """:func:`start_states` of this problem, on its device."""
@@ -471,7 +465,7 @@ def apg_iteration(problem: APGProblem, theta: torch.Tensor, x0: torch.Tensor, lr
     pop.from_flat(theta.to(problem.dtype))
     returns, x, h, sums, _ = population_returns(problem.system, pop, x0, horizon or cfg.horizon, problem.substeps,
                                                 cfg.observation, cfg.truncation, state, step=problem.step,
-                                                steps=problem.steps, steps_per_call=cfg.compile_steps,
+                                                steps=problem.steps, steps_per_call=problem.steps_per_call,
                                                 takeover=problem.takeover)
     member_return = returns.mean(1)
     grad = member_gradients(pop, -member_return).double()
@@ -556,7 +550,7 @@ def evaluate_members(problem: APGProblem, theta: torch.Tensor, x0: torch.Tensor)
     with torch.no_grad():
         returns, _, _, sums, _ = population_returns(problem.system, problem.pop, x0, cfg.horizon, problem.substeps,
                                                     cfg.observation, step=problem.step, takeover=problem.takeover,
-                                                    steps=problem.steps, steps_per_call=cfg.compile_steps)
+                                                    steps=problem.steps, steps_per_call=problem.steps_per_call)
     r = returns.mean(1).double()
     return torch.where(torch.isfinite(r), r, torch.full_like(r, -math.inf)), list(sums)
 
