@@ -46,7 +46,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/dynamics.py
 	$(BIN)/python benchmarks/mesh_dimension.py
 	$(BIN)/python benchmarks/mfpt.py
-	$(BIN)/python benchmarks/apg.py --compile
+	$(BIN)/python benchmarks/apg.py --compile --learner-epochs 3
 	$(BIN)/python benchmarks/finetune.py
 	$(BIN)/python benchmarks/training.py
 	$(BIN)/python benchmarks/mesh_scaling.py

@@ -5,6 +5,7 @@ Prints one JSON document.
 
     .venv/bin/python benchmarks/apg.py [--quick] [--horizon T] [--system NAME] [--dtype float32|float64] [--period S] [--compile]
                                        [--compile-steps S] [--repeats R] [--out FILE] [--threads N]
+                                       [--learner-epochs E]
 
 One APG iteration = the batched rollout of K members x N starts (the GRU policy of the thesis,
 one action held over the spec's swing-up period, i.e. ``substeps`` integrator steps) and one
@@ -150,6 +151,34 @@ def run(system_name: str = "acrobot", horizon: int = HORIZON, dtype: str = "floa
     }
 
 
+def learner_epochs(system_name: str, period: float, horizon: int, epochs: int, settle: bool = True) -> dict:
+    """Wall seconds of each epoch of the CE-APG learner itself (``hybridctl train ce-apg``: the thesis preset,
+    K 24, N 4, 100 APG iterations an epoch, compiled) on ``system_name`` with ``period`` s policy steps; the
+    first epoch includes compiling. ``settle`` False: without the training skeleton's freeze of what the
+    compile left for the garbage collector (:class:`hybridctl.systems.compiled.CompileGarbage`), the peer."""
+    import tempfile
+
+    from hybridctl.learn import APG, APGConfig
+    from hybridctl.systems import compiled
+
+    original = compiled.CompileGarbage.settle
+    if not settle:
+        compiled.CompileGarbage.settle = lambda self: None
+    try:
+        config = APGConfig.preset("thesis", method="ce-apg", control_period=period, horizon=horizon, epochs=epochs,
+                                  compile="on")
+        agent = APG(system_name, config)
+        with tempfile.TemporaryDirectory() as out:
+            agent.learn(out=out, progress=False)
+    finally:
+        compiled.CompileGarbage.settle = original
+    walls = [0.0] + [row["wall_time"] for row in agent.history]
+    per_epoch = [b - a for a, b in zip(walls, walls[1:])]
+    later = per_epoch[1:]
+    return {"epoch_s": per_epoch, "settle": settle, "apg_iterations": config.apg_iterations,
+            "median_epoch_s_after_the_first": statistics.median(later) if later else None}
+
+
 def main(argv=None) -> int:
     """Parse flags, run, print the JSON."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -167,13 +196,29 @@ def main(argv=None) -> int:
     parser.add_argument("--repeats", type=int, default=None, help="timed calls per measurement (default 3)")
     parser.add_argument("--out", type=Path, help="also write the JSON to this file")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    parser.add_argument("--learner-epochs", type=int, default=0,
+                        help="also time this many epochs of the CE-APG learner itself (thesis preset, compiled), with "
+                             "and without the freeze of compile garbage (default 0: not timed; make bench: 3)")
     args = parser.parse_args(argv)
     horizon = args.horizon if args.horizon is not None else (20 if args.quick else HORIZON)
     repeats = args.repeats if args.repeats is not None else (2 if args.quick else 3)
     if horizon < 1 or repeats < 1 or args.threads < 1 or args.compile_steps < 1 or not args.period > 0:
         parser.error("--horizon, --repeats, --threads and --compile-steps must be >= 1, --period > 0")
-    emit(run(args.system, horizon, args.dtype, repeats, args.threads, args.quick, args.period,
-             args.compile, args.compile_steps), args.out)
+    if args.learner_epochs < 0:
+        parser.error("--learner-epochs must be >= 0")
+    report = run(args.system, horizon, args.dtype, repeats, args.threads, args.quick, args.period,
+                 args.compile, args.compile_steps)
+    if args.learner_epochs:
+        eager_epoch = report["projection"]["ce_apg_epoch_s"]
+        timed = [learner_epochs(args.system, args.period, horizon, args.learner_epochs, settle)
+                 for settle in (True, False)]
+        report["learner"] = {"ce_apg_thesis_preset": timed, "eager_epoch_s_projected": eager_epoch,
+                             "note": "epoch_s[0] includes compiling; the thesis' aim here is <= 20 s an epoch"}
+        medians = [t["median_epoch_s_after_the_first"] for t in timed]
+        if None not in medians:
+            report["ratios"].update(learner_epoch_vs_eager=eager_epoch / medians[0],
+                                    learner_epoch_settle_vs_without=medians[1] / medians[0])
+    emit(report, args.out)
     return 0
 
 
