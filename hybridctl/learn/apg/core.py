@@ -387,14 +387,14 @@ class APGProblem:
             pop = PolicyPopulation.build(kind, observation_size(system, config.observation), system.n_actions,
                                          system.action_limit, members=members, hidden=widths,
                                          init_std=config.init_std, dtype=dtype)
-        compiled = wants_compile(config.compile, config.total_policy_steps(members), APG_AUTO_COMPILE_MIN_STEPS)
+        use_compile = wants_compile(config.compile, config.total_policy_steps(members), APG_AUTO_COMPILE_MIN_STEPS)
         strict = config.compile == "on"
         per_call = policy_steps_per_call(int(round(ratio))) if config.compile_steps is None else config.compile_steps
         return cls(system, config, pop.to(device), dtype, float(period), int(round(ratio)),
-                   compiled_policy_step(strict) if compiled else policy_step,
+                   compiled_policy_step(strict) if use_compile else policy_step,
                    LQRTakeover(system, dtype, device, decision_period=period) if config.takeover == "lqr" else None,
                    device,
-                   compiled_policy_steps(strict) if compiled and per_call > 1 else None, per_call)
+                   compiled_policy_steps(strict) if use_compile and per_call > 1 else None, per_call)
 
     def starts(self, n: int, seed_words) -> torch.Tensor:
         """:func:`start_states` of this problem, on its device."""
