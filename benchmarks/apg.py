@@ -32,7 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import torch  # noqa: E402
 
-from common import emit, machine_info  # noqa: E402
+from common import command_line, emit, machine_info  # noqa: E402
 from hybridctl import systems  # noqa: E402
 from hybridctl.learn.apg import (compiled_policy_step, compiled_policy_steps, member_gradients,  # noqa: E402
                                  observation_size, population_returns)
@@ -134,7 +134,7 @@ def run(system_name: str = "acrobot", horizon: int = HORIZON, dtype: str = "floa
     return {
         "benchmark": "apg",
         "timestamp": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-        "command": [sys.executable, *sys.argv],
+        "command": command_line(),
         "quick": quick,
         "machine": machine_info(),
         "setting": {"system": system.name, "population": POPULATION, "batch": BATCH, "horizon": horizon,

@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from common import emit, machine_info  # noqa: E402
+from common import command_line, emit, machine_info  # noqa: E402
 from hybridctl import systems  # noqa: E402
 
 ACROBOT_BATCHES = (1, 64, 4096)
@@ -345,7 +345,7 @@ def run(quick: bool = False, threads: int = 1) -> dict:
     report = {
         "benchmark": "dynamics",
         "timestamp": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-        "command": [sys.executable, *sys.argv],
+        "command": command_line(),
         "quick": quick,
         "machine": machine_info(),
         "method": {"timer": "time.perf_counter (wall clock); cpu_* fields: time.thread_time of the "

@@ -32,7 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import numpy as np  # noqa: E402
 
-from common import emit, machine_info  # noqa: E402
+from common import command_line, emit, machine_info  # noqa: E402
 from hybridctl.analysis import build_mesh  # noqa: E402
 from hybridctl.parallel import ProcessBackend  # noqa: E402
 
@@ -192,7 +192,7 @@ def run(quick: bool, workers: list[int], box_size: float, batch_size: int, figur
                                   f"{min(loads):.1f}-{max(loads):.1f} during the builds")
     return {"benchmark": "mesh_scaling",
             "timestamp": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-            "command": [sys.executable, *sys.argv], "quick": quick, "machine": machine_info(),
+            "command": command_line(), "quick": quick, "machine": machine_info(),
             "problem": {"name": problem["name"], "box_size": problem["box_size"], "batch_size": batch_size,
                         "seeds": int(np.atleast_2d(problem["seeds"]).shape[0]), "backend": "processes"},
             "builds": rows, "memory": memory, "projection": projection,
