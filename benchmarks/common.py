@@ -10,7 +10,7 @@ import os
 import sys
 from pathlib import Path
 
-from hybridctl.reproduce.common import emit, machine_info
+from hybridctl.reproduce.common import emit, machine_info, recorded_path
 
 __all__ = ["command_line", "emit", "machine_info"]
 
@@ -18,11 +18,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def command_line() -> list[str]:
-    """This process's command as a record keeps it: the interpreter relative to the repository root when it
-    lies inside it (``.venv/bin/python``), so no record holds this machine's absolute paths."""
-    interpreter = Path(sys.executable)
-    try:
-        shown = str(interpreter.relative_to(ROOT))
-    except ValueError:
-        shown = os.path.basename(sys.executable)
-    return [shown, *sys.argv]
+    """This process's command as a record keeps it: the interpreter as ``.venv/bin/python`` (its environment's
+    folder through :func:`~hybridctl.reproduce.common.recorded_path`, relative to the repository root), so no
+    record holds this machine's absolute paths. Not the interpreter's own path: a venv's ``python`` is a link
+    that resolves outside the repository."""
+    return [f"{recorded_path(sys.prefix, ROOT)}/bin/{os.path.basename(sys.executable)}", *sys.argv]

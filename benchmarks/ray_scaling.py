@@ -48,6 +48,10 @@ def _balance_map(workers: int, grid: int):
     return result.balanced.tolist(), result.returns.round(12).tolist()
 
 
+_ROUNDS: dict[int, dict] = {}
+"""Where the mesh's rounds ran (``ReachableMesh.rounds``) per worker count, filled by :func:`_mesh`."""
+
+
 def _mesh(workers: int, box: float):
     from hybridctl.analysis import build_mesh
     from hybridctl.analysis.poincare import GaussianDisturbance, RimlessWheel
@@ -58,9 +62,6 @@ def _mesh(workers: int, box: float):
     summary = {k: v for k, v in mesh.summary().items() if k != "wall_time_s"}
     _ROUNDS[workers] = dict(mesh.rounds)
     return np.asarray(mesh.states).round(12).tolist(), summary
-
-
-_ROUNDS: dict[int, dict] = {}
 
 
 def _finetune(workers: int, directions: int):
